@@ -1,0 +1,39 @@
+"""sphere_mech: global Lagrangian and Hamiltonian mechanics on (S^2)^n, derived by
+autodiff from a user's L or H and integrated with diffrax on the spheres."""
+
+from ._chain import ChainPendulum as ChainPendulum, chain_pendulum as chain_pendulum
+from ._checks import unit_tolerance as unit_tolerance
+from ._convert import (
+    angular as angular,
+    legendre as legendre,
+    mu_from_pi as mu_from_pi,
+    omega_from_qdot as omega_from_qdot,
+    pi_from_mu as pi_from_mu,
+    qdot_from_omega as qdot_from_omega,
+)
+from ._geometry import (
+    constraint_error as constraint_error,
+    hat as hat,
+    normalize as normalize,
+    project as project,
+    random_points as random_points,
+    random_state as random_state,
+    retract as retract,
+    rotate as rotate,
+    rotation_matrix as rotation_matrix,
+    sphere_exp as sphere_exp,
+    tangent_basis as tangent_basis,
+)
+from ._hamiltonian import AngularHamiltonian as AngularHamiltonian, Hamiltonian as Hamiltonian
+from ._inertia import (
+    AbstractConstantInertiaLagrangian as AbstractConstantInertiaLagrangian,
+    ConstantInertiaLagrangian as ConstantInertiaLagrangian,
+)
+from ._lagrangian import (
+    AbstractLagrangianSystem as AbstractLagrangianSystem,
+    AngularLagrangian as AngularLagrangian,
+    Lagrangian as Lagrangian,
+)
+from ._system import AbstractSystem as AbstractSystem
+
+__version__ = "0.1.0"

@@ -1,0 +1,117 @@
+"""Geometry of (S^2)^n: hat map, projections, tangent bases, exponential maps.
+
+Points are `(n, 3)` arrays of unit vectors; tangent vectors are `(n, 3)` arrays with
+`q_i . v_i = 0`. Every function here also accepts a single `(3,)` vector.
+"""
+
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+
+from ._custom_types import Points, Scalar, Tangents
+
+
+def hat(x: jax.Array) -> jax.Array:
+    """The hat map: `hat(x) @ y == cross(x, y)`. Shape `(..., 3) -> (..., 3, 3)`."""
+    x1, x2, x3 = x[..., 0], x[..., 1], x[..., 2]
+    z = jnp.zeros_like(x1)
+    rows = [
+        jnp.stack([z, -x3, x2], axis=-1),
+        jnp.stack([x3, z, -x1], axis=-1),
+        jnp.stack([-x2, x1, z], axis=-1),
+    ]
+    return jnp.stack(rows, axis=-2)
+
+
+def dot(a: jax.Array, b: jax.Array) -> jax.Array:
+    """Row-wise dot product, keeping the last axis: `(..., 3), (..., 3) -> (..., 1)`."""
+    return jnp.sum(a * b, axis=-1, keepdims=True)
+
+
+def normalize(q: jax.Array) -> jax.Array:
+    """Scale each row of `q` to unit length."""
+    return q / jnp.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def project(q: Points, v: jax.Array) -> Tangents:
+    """Remove from each `v_i` its component along `q_i`: `(I - q_i q_i^T) v_i` (unit `q`)."""
+    return v - dot(q, v) * q
+
+
+def retract(q: jax.Array, v: jax.Array) -> tuple[Points, Tangents]:
+    """Put a state back on the tangent bundle: normalize `q`, make `v` tangent to it."""
+    q = normalize(q)
+    return q, project(q, v)
+
+
+def tangent_basis(q: Points) -> jax.Array:
+    """An orthonormal basis of each tangent plane, `(n, 3) -> (n, 3, 2)`.
+
+    Uses the branch-free construction of Duff et al. (2017); columns `b1, b2` satisfy
+    `b1 x b2 = q_i`. `q` is normalized first, so points slightly off the sphere are fine.
+    """
+    q = normalize(q)
+    x, y, z = q[..., 0], q[..., 1], q[..., 2]
+    s = jnp.where(z >= 0, 1.0, -1.0).astype(q.dtype)
+    a = -1.0 / (s + z)
+    b = x * y * a
+    b1 = jnp.stack([1.0 + s * x * x * a, s * b, -s * x], axis=-1)
+    b2 = jnp.stack([b, s + y * y * a, -y], axis=-1)
+    return jnp.stack([b1, b2], axis=-1)
+
+
+def _sinc_and_cosc(theta2: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """`sin(t)/t` and `(1 - cos t)/t^2` as functions of `t^2`, smooth (and with smooth
+    derivatives) at zero."""
+    small = theta2 < 1e-4
+    safe2 = jnp.where(small, 1.0, theta2)
+    t = jnp.sqrt(safe2)
+    sinc = jnp.where(small, 1.0 - theta2 / 6.0 + theta2**2 / 120.0, jnp.sin(t) / t)
+    cosc = jnp.where(small, 0.5 - theta2 / 24.0 + theta2**2 / 720.0, (1.0 - jnp.cos(t)) / safe2)
+    return sinc, cosc
+
+
+def rotate(w: jax.Array, x: jax.Array) -> jax.Array:
+    """Apply the rotation `exp(hat(w_i))` to each `x_i` (Rodrigues' formula)."""
+    sinc, cosc = _sinc_and_cosc(jnp.sum(w * w, axis=-1, keepdims=True))
+    wx = jnp.cross(w, x)
+    return x + sinc * wx + cosc * jnp.cross(w, wx)
+
+
+def rotation_matrix(w: jax.Array) -> jax.Array:
+    """`exp(hat(w))` as a `(..., 3, 3)` rotation matrix."""
+    sinc, cosc = _sinc_and_cosc(jnp.sum(w * w, axis=-1))
+    W = hat(w)
+    eye = jnp.eye(3, dtype=w.dtype)
+    return eye + sinc[..., None, None] * W + cosc[..., None, None] * (W @ W)
+
+
+def sphere_exp(q: Points, v: Tangents) -> Points:
+    """The exponential map of the round sphere: follow the great circle from `q_i` with
+    initial velocity `v_i` (tangent) for unit time. Equals `rotate(cross(q, v), q)`."""
+    return rotate(jnp.cross(q, v), q)
+
+
+def constraint_error(q: jax.Array) -> Scalar:
+    """`max_i | |q_i| - 1 |`, the distance of a configuration from (S^2)^n."""
+    return jnp.max(jnp.abs(jnp.linalg.norm(q, axis=-1) - 1.0))
+
+
+def random_points(key: jax.Array, n: int, *, dtype=None) -> Points:
+    """`n` independent uniformly distributed points on the unit sphere, `(n, 3)`."""
+    return normalize(jr.normal(key, (n, 3), dtype=dtype))
+
+
+def random_state(
+    key: jax.Array, n: int, *, speed: float = 1.0, dtype=None
+) -> tuple[Points, Tangents]:
+    """A random state `(q, v)` on the tangent bundle of (S^2)^n.
+
+    `q` is uniform on each sphere; `v` is a Gaussian tangent vector with standard
+    deviation `speed` per tangent direction. `v` can equally be read as an angular
+    velocity (`q_i . omega_i = 0`) or a momentum.
+    """
+    kq, kv = jr.split(key)
+    q = random_points(kq, n, dtype=dtype)
+    v = project(q, speed * jr.normal(kv, (n, 3), dtype=dtype))
+    return q, v
