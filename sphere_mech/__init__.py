@@ -34,6 +34,14 @@ from ._lagrangian import (
     AngularLagrangian as AngularLagrangian,
     Lagrangian as Lagrangian,
 )
+from ._simulate import (
+    DEFAULT_MAX_STEPS as DEFAULT_MAX_STEPS,
+    DEFAULT_TOLERANCES as DEFAULT_TOLERANCES,
+    default_solver as default_solver,
+    simulate as simulate,
+)
+from ._solvers.projected import Projected as Projected
+from ._solvers.rk4 import RK4 as RK4
 from ._system import AbstractSystem as AbstractSystem
 
 __version__ = "0.1.0"

@@ -1,0 +1,1 @@
+"""Integrators on (S^2)^n, each a diffrax solver."""

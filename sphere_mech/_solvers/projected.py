@@ -1,0 +1,52 @@
+"""A wrapper that keeps any diffrax solver's state on the tangent bundle of (S^2)^n."""
+
+from diffrax import AbstractSolver, AbstractWrappedSolver
+
+from .._geometry import retract
+
+
+class Projected(AbstractWrappedSolver):
+    """Wraps any diffrax solver (explicit or implicit, adaptive or fixed-step) so that
+    after every step each `q_i` is renormalized and the second state variable (velocity,
+    angular velocity or momentum) has its normal part removed.
+
+    The projection moves the state by no more than the step's own local error, so the
+    order of the wrapped solver is kept; its error estimate, step-size control,
+    interpolation and `isinstance` checks (adaptive, implicit) pass through unchanged.
+    The state must be the pair `(q, v)` of `(n, 3)` arrays used throughout sphere_mech.
+    """
+
+    solver: AbstractSolver
+
+    @property
+    def term_structure(self):
+        return self.solver.term_structure
+
+    @property
+    def interpolation_cls(self):
+        return self.solver.interpolation_cls
+
+    @property
+    def term_compatible_contr_kwargs(self):
+        return self.solver.term_compatible_contr_kwargs
+
+    def order(self, terms):
+        return self.solver.order(terms)
+
+    def strong_order(self, terms):
+        return self.solver.strong_order(terms)
+
+    def error_order(self, terms):
+        return self.solver.error_order(terms)
+
+    def init(self, terms, t0, t1, y0, args):
+        return self.solver.init(terms, t0, t1, y0, args)
+
+    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+        y1, y_error, dense_info, solver_state, result = self.solver.step(
+            terms, t0, t1, y0, args, solver_state, made_jump
+        )
+        return retract(*y1), y_error, dense_info, solver_state, result
+
+    def func(self, terms, t0, y0, args):
+        return self.solver.func(terms, t0, y0, args)

@@ -1,0 +1,58 @@
+"""The classic fourth-order Runge-Kutta method as a diffrax solver."""
+
+from collections.abc import Callable
+from typing import ClassVar
+
+import jax.numpy as jnp
+import jax.tree_util as jtu
+from diffrax import (
+    RESULTS,
+    AbstractSolver,
+    AbstractTerm,
+    ThirdOrderHermitePolynomialInterpolation,
+)
+
+
+def axpy(y, *terms):
+    """`y + sum_i c_i k_i` over PyTrees, for `terms = ((c_1, k_1), (c_2, k_2), ...)`."""
+    leaves = [k for _, k in terms]
+    coeffs = [c for c, _ in terms]
+    return jtu.tree_map(lambda a, *ks: a + sum(c * k for c, k in zip(coeffs, ks)), y, *leaves)
+
+
+class RK4(AbstractSolver):
+    """The classic Runge-Kutta method of order 4: four vector-field evaluations per
+    step, fixed steps only (it has no error estimate), cubic Hermite dense output.
+
+    diffrax has no such solver; this one lets comparisons with MuJoCo's RK4 integrator
+    use the same method and the same number of force evaluations. Use it with
+    `diffrax.ConstantStepSize()` and a `dt0`, and wrap it in `sphere_mech.Projected` to
+    keep the state on the spheres.
+    """
+
+    term_structure: ClassVar = AbstractTerm
+    interpolation_cls: ClassVar[Callable[..., ThirdOrderHermitePolynomialInterpolation]] = (
+        ThirdOrderHermitePolynomialInterpolation.from_k
+    )
+
+    def order(self, terms):
+        return 4
+
+    def init(self, terms, t0, t1, y0, args):
+        return None
+
+    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+        del solver_state, made_jump
+        h = terms.contr(t0, t1)
+        tm = t0 + 0.5 * (t1 - t0)
+        k1 = terms.vf_prod(t0, y0, args, h)
+        k2 = terms.vf_prod(tm, axpy(y0, (0.5, k1)), args, h)
+        k3 = terms.vf_prod(tm, axpy(y0, (0.5, k2)), args, h)
+        k4 = terms.vf_prod(t1, axpy(y0, (1.0, k3)), args, h)
+        y1 = axpy(y0, (1 / 6, k1), (1 / 3, k2), (1 / 3, k3), (1 / 6, k4))
+        # Hermite dense output from the end-point slopes (k4 approximates f(t1, y1)).
+        k = jtu.tree_map(lambda a, b: jnp.stack([a, b]), k1, k4)
+        return y1, None, dict(y0=y0, y1=y1, k=k), None, RESULTS.successful
+
+    def func(self, terms, t0, y0, args):
+        return terms.vf(t0, y0, args)

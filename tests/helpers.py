@@ -1,0 +1,26 @@
+"""Shared test helpers."""
+
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import numpy as np
+
+
+def tree_allclose(x, y, *, rtol=1e-5, atol=1e-8):
+    """Whether two PyTrees have the same structure and allclose leaves."""
+    if jtu.tree_structure(x) != jtu.tree_structure(y):
+        return False
+    return all(
+        jnp.shape(a) == jnp.shape(b) and bool(jnp.allclose(a, b, rtol=rtol, atol=atol))
+        for a, b in zip(jtu.tree_leaves(x), jtu.tree_leaves(y))
+    )
+
+
+def max_rel_error(x, y):
+    """`max |x - y| / max |y|` (relative error in the max norm)."""
+    x, y = np.asarray(x), np.asarray(y)
+    return float(np.max(np.abs(x - y)) / max(np.max(np.abs(y)), 1e-300))
+
+
+def fitted_order(step_sizes, errors):
+    """Slope of log(error) against log(step size): the measured order of convergence."""
+    return float(np.polyfit(np.log(step_sizes), np.log(errors), 1)[0])
