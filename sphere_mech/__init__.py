@@ -34,6 +34,41 @@ from ._lagrangian import (
     AngularLagrangian as AngularLagrangian,
     Lagrangian as Lagrangian,
 )
+from ._scene.base import (
+    AbstractEffect as AbstractEffect,
+    AbstractForce as AbstractForce,
+    AbstractKinetic as AbstractKinetic,
+    AbstractPotential as AbstractPotential,
+)
+from ._scene.files import (
+    SceneFileError as SceneFileError,
+    SceneSpec as SceneSpec,
+    load_scene as load_scene,
+)
+from ._scene.forces import (
+    BaseTorque as BaseTorque,
+    JointDamping as JointDamping,
+    PDTorque as PDTorque,
+    TipForce as TipForce,
+    VibratingSupport as VibratingSupport,
+)
+from ._scene.kinetic import (
+    Chain as Chain,
+    Particles as Particles,
+    SharedSphere as SharedSphere,
+)
+from ._scene.potentials import (
+    Bending as Bending,
+    Gravity as Gravity,
+    PairInteraction as PairInteraction,
+    Spring as Spring,
+)
+from ._scene.report import (
+    SceneResult as SceneResult,
+    run_scene as run_scene,
+    work_energy_balance as work_energy_balance,
+)
+from ._scene.scene import Scene as Scene
 from ._simulate import (
     DEFAULT_MAX_STEPS as DEFAULT_MAX_STEPS,
     DEFAULT_TOLERANCES as DEFAULT_TOLERANCES,

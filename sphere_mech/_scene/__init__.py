@@ -1,0 +1,1 @@
+"""Scenes: a mechanical system assembled from exactly the effects it lists."""
