@@ -75,6 +75,7 @@ from ._simulate import (
     default_solver as default_solver,
     simulate as simulate,
 )
+from ._solvers.liegroup import LieRK4 as LieRK4
 from ._solvers.projected import Projected as Projected
 from ._solvers.rk4 import RK4 as RK4
 from ._system import AbstractSystem as AbstractSystem

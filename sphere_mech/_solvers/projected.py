@@ -1,8 +1,18 @@
 """A wrapper that keeps any diffrax solver's state on the tangent bundle of (S^2)^n."""
 
-from diffrax import AbstractSolver, AbstractWrappedSolver
+import jax.numpy as jnp
+import jax.tree_util as jtu
+from diffrax import RESULTS, AbstractSolver, AbstractWrappedSolver
 
 from .._geometry import retract
+
+
+def flag_nonfinite(y, result):
+    """`RESULTS.nonfinite` if the new state has a NaN or infinity (and the step had not
+    failed already). An adaptive controller rejects such a step and retries a smaller
+    one (its error estimate is then infinite); with fixed steps the run stops there."""
+    finite = jnp.all(jnp.array([jnp.all(jnp.isfinite(x)) for x in jtu.tree_leaves(y)]))
+    return RESULTS.where(finite | (result != RESULTS.successful), result, RESULTS.nonfinite)
 
 
 class Projected(AbstractWrappedSolver):
@@ -11,8 +21,15 @@ class Projected(AbstractWrappedSolver):
     angular velocity or momentum) has its normal part removed.
 
     The projection moves the state by no more than the step's own local error, so the
-    order of the wrapped solver is kept; its error estimate, step-size control,
-    interpolation and `isinstance` checks (adaptive, implicit) pass through unchanged.
+    order of the wrapped solver is kept (measured in tests/test_solvers.py); its error
+    estimate, step-size control, interpolation and `isinstance` checks (adaptive,
+    implicit) pass through unchanged. Dense output is the wrapped solver's polynomial,
+    which leaves the spheres by the local error (`simulate` retracts saved states).
+    First-same-as-last solvers (Tsit5, Dopri5, Dopri8, Kvaerno5) reuse the vector field
+    at the unprojected end point; it differs from the one at the projected point by the
+    local error times a Lipschitz constant, which does not change the order.
+
+    A step whose result is not finite returns `RESULTS.nonfinite`.
     The state must be the pair `(q, v)` of `(n, 3)` arrays used throughout sphere_mech.
     """
 
@@ -30,6 +47,23 @@ class Projected(AbstractWrappedSolver):
     def term_compatible_contr_kwargs(self):
         return self.solver.term_compatible_contr_kwargs
 
+    @property
+    def root_finder(self):
+        """The wrapped implicit solver's root finder: `diffrax.diffeqsolve` reads (and
+        fills in) its tolerances on any solver that is an `AbstractImplicitSolver`, which
+        `Projected(Kvaerno5())` is by forwarding."""
+        return self.solver.root_finder
+
+    @property
+    def root_find_max_steps(self):
+        return self.solver.root_find_max_steps
+
+    @property
+    def scan_kind(self):
+        """The wrapped Runge-Kutta method's `scan_kind`: `diffrax.ForwardMode` reads it
+        (and sets it to "lax" through this property) so that forward mode works."""
+        return self.solver.scan_kind
+
     def order(self, terms):
         return self.solver.order(terms)
 
@@ -43,10 +77,15 @@ class Projected(AbstractWrappedSolver):
         return self.solver.init(terms, t0, t1, y0, args)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+        if not (isinstance(y0, tuple) and len(y0) == 2):
+            raise ValueError(
+                "Projected integrates states y = (q, v) of two (n, 3) arrays, got a "
+                f"{type(y0).__name__}."
+            )
         y1, y_error, dense_info, solver_state, result = self.solver.step(
             terms, t0, t1, y0, args, solver_state, made_jump
         )
-        return retract(*y1), y_error, dense_info, solver_state, result
+        return retract(*y1), y_error, dense_info, solver_state, flag_nonfinite(y1, result)
 
     def func(self, terms, t0, y0, args):
         return self.solver.func(terms, t0, y0, args)
