@@ -1,0 +1,298 @@
+"""Scenes: each effect against an independent check (statics, small oscillations,
+energy identities, closed forms), the Kapitza pendulum, the work-energy balance, and the
+evidence that a scene compiles only the effects it lists."""
+
+from pathlib import Path
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import sphere_mech as sm
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+E3 = jnp.array([0.0, 0.0, 1.0])
+
+
+@eqx.filter_jit
+def at_rest_acceleration(scene, q, t=0.0):
+    return scene.acceleration(t, jnp.asarray(q), jnp.zeros_like(jnp.asarray(q)))
+
+
+def unit(x):
+    x = jnp.asarray(x, dtype=float)
+    return x / jnp.linalg.norm(x)
+
+
+# ---- kinetic terms ---------------------------------------------------------------------
+
+def test_chain_matches_chain_pendulum(getkey):
+    """Scene(Chain, Gravity, BaseTorque, TipForce) == the independent ChainPendulum."""
+    m, l = jnp.array([1.0, 2.0, 0.5]), jnp.array([1.0, 0.7, 1.3])
+    tau, d = jnp.array([0.1, 0.2, -0.4]), jnp.array([0.3, -0.2, 0.1])
+    q, qdot = sm.random_state(getkey(), 3)
+    scene = sm.Scene(sm.Chain(m, l), sm.Gravity(9.81), sm.BaseTorque(tau), sm.TipForce(d))
+    chain = sm.chain_pendulum(m, l, 9.81, torque=tau, tip_force=d)
+    np.testing.assert_allclose(scene.acceleration(0.0, q, qdot), chain.acceleration(0.0, q, qdot),
+                               rtol=0, atol=1e-12)
+    np.testing.assert_allclose(scene.energy(0.0, q, qdot), chain.energy(0.0, q, qdot), rtol=1e-14)
+    np.testing.assert_allclose(scene.positions(q), chain.positions(q), atol=1e-15)
+
+
+@pytest.mark.parametrize("kind", ["chain", "particles", "shared"])
+def test_kinetic_energy_identity(kind, getkey):
+    """T = 1/2 sum m_i |xdot_i|^2 with xdot from autodiff of the positions."""
+    q, qdot = sm.random_state(getkey(), 3)
+    m = jnp.array([1.0, 2.0, 0.5])
+    kinetic = {
+        "chain": sm.Chain(m, [0.5, 1.0, 2.0], base=[1.0, 0.0, 2.0]),
+        "particles": sm.Particles(m, [0.5, 1.0, 2.0], centers=jnp.ones((3, 3))),
+        "shared": sm.SharedSphere(m, 1.7, center=[0.0, 1.0, 0.0]),
+    }[kind]
+    scene = sm.Scene(kinetic)
+    _, xdot = jax.jvp(scene.positions, (q,), (qdot,))
+    expected = 0.5 * jnp.sum(m * jnp.sum(xdot**2, axis=-1))
+    np.testing.assert_allclose(scene.energy(0.0, q, qdot), expected, rtol=1e-13)
+
+
+def test_particle_on_sphere_is_a_pendulum_of_length_r():
+    """At rest at angle theta from the bottom: tangential acceleration (g/r) sin(theta)."""
+    r, g, theta = 0.4, 9.81, 0.3
+    scene = sm.Scene(sm.Particles([2.0], [r], centers=[[1.0, 2.0, 3.0]]), sm.Gravity(g))
+    q = jnp.array([[np.sin(theta), 0.0, -np.cos(theta)]])
+    a = at_rest_acceleration(scene, q)[0]
+    tangent_down = jnp.array([-np.cos(theta), 0.0, -np.sin(theta)])
+    np.testing.assert_allclose(a, g / r * np.sin(theta) * tangent_down, atol=1e-13)
+
+
+# ---- potentials ------------------------------------------------------------------------
+
+def test_gravity_any_direction_statics():
+    d = unit([1.0, -2.0, 0.5])
+    scene = sm.Scene(sm.Chain([1.5], [0.8]), sm.Gravity(3.0, d))
+    np.testing.assert_allclose(at_rest_acceleration(scene, d[None]), 0.0, atol=1e-13)
+    # at angle theta from d the angular acceleration is (g/l) sin(theta)
+    e = unit(jnp.cross(d, jnp.array([0.0, 0.0, 1.0])))
+    theta = 0.7
+    q = (np.cos(theta) * d + np.sin(theta) * e)[None]
+    a = at_rest_acceleration(scene, q)[0]
+    np.testing.assert_allclose(jnp.linalg.norm(a), 3.0 / 0.8 * np.sin(theta), rtol=1e-13)
+
+
+def test_spring_statics_closed_form():
+    """Zero-rest-length spring to an anchor A plus gravity on a particle of radius r:
+    U = -r q . (k A - m g e3) + const, so the equilibrium is q* = unit(k A - m g e3)."""
+    k, m, g, r, A = 5.0, 0.3, 9.81, 0.6, jnp.array([1.0, 0.5, 0.2])
+    scene = sm.Scene(sm.Particles([m], [r]), sm.Gravity(g), sm.Spring(0, A, k))
+    q_star = unit(k * A - m * g * E3)[None]
+    np.testing.assert_allclose(at_rest_acceleration(scene, q_star), 0.0, atol=1e-12)
+    # and a spring with rest length between two masses: U = k/2 (d - L0)^2
+    two = sm.Scene(sm.Particles([1.0, 1.0], [1.0, 2.0], centers=[[0, 0, 0], [3.0, 0, 0]]),
+                   sm.Spring(0, 1, 4.0, rest_length=0.5))
+    q = jnp.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    d = np.linalg.norm(np.array([1.0, 0, 0]) - np.array([3.0, 2.0, 0]))
+    np.testing.assert_allclose(two.potential(0.0, q), 2.0 * (d - 0.5) ** 2, rtol=1e-14)
+
+
+def test_bending_relative_mode_frequency():
+    """Two links in zero gravity with bending stiffness k: the relative mode oscillates
+    with omega^2 = k u^T M^{-1} u, u = (1, -1), M the planar inertia (numpy, not
+    sphere_mech). Released bent by 1e-3 rad at rest, the bend is reversed after half a
+    period and restored after a full period."""
+    m, l, k, eps = np.array([1.0, 0.5]), np.array([1.0, 0.6]), 2.0, 1e-3
+    M = np.array([[(m[0] + m[1]) * l[0] ** 2, m[1] * l[0] * l[1]],
+                  [m[1] * l[0] * l[1], m[1] * l[1] ** 2]])
+    u = np.array([1.0, -1.0])
+    period = 2 * np.pi / np.sqrt(k * u @ np.linalg.solve(M, u))
+    scene = sm.Scene(sm.Chain(m, l), sm.Bending(k))
+    q0 = jnp.array([[1.0, 0.0, 0.0], [np.cos(eps), np.sin(eps), 0.0]])
+    ts = jnp.array([0.0, 0.5 * period, period])
+    sol = sm.simulate(scene, (q0, jnp.zeros_like(q0)), period, saveat=diffrax.SaveAt(ts=ts),
+                      rtol=1e-11, atol=1e-13)
+    q = sol.ys[0]
+    bend = np.arcsin(np.cross(q[:, 0], q[:, 1])[:, 2])
+    np.testing.assert_allclose(bend, [eps, -eps, eps], rtol=0, atol=2e-3 * eps)
+
+
+def test_pair_interaction_beads_settle_to_tetrahedron(getkey):
+    """Four repelling charges with drag on a sphere of radius R relax to a regular
+    tetrahedron: U = 6 k / (R sqrt(8/3)) (Thomson problem, N = 4)."""
+    R, k = 1.5, 0.7
+    scene = sm.Scene(sm.SharedSphere(jnp.ones(4), R), sm.PairInteraction(k),
+                     sm.JointDamping(1.0))
+    q0 = sm.random_points(getkey(), 4)
+    sol = sm.simulate(scene, (q0, jnp.zeros_like(q0)), 40.0)
+    q = sol.ys[0][-1]
+    np.testing.assert_allclose(scene.potential(0.0, q), 6 * k / (R * np.sqrt(8 / 3)), rtol=1e-7)
+    gram = q @ q.T
+    np.testing.assert_allclose(gram[np.triu_indices(4, 1)], -1.0 / 3.0, atol=1e-3)
+
+
+# ---- forces ----------------------------------------------------------------------------
+
+def test_joint_damping_power_closed_form(getkey):
+    """Power of joint damping = -c sum_i |omega_i - omega_{i-1}|^2 (omega_0 = 0)."""
+    q, qdot = sm.random_state(getkey(), 3)
+    c = 0.37
+    scene = sm.Scene(sm.Chain(jnp.ones(3), jnp.ones(3)), sm.JointDamping(c))
+    w = np.cross(np.asarray(q), np.asarray(qdot))
+    rel = w - np.concatenate([np.zeros((1, 3)), w[:-1]])
+    np.testing.assert_allclose(scene.power(0.0, q, qdot, None), -c * np.sum(rel**2), rtol=1e-13)
+
+
+def test_base_torque_statics():
+    """Constant torque tau e_y on a pendulum: equilibrium at sin(theta) = tau / (m g l),
+    q* = (-sin theta, 0, -cos theta). A PD torque toward d: q* = unit(kp d - m g l e3)."""
+    m, g, l, tau = 0.5, 9.81, 1.2, 2.0
+    s = tau / (m * g * l)
+    scene = sm.Scene(sm.Chain([m], [l]), sm.Gravity(g), sm.BaseTorque(jnp.array([0, tau, 0])))
+    q_star = jnp.array([[-s, 0.0, -np.sqrt(1 - s**2)]])
+    np.testing.assert_allclose(at_rest_acceleration(scene, q_star), 0.0, atol=1e-12)
+    d, kp = unit([1.0, 1.0, 0.0]), 8.0
+    pd = sm.Scene(sm.Chain([m], [l]), sm.Gravity(g), sm.BaseTorque(sm.PDTorque(kp, 1.0, d)))
+    q_star = unit(kp * d - m * g * l * E3)[None]
+    np.testing.assert_allclose(at_rest_acceleration(pd, q_star), 0.0, atol=1e-12)
+
+
+def test_tip_force_statics():
+    """Two-link chain with gravity and a tip force F: each link points along the force
+    it carries, q2* = unit(F - m2 g e3), q1* = unit(F - (m1 + m2) g e3)."""
+    m, g, F = jnp.array([1.0, 0.4]), 9.81, jnp.array([3.0, -1.0, 0.5])
+    scene = sm.Scene(sm.Chain(m, [1.0, 0.5]), sm.Gravity(g), sm.TipForce(F))
+    q_star = jnp.stack([unit(F - (m[0] + m[1]) * g * E3), unit(F - m[1] * g * E3)])
+    np.testing.assert_allclose(at_rest_acceleration(scene, q_star), 0.0, atol=1e-12)
+
+
+def test_vibrating_support_force_closed_form(getkey):
+    """Single link: f = -m l s''(t), s''(t) = -a w^2 cos(w t) dir."""
+    q, qdot = sm.random_state(getkey(), 1)
+    a, w, m, l, t = 0.02, 50.0, 0.3, 0.7, 0.123
+    direction = unit([0.0, 1.0, 1.0])
+    scene = sm.Scene(sm.Chain([m], [l]), sm.VibratingSupport(a, w, direction))
+    expected = m * l * a * w**2 * np.cos(w * t) * direction
+    np.testing.assert_allclose(scene.generalized_force(t, q, qdot)[0], expected, rtol=1e-13)
+
+
+# ---- the Kapitza pendulum --------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def kapitza():
+    return sm.load_scene(EXAMPLES / "kapitza.toml")
+
+
+def _polar_deg(q):
+    return np.degrees(np.arccos(np.clip(np.asarray(q)[..., 0, 2], -1, 1)))
+
+
+def test_kapitza_documented_parameters(kapitza):
+    """The file's parameters satisfy the documented criterion a^2 w^2 > 2 g l."""
+    chain, gravity, support = kapitza.scene.effects
+    a, w = float(support.amplitude), float(support.angular_frequency)
+    assert a**2 * w**2 > 2 * float(gravity.g) * float(chain.lengths[0])
+
+
+def test_kapitza_stays_inverted_and_falls_without_vibration(kapitza):
+    ts = jnp.linspace(0.0, 1.5, 301)
+    kw = dict(saveat=diffrax.SaveAt(ts=ts), rtol=1e-8, atol=1e-10)
+    sol = sm.simulate(kapitza.scene, kapitza.y0, 1.5, **kw)
+    assert np.max(_polar_deg(sol.ys[0])) < 25.0  # started at 15 degrees from upright
+    chain, gravity, _ = kapitza.scene.effects
+    still = sm.Scene(chain, gravity)
+    sol = sm.simulate(still, kapitza.y0, 1.5, **kw)
+    assert np.max(_polar_deg(sol.ys[0])) > 150.0  # fell through the bottom
+
+
+# ---- energy bookkeeping -------------------------------------------------------------------
+
+def test_work_energy_balance_of_a_driven_damped_chain(getkey):
+    """With damping, a PD torque and a time-dependent tip force, E changes by O(1) but
+    E - E(0) - int power dt stays at the integration tolerance."""
+    scene = sm.Scene(
+        sm.Chain([1.0, 0.5], [1.0, 0.8]), sm.Gravity(), sm.JointDamping(0.2),
+        sm.BaseTorque(sm.PDTorque(5.0, 0.5, unit([1.0, 0.0, 0.3]))),
+        sm.TipForce(lambda t, q, v, args: jnp.array([jnp.sin(3 * t), 0.0, 0.0])),
+    )
+    q0, v0 = sm.random_state(getkey(), 2)
+    saveat = diffrax.SaveAt(t0=True, steps=True)
+    sol = sm.simulate(scene, (q0, v0), 3.0, saveat=saveat, rtol=1e-10, atol=1e-12)
+    keep = np.isfinite(np.asarray(sol.ts))
+    ts, q, v = (np.asarray(a)[keep] for a in (sol.ts, *sol.ys))
+    energy, W, balance = sm.work_energy_balance(scene, ts, q, v)
+    assert np.max(np.abs(energy - energy[0])) > 1.0
+    assert np.max(np.abs(balance)) < 1e-7 * np.max(np.abs(energy))
+
+
+def test_effect_parameters_are_differentiable_and_vmappable(getkey):
+    q, qdot = sm.random_state(getkey(), 2)
+
+    @jax.jit
+    def accel(g, c):
+        scene = sm.Scene(sm.Chain([1.0, 1.0], [1.0, 1.0]), sm.Gravity(g), sm.JointDamping(c))
+        return scene.acceleration(0.0, q, qdot)
+
+    batched = jax.vmap(accel)(jnp.array([1.0, 9.81]), jnp.array([0.0, 0.5]))
+    np.testing.assert_allclose(batched[1], accel(9.81, 0.5), atol=1e-14)
+    grad = jax.grad(lambda g: jnp.sum(accel(g, 0.5) ** 2))(9.81)
+    eps = 1e-6
+    fd = (jnp.sum(accel(9.81 + eps, 0.5) ** 2) - jnp.sum(accel(9.81 - eps, 0.5) ** 2)) / (2 * eps)
+    np.testing.assert_allclose(grad, fd, rtol=1e-6)
+
+
+# ---- only what is called for --------------------------------------------------------------
+
+def _equations(jaxpr):
+    """All equations of a jaxpr, including those of nested jaxprs (pjit, custom_jvp...)."""
+    for eqn in jaxpr.eqns:
+        yield eqn
+        for param in eqn.params.values():
+            for sub in param if isinstance(param, list | tuple) else [param]:
+                inner = getattr(sub, "jaxpr", sub)
+                if hasattr(inner, "eqns"):
+                    yield from _equations(inner)
+
+
+def _vector_field_jaxpr(scene, n):
+    q = jnp.tile(jnp.array([[0.0, 0.6, -0.8]]), (n, 1))
+    y = (q, jnp.zeros_like(q).at[:, 0].set(1.0))
+    return jax.make_jaxpr(lambda t, y: scene.rates(t, y, None))(0.0, y).jaxpr
+
+
+def test_absent_effects_add_no_operation():
+    chain = sm.Chain(jnp.ones(4), jnp.ones(4))
+    gravity_only = sm.Scene(chain, sm.Gravity())
+    driven = sm.Scene(chain, sm.Gravity(), sm.JointDamping(0.1),
+                      sm.BaseTorque(sm.PDTorque(2.0, 0.5)))
+    small = list(_equations(_vector_field_jaxpr(gravity_only, 4)))
+    large = list(_equations(_vector_field_jaxpr(driven, 4)))
+    assert len(small) < len(large)
+    stacks = lambda eqns: " ".join(str(e.source_info.name_stack) for e in eqns)
+    assert "Gravity" in stacks(small) and "Gravity" in stacks(large)
+    for absent in ("JointDamping", "BaseTorque"):
+        assert absent not in stacks(small)
+        assert absent in stacks(large)
+    # at the top level the difference is exactly the equations tagged with the two force
+    # effects, plus the few that sum f into the right-hand side
+    top_small = _vector_field_jaxpr(gravity_only, 4).eqns
+    top_large = _vector_field_jaxpr(driven, 4).eqns
+    tagged = [e for e in top_large if any(n in str(e.source_info.name_stack)
+                                          for n in ("JointDamping", "BaseTorque"))]
+    assert len(top_small) + len(tagged) <= len(top_large) <= len(top_small) + len(tagged) + 4
+    assert not sm.Scene(chain, sm.Gravity()).has_forces
+    assert gravity_only.generalized_force(0.0, *_state(4)) is None
+
+
+def _state(n):
+    q = jnp.tile(jnp.array([[0.0, 0.6, -0.8]]), (n, 1))
+    return q, jnp.zeros_like(q)
+
+
+def test_scene_rejects_bad_structure():
+    with pytest.raises(ValueError, match="kinetic term"):
+        sm.Scene(sm.Gravity())
+    with pytest.raises(ValueError, match="masses and lengths"):
+        sm.Chain([1.0, 2.0], [1.0])
+    with pytest.raises(ValueError, match="effects"):
+        sm.Scene(sm.Chain([1.0], [1.0]), "gravity")
