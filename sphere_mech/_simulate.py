@@ -175,8 +175,9 @@ def simulate(
     meter = diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter()
     saveat = diffrax.SaveAt(t1=True) if saveat is None else saveat
     adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
-    t0, t1 = _as_time(t0), _as_time(t1)
-    dt0 = None if dt0 is None else _as_time(dt0)
+    dtype = y0[0].dtype
+    t0, t1 = _as_time(t0, dtype), _as_time(t1, dtype)
+    dt0 = None if dt0 is None else _as_time(dt0, dtype)
     sol = _solve(system, y0, t0, t1, args, solver, dt0, controller, saveat, max_steps,
                  meter, adjoint)
     sol = _flag_nonfinite(sol)
@@ -185,10 +186,11 @@ def simulate(
     return _retract_saved(sol, saveat)
 
 
-def _as_time(t):
-    """Times as arrays of the default float dtype (float64 with x64), so that a new value
-    of `t0`, `t1` or `dt0` does not trigger a new compilation."""
-    return jnp.asarray(t, dtype=jnp.result_type(float))
+def _as_time(t, dtype):
+    """Times as arrays of the state's dtype, so that a new value of `t0`, `t1` or `dt0`
+    does not trigger a new compilation (and float64 times do not promote a float32
+    state)."""
+    return jnp.asarray(t, dtype=dtype)
 
 
 def _flag_nonfinite(sol: diffrax.Solution) -> diffrax.Solution:

@@ -1,0 +1,186 @@
+"""`simulate`: composition with jit / vmap / grad, the four forms, float32, progress bar,
+failure reporting (max_steps, NaN, Newton) with and without `throw`."""
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import sphere_mech as sm
+
+from helpers import max_rel_error, tree_allclose
+
+
+def double_pendulum(t, q, qdot, g):
+    """Unit masses, lengths 1 and 0.8; gravity `g` is the `args`."""
+    x1, x2 = q[0], q[0] + 0.8 * q[1]
+    v1, v2 = qdot[0], qdot[0] + 0.8 * qdot[1]
+    return 0.5 * (v1 @ v1 + v2 @ v2) - g * (x1[2] + x2[2])
+
+
+SYSTEM = sm.Lagrangian(double_pendulum, quadratic_in_velocity=True)
+G = jnp.asarray(9.81)
+Q0 = sm.normalize(jnp.array([[1.0, 0.0, -1.0], [0.0, 1.0, -0.5]]))
+V0 = sm.project(Q0, jnp.array([[0.0, 1.5, 0.0], [1.5, 0.0, 0.3]]))
+T1 = 1.0
+TS = jnp.linspace(0.0, T1, 5)
+SAVEAT = diffrax.SaveAt(ts=TS)
+
+
+def run(y0, g=G, **kwargs):
+    return sm.simulate(SYSTEM, y0, T1, args=g, saveat=SAVEAT, **kwargs)
+
+
+@pytest.fixture(scope="module")
+def eager():
+    return run((Q0, V0))
+
+
+def test_default_run(eager):
+    q, v = eager.ys
+    assert q.shape == v.shape == (5, 2, 3)
+    assert eager.result == diffrax.RESULTS.successful
+    assert float(sm.constraint_error(q)) < 1e-14
+    energy = jax.vmap(SYSTEM.energy, (None, 0, 0, None))(0.0, q, v, G)
+    assert float(jnp.max(jnp.abs(energy - energy[0]))) < 1e-7
+
+
+def test_jit(eager):
+    ys = jax.jit(lambda y0, g: run(y0, g).ys)((Q0, V0), G)
+    assert tree_allclose(ys, eager.ys, rtol=1e-12, atol=1e-12)
+
+
+def test_vmap_over_initial_conditions(eager):
+    keys = jax.random.split(jax.random.PRNGKey(0), 2)
+    q_b, v_b = jax.vmap(lambda k: sm.random_state(k, 2))(keys)
+    q_b, v_b = jnp.concatenate([Q0[None], q_b]), jnp.concatenate([V0[None], v_b])
+    ys = jax.vmap(lambda q, v: run((q, v)).ys)(q_b, v_b)
+    assert ys[0].shape == (3, 5, 2, 3)
+    # Batched adaptive runs take the union of steps, so agree to the tolerance.
+    assert max_rel_error(ys[0][0], eager.ys[0]) < 1e-7
+    assert float(sm.constraint_error(ys[0])) < 1e-14
+
+
+def test_grad_wrt_args_and_initial_state():
+    """Reverse mode through fixed steps of Projected(RK4) against central differences
+    of the same discrete map (relative 1e-6), for `args` and along tangent directions
+    of the initial state. One compilation (`value_and_grad` gives the values too)."""
+
+    @eqx.filter_jit
+    @jax.value_and_grad
+    def loss(inputs):
+        (q0, v0), g = inputs
+        sol = sm.simulate(SYSTEM, (q0, v0), 0.5, args=g, solver=sm.Projected(sm.RK4()),
+                          dt0=0.01, max_steps=64)
+        q, v = sol.ys
+        return jnp.sum(q[-1, 1] * jnp.array([0.3, -1.0, 2.0])) + jnp.sum(v[-1] ** 2)
+
+    _, ((gq, gv), gg) = loss(((Q0, V0), G))
+    dq = sm.project(Q0, jnp.array([[0.0, 0.3, -0.2], [0.5, 0.0, 0.1]]))
+    dv = sm.project(Q0, jnp.array([[0.2, 0.0, 0.0], [0.0, -0.1, 0.4]]))
+    eps = 1e-6
+    checks = [
+        (gg, ((Q0, V0), G + eps), ((Q0, V0), G - eps)),
+        (jnp.sum(gq * dq), ((sm.normalize(Q0 + eps * dq), V0), G),
+         ((sm.normalize(Q0 - eps * dq), V0), G)),
+        (jnp.sum(gv * dv), ((Q0, V0 + eps * dv), G), ((Q0, V0 - eps * dv), G)),
+    ]
+    for derivative, plus, minus in checks:
+        fd = (loss(plus)[0] - loss(minus)[0]) / (2 * eps)
+        assert abs(float(derivative) - float(fd)) < 1e-6 * abs(float(fd)), (derivative, fd)
+
+
+def test_four_forms_give_the_same_trajectory(eager):
+    omega0 = sm.omega_from_qdot(Q0, V0)
+    mu0 = SYSTEM.momentum(0.0, Q0, V0, G)
+    pi0 = sm.pi_from_mu(Q0, mu0)
+    forms = [
+        (sm.angular(SYSTEM), omega0),
+        (sm.legendre(SYSTEM), mu0),
+        (sm.legendre(sm.angular(SYSTEM)), pi0),
+    ]
+    q_ref, qdot_ref = eager.ys
+    for system, v0 in forms:
+        sol = sm.simulate(system, (Q0, v0), T1, args=G, saveat=SAVEAT)
+        q, v = sol.ys
+        qdot = jax.vmap(system.velocity, (None, 0, 0, None))(0.0, q, v, G)
+        assert max_rel_error(q, q_ref) < 1e-7, type(system)
+        assert max_rel_error(qdot, qdot_ref) < 1e-7, type(system)
+
+
+def test_float32_with_progress_bar(eager, capfd):
+    q0, v0 = Q0.astype(jnp.float32), V0.astype(jnp.float32)
+    saveat = diffrax.SaveAt(ts=TS.astype(jnp.float32))  # float64 times would promote
+    sol = sm.simulate(SYSTEM, (q0, v0), T1, args=jnp.float32(9.81), saveat=saveat,
+                      progress=True)
+    q, v = sol.ys
+    assert q.dtype == v.dtype == jnp.float32
+    assert float(sm.constraint_error(q)) < 1e-6
+    # Default float32 tolerances are rtol=1e-5, atol=1e-6.
+    assert max_rel_error(q, eager.ys[0]) < 1e-3
+    assert "100.00%" in capfd.readouterr().err  # tqdm's bar reached the end
+
+
+def singular(t, q, qdot, args):
+    """A pendulum pulled down by a force that is NaN below z = -0.5 (sqrt)."""
+    return 0.5 * jnp.sum(qdot**2) - 9.81 * q[0, 2] + jnp.sqrt(q[0, 2] + 0.5)
+
+
+Y_SINGULAR = (jnp.array([[1.0, 0.0, 0.0]]), jnp.array([[0.0, 0.3, 0.0]]))
+
+
+def _check_partial_trajectory(sol):
+    """The saved states before the failure are finite (and on the spheres), the later
+    ones are diffrax's `inf` padding."""
+    q = np.asarray(sol.ys[0])
+    reached = np.all(np.isfinite(q), axis=(1, 2))
+    assert reached[0] and not reached[-1]
+    assert np.all(reached[: reached.sum()])  # a prefix
+    assert float(sm.constraint_error(q[reached])) < 1e-14
+
+
+@pytest.mark.parametrize(
+    "case",
+    ["max_steps", "nan", "newton"],
+)
+def test_failures_are_reported(case):
+    ts = jnp.linspace(0.0, 2.0, 9)
+    if case == "max_steps":
+        kwargs = dict(system=SYSTEM, y0=(Q0, V0), args=G, max_steps=30)
+        code, match = diffrax.RESULTS.max_steps_reached, "max_steps=30"
+    elif case == "nan":
+        kwargs = dict(system=sm.Lagrangian(singular), y0=Y_SINGULAR, solver=sm.RK4(),
+                      dt0=0.01)
+        code, match = diffrax.RESULTS.nonfinite, "became NaN"
+    else:
+        chord = diffrax.VeryChord(rtol=1e-10, atol=1e-10)
+        kwargs = dict(system=SYSTEM, y0=(Q0, V0), args=G, dt0=0.25,
+                      solver=sm.Projected(diffrax.ImplicitEuler(root_finder=chord)),
+                      stepsize_controller=diffrax.ConstantStepSize())
+        code, match = None, "Newton iterations"
+    sol = sm.simulate(t1=2.0, saveat=diffrax.SaveAt(ts=ts), throw=False, **kwargs)
+    if code is None:
+        assert sol.result in (diffrax.RESULTS.nonlinear_divergence,
+                              diffrax.RESULTS.nonlinear_max_steps_reached)
+    else:
+        assert sol.result == code
+    _check_partial_trajectory(sol)
+    with pytest.raises(RuntimeError, match=match):
+        sm.simulate(t1=2.0, saveat=diffrax.SaveAt(ts=ts), **kwargs)
+
+
+def test_failure_inside_jit_raises():
+    f = jax.jit(lambda y0: sm.simulate(SYSTEM, y0, 2.0, args=G, max_steps=30).ys)
+    with pytest.raises(Exception, match="max_steps=30"):
+        jax.block_until_ready(f((Q0, V0)))
+
+
+def test_initial_state_checks():
+    with pytest.raises(ValueError, match="pair"):
+        sm.simulate(SYSTEM, Q0, T1, args=G)
+    with pytest.raises(Exception, match="not on the spheres"):
+        sm.simulate(SYSTEM, (2.0 * Q0, V0), T1, args=G)
+    with pytest.raises(Exception, match="not tangent"):
+        sm.simulate(SYSTEM, (Q0, V0 + Q0), T1, args=G)
