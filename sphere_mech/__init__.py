@@ -11,6 +11,7 @@ from ._convert import (
     pi_from_mu as pi_from_mu,
     qdot_from_omega as qdot_from_omega,
 )
+from ._fit import FitResult as FitResult, fit as fit
 from ._geometry import (
     constraint_error as constraint_error,
     hat as hat,
