@@ -79,6 +79,7 @@ from ._simulate import (
 from ._solvers.liegroup import LieRK4 as LieRK4
 from ._solvers.projected import Projected as Projected
 from ._solvers.rk4 import RK4 as RK4
+from ._solvers.variational import Variational as Variational
 from ._system import AbstractSystem as AbstractSystem
 
 __version__ = "0.1.0"

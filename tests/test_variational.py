@@ -1,0 +1,238 @@
+"""The variational (RATTLE-type) integrator: order, reversibility, |q| = 1, energy,
+symplecticity, gradients, forces, refusals."""
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import sphere_mech as sm
+from sphere_mech._solvers.discrete_mechanics import (
+    lagrangian_view,
+    substep,
+    velocity_from_momentum,
+)
+
+from helpers import fitted_order, max_rel_error
+
+
+def general_L(t, q, qdot, args):
+    """A double pendulum with configuration-dependent inertia, a quartic kinetic term
+    (so the Legendre map needs Newton) and time-dependent gravity; `args = (g, c)`."""
+    x1, x2 = q[0], q[0] + 0.8 * q[1]
+    v1, v2 = qdot[0], qdot[0] + 0.8 * qdot[1]
+    mass = 1.0 + 0.3 * q[0, 0] * q[1, 1]
+    kinetic = 0.5 * mass * (v1 @ v1) + 0.5 * (v2 @ v2) + 0.05 * (v2 @ v2) ** 2
+    g = args[0] * (1.0 + 0.1 * jnp.sin(2.0 * t))
+    return kinetic - g * (x1[2] + x2[2])
+
+
+def damping(t, q, qdot, args):
+    return -args[1] * qdot
+
+
+# One system for most tests (so they share compilations): conservative when c = 0.
+GENERAL = sm.Lagrangian(general_L, forces=damping)
+G = (jnp.asarray(9.81), jnp.asarray(0.0))
+DAMPED = (jnp.asarray(9.81), jnp.asarray(0.5))
+Y0 = (
+    sm.normalize(jnp.array([[1.0, 0.0, -1.0], [0.0, 1.0, -1.0]])),
+    sm.project(
+        sm.normalize(jnp.array([[1.0, 0.0, -1.0], [0.0, 1.0, -1.0]])),
+        jnp.array([[0.0, 1.5, 0.0], [1.5, 0.0, 0.3]]),
+    ),
+)
+T1 = 1.0
+
+
+def run(system, solver, dt, *, t0=0.0, t1=T1, y0=Y0, args=G, **kwargs):
+    """Fixed-step run; times as arrays so that every step size shares one compilation."""
+    return sm.simulate(system, y0, jnp.asarray(t1), t0=jnp.asarray(t0), args=args,
+                       solver=solver, dt0=jnp.asarray(dt), **kwargs)
+
+
+def final(sol):
+    return jax.tree_util.tree_map(lambda x: x[-1], sol.ys)
+
+
+@pytest.fixture(scope="module")
+def reference():
+    return final(sm.simulate(GENERAL, Y0, T1, args=G, rtol=1e-13, atol=1e-13))
+
+
+@pytest.mark.parametrize("order, dts", [(2, (0.04, 0.02, 0.01)), (4, (0.025, 0.0125, 0.00625))])
+def test_order(reference, order, dts):
+    """Time-dependent, non-quadratic L (Newton for the velocities too)."""
+    errors = [max_rel_error(final(run(GENERAL, sm.Variational(order), dt))[0], reference[0])
+              for dt in dts]
+    assert abs(fitted_order(dts, errors) - order) < 0.3, errors
+    assert errors[-1] < (1e-2 if order == 2 else 1e-6)
+
+
+@pytest.mark.parametrize("order", [2, 4])
+def test_time_reversible(order):
+    """Forward over [0, 0.5] then back with -h returns the initial state to rounding
+    (diffrax runs t1 < t0 in reversed time with wrapped terms)."""
+    solver = sm.Variational(order)
+    forward = final(run(GENERAL, solver, 0.05, t1=0.5))
+    back = final(run(GENERAL, solver, -0.05, t0=0.5, t1=0.0, y0=forward))
+    assert max_rel_error(forward[0], Y0[0]) > 0.1  # it did move
+    assert max_rel_error(back[0], Y0[0]) < 1e-12
+    assert max_rel_error(back[1], Y0[1]) < 1e-12
+
+
+@pytest.fixture(scope="module")
+def long_runs():
+    """2 * 10^4 steps (h = 0.05) of a double spherical pendulum: Variational vs
+    Projected(RK4) at the same step."""
+    chain = sm.chain_pendulum([1.0, 1.0], [1.0, 1.0])
+    energy = jax.jit(jax.vmap(lambda q, v: chain.energy(0.0, q, v)))
+    out = {}
+    for name, solver in (("variational", sm.Variational()), ("rk4", sm.Projected(sm.RK4()))):
+        sol = run(chain, solver, 0.05, t1=1000.0, args=None,
+                  saveat=diffrax.SaveAt(steps=True))
+        k = int(sol.stats["num_steps"])
+        q, v = sol.ys[0][:k], sol.ys[1][:k]
+        error = np.asarray(energy(q, v) - chain.energy(0.0, *Y0))
+        out[name] = (np.asarray(sol.ts[:k]), error, q)
+    return out
+
+
+def drift(t, error):
+    """Energy change explained by a linear trend over the run, relative to the largest
+    error: about 1 for a drift, small for a bounded oscillating error."""
+    slope = np.polyfit(t, error, 1)[0]
+    return abs(slope * (t[-1] - t[0])) / np.max(np.abs(error))
+
+
+def test_energy_bounded_no_drift(long_runs):
+    t, error, q = long_runs["variational"]
+    assert len(t) == 20_000
+    assert drift(t, error) < 0.1
+    assert np.max(np.abs(error)) < 0.1 * 14.8  # E0 = -14.8: bounded, O(h^2)
+    t_rk4, error_rk4, _ = long_runs["rk4"]
+    assert drift(t_rk4, error_rk4) > 0.8  # RK4 at the same step drifts steadily
+
+
+def test_unit_length_to_rounding(long_runs):
+    _, _, q = long_runs["variational"]
+    assert float(sm.constraint_error(q)) < 1e-14
+
+
+def _flow_in_momenta(system, h, steps):
+    """The map (q, mu) -> (q, mu) after `steps` steps, mu the momentum on T*(S^2)^n."""
+    view = lagrangian_view(system)
+
+    def flow(q, mu):
+        t = jnp.asarray(0.0)
+        qdot, _ = velocity_from_momentum(view, t, q, mu, mu, G, 1e-12, 16)
+        y = (q, qdot)
+        for _ in range(steps):
+            y, _, _ = substep(view, t, h, *y, system.rates(t, y, G), G, 1e-12, 16)
+            t = t + h
+        return y[0], view.momentum(t, y[0], y[1], G)
+
+    return flow
+
+
+def _tangent_vectors(q, mu):
+    """A basis of the tangent space of T*(S^2)^n (as embedded in R^6n) at (q, mu)."""
+    T = sm.tangent_basis(q)
+    vectors = []
+    for i in range(q.shape[0]):
+        for b in range(2):
+            dq = jnp.zeros_like(q).at[i].set(T[i, :, b])
+            dmu = jnp.zeros_like(q).at[i].set(-jnp.dot(T[i, :, b], mu[i]) * q[i])
+            vectors.append((dq, dmu))  # move q, keep q . mu = 0
+            vectors.append((jnp.zeros_like(q), jnp.zeros_like(q).at[i].set(T[i, :, b])))
+    return vectors
+
+
+def _symplectic_form(u, w):
+    return jnp.sum(u[0] * w[1]) - jnp.sum(u[1] * w[0])
+
+
+def test_symplectic():
+    """The pullback of sum dq ^ dmu is preserved (time-dependent, non-quadratic L).
+    The flow's derivative along the 8 tangent vectors by central differences."""
+    q, qdot = Y0
+    mu = GENERAL.momentum(0.0, q, qdot, G)
+    flow = jax.jit(jax.vmap(_flow_in_momenta(GENERAL, 0.1, 2)))
+    vectors = _tangent_vectors(q, mu)
+    eps = 1e-6
+    points = [(q + sign * eps * dq, mu + sign * eps * dmu)
+              for sign in (1.0, -1.0) for dq, dmu in vectors]
+    moved = flow(*jax.tree_util.tree_map(lambda *x: jnp.stack(x), *points))
+    m = len(vectors)
+    pushed = [tuple((x[i] - x[m + i]) / (2 * eps) for x in moved) for i in range(m)]
+    before = np.array([[_symplectic_form(a, b) for b in vectors] for a in vectors])
+    after = np.array([[_symplectic_form(a, b) for b in pushed] for a in pushed])
+    assert np.max(np.abs(before)) > 0.5  # a nondegenerate form on the 8 vectors
+    assert np.max(np.abs(after - before)) < 1e-7
+    assert np.max(np.abs(np.asarray(moved[0][0]) - np.asarray(q))) > 0.1
+
+
+def test_gradient_matches_finite_differences():
+    def loss(g):
+        q, v = final(run(GENERAL, sm.Variational(), 0.05, t1=0.5, args=(g, G[1])))
+        return jnp.sum(q[1] * jnp.array([1.0, -2.0, 0.5])) + 0.1 * jnp.sum(v**2)
+
+    grad = jax.grad(loss)(G[0])
+    eps = 1e-5
+    fd = (loss(G[0] + eps) - loss(G[0] - eps)) / (2 * eps)
+    assert abs(float(grad) - float(fd)) < 1e-6 * (1 + abs(float(fd)))
+
+
+def test_forced_lagrange_dalembert(reference):
+    """Damping through `forces`: the forced (Lagrange-d'Alembert) step converges with
+    order 2 to the solution of the forced equations."""
+    damped_reference = final(sm.simulate(GENERAL, Y0, T1, args=DAMPED, rtol=1e-13, atol=1e-13))
+    assert max_rel_error(damped_reference[0], reference[0]) > 0.01  # damping matters
+    dts = (0.04, 0.02, 0.01)
+    errors = [max_rel_error(final(run(GENERAL, sm.Variational(), dt, args=DAMPED))[0],
+                            damped_reference[0]) for dt in dts]
+    assert abs(fitted_order(dts, errors) - 2) < 0.3, errors
+
+
+def test_angular_lagrangian_same_step():
+    """An AngularLagrangian (state (q, omega)) steps exactly like its form-1 original:
+    L is only evaluated on the tangent bundle, where the two forms agree."""
+    chain = sm.chain_pendulum([1.0, 2.0], [1.0, 0.5])
+    angular = sm.angular(chain)
+    q0, qdot0 = Y0
+    solver = sm.Variational(4)
+    term = diffrax.ODETerm(lambda t, y, args: args[0].rates(t, y, args[1]))
+
+    @jax.jit
+    def step(system, y0):
+        args = (system, None)
+        state = solver.init(term, 0.0, 0.1, y0, args)
+        return solver.step(term, 0.0, 0.1, y0, args, state, False)[0]
+
+    form1 = step(chain, Y0)
+    form2 = step(angular, (q0, sm.omega_from_qdot(q0, qdot0)))
+    assert max_rel_error(form2[0], form1[0]) < 1e-12
+    assert max_rel_error(sm.qdot_from_omega(*form2), form1[1]) < 1e-12
+
+
+def test_newton_failure_is_reported():
+    """A step far too large for Newton: reported through `result`, not thrown, and the
+    trajectory stops at the last good state."""
+    sol = run(GENERAL, sm.Variational(), 0.9, t1=9.0, throw=False)
+    assert sol.result != diffrax.RESULTS.successful
+    assert np.all(np.isfinite(np.asarray(sol.ys[0])))
+    with pytest.raises(Exception, match="did not converge|onlinear solve"):
+        run(GENERAL, sm.Variational(), 0.9, t1=9.0)
+
+
+def test_refuses_hamiltonian_and_bad_options():
+    chain = sm.chain_pendulum([1.0, 1.0], [1.0, 1.0])
+    q0, qdot0 = Y0
+    mu0 = chain.momentum(0.0, q0, qdot0)
+    with pytest.raises(ValueError, match="needs a Lagrangian system"):
+        sm.simulate(sm.legendre(chain), (q0, mu0), 1.0, solver=sm.Variational(), dt0=0.1)
+    with pytest.raises(ValueError, match="order must be 2 or 4"):
+        sm.Variational(3)
+    with pytest.raises(ValueError, match="composition"):
+        sm.Variational(4, composition="ruth")
