@@ -1,6 +1,7 @@
 """sphere_mech: global Lagrangian and Hamiltonian mechanics on (S^2)^n, derived by
 autodiff from a user's L or H and integrated with diffrax on the spheres."""
 
+from ._batch import simulate_batch as simulate_batch
 from ._chain import ChainPendulum as ChainPendulum, chain_pendulum as chain_pendulum
 from ._checks import unit_tolerance as unit_tolerance
 from ._convert import (

@@ -59,6 +59,14 @@ class ChainPendulum(AbstractConstantInertiaLagrangian):
         idx = jnp.arange(self.n)
         return jnp.outer(self.lengths, self.lengths) * tail[jnp.maximum(idx[:, None], idx)]
 
+    def inverse_inertia_bands(self, args=None):
+        # M = diag(l) A^T diag(m) A diag(l) with A lower-triangular ones, so that
+        # M^-1 = diag(1/l) A^-1 diag(1/m) A^-T diag(1/l) is tridiagonal (A^-1 bidiagonal).
+        inv_m = 1.0 / self.masses
+        d = (inv_m + jnp.concatenate([jnp.zeros_like(inv_m[:1]), inv_m[:-1]])) / self.lengths**2
+        e = -inv_m[:-1] / (self.lengths[:-1] * self.lengths[1:])
+        return d, e
+
     def positions(self, q: jax.Array) -> jax.Array:
         """Positions of the masses, `x_i = sum_{j<=i} l_j q_j`, shape `(n, 3)`."""
         return jnp.cumsum(self.lengths[:, None].astype(q.dtype) * q, axis=0)

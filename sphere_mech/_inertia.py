@@ -1,6 +1,15 @@
 """The Corollary-1 fast path: `L = 1/2 sum_jk M_jk qdot_j . qdot_k - U(t, q)` with a
-constant scalar inertia matrix `M`. No Hessian of `L` is formed: the reduced mass matrix
-is `M_ij T_i^T T_j` and the accelerations come from one Cholesky solve of size 2n."""
+constant scalar inertia matrix `M`. No Hessian of `L` is formed.
+
+The projected equations `P_i (sum_j M_ij qddot_j - g_i) = 0`, `q_i . qddot_i = -|qdot_i|^2`
+(with `g = -dU/dq + f`) are solved with one scalar multiplier per sphere:
+`qddot = M^-1 (g + lam q)` where `S lam = -|qdot|^2 - q . (M^-1 g)` and
+`S_ij = (M^-1)_ij q_i . q_j` is n x n symmetric positive definite (Schur product of two
+positive-definite matrices). This is equivalent to the 2n x 2n tangent-coordinate system
+`T^T (M kron I) T`, a quarter of its size, and needs no tangent basis. When `M^-1` is
+tridiagonal (the chain pendulum: `M = diag(l) A^T diag(m) A diag(l)` with `A` lower
+triangular ones, so `A^-1` is bidiagonal) `S` is tridiagonal too and everything is O(n):
+the multipliers are the link tensions."""
 
 import abc
 from collections.abc import Callable
@@ -11,9 +20,9 @@ import jax.numpy as jnp
 
 from ._checks import check_scalar
 from ._custom_types import Args, ForceFn, Points, Scalar, Tangents
-from ._geometry import dot, project, tangent_basis
+from ._geometry import normalize, project
 from ._lagrangian import AbstractLagrangianSystem
-from ._linalg import from_tangent, scalar_inertia_matrix, spd_solve, to_tangent
+from ._linalg import spd_solve, tridiagonal_matvec, tridiagonal_spd_solve
 from ._system import as_time, user_forces
 
 
@@ -49,23 +58,42 @@ class AbstractConstantInertiaLagrangian(AbstractLagrangianSystem):
     def momentum(self, t, q, qdot, args=None):
         return project(q, self.inertia(args).astype(qdot.dtype) @ qdot)
 
+    def inverse_inertia_bands(self, args: Args) -> tuple[jax.Array, jax.Array] | None:
+        """If `M^-1` is tridiagonal, its diagonal `(n,)` and off-diagonal `(n - 1,)`
+        (then the accelerations cost O(n)); `None` (the default) for a dense `M`."""
+        return None
+
+    def _multiplier_solve(self, q, rhs, target, args):
+        """The `x` with `sum_j M_ij x_j = rhs_i + lam_i q_i` and `q_i . x_i = target_i`
+        (one scalar multiplier per sphere), `q` normalized first."""
+        q = normalize(q)
+        bands = self.inverse_inertia_bands(args)
+        if bands is None:
+            M = self.inertia(args).astype(q.dtype)
+            Minv = spd_solve(M, jnp.eye(M.shape[0], dtype=q.dtype))
+            apply = lambda x: jnp.sum(Minv[:, :, None] * x[None], axis=1)
+            S = Minv * jnp.sum(q[:, None] * q[None], axis=-1)
+            solve = lambda r: spd_solve(S, r)
+        else:
+            d, e = (b.astype(q.dtype) for b in bands)
+            apply = lambda x: tridiagonal_matvec(d, e, x)
+            s_off = e * jnp.sum(q[:-1] * q[1:], axis=-1)
+            solve = lambda r: tridiagonal_spd_solve(d, s_off, r)
+        y = apply(rhs)
+        lam = solve(target - jnp.sum(q * y, axis=-1))
+        return y + apply(lam[:, None] * q)
+
     def _acceleration(self, t, q, qdot, args):
         t = as_time(t, q)
-        M = self.inertia(args).astype(q.dtype)
-        c = dot(qdot, qdot) * q
-        rhs = M @ c - self._potential_gradient(t, q, args)
+        g = -self._potential_gradient(t, q, args)
         f = self.generalized_force(t, q, qdot, args)
         if f is not None:
-            rhs = rhs + f
-        T = tangent_basis(q)
-        a = spd_solve(scalar_inertia_matrix(M, T), to_tangent(T, rhs))
-        return from_tangent(T, a) - c
+            g = g + f
+        return self._multiplier_solve(q, g, -jnp.sum(qdot * qdot, axis=-1), args)
 
     def velocity_from_momentum(self, t, q, mu, args=None) -> Tangents:
         """The inverse Legendre map: the tangent `qdot` with `P M qdot = mu` (exact)."""
-        T = tangent_basis(q)
-        M = self.inertia(args).astype(q.dtype)
-        return from_tangent(T, spd_solve(scalar_inertia_matrix(M, T), to_tangent(T, mu)))
+        return self._multiplier_solve(q, mu, jnp.zeros(q.shape[:1], dtype=q.dtype), args)
 
 
 class ConstantInertiaLagrangian(AbstractConstantInertiaLagrangian):

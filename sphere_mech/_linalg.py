@@ -52,8 +52,90 @@ def scalar_inertia_matrix(M: jax.Array, T: jax.Array) -> jax.Array:
     return G.reshape(2 * n, 2 * n)
 
 
+UNROLL_MAX = 64
+"""Largest size solved by the unrolled elementwise algorithms below; larger systems use
+LAPACK (`jax.scipy.linalg.cho_solve`)."""
+
+
 def spd_solve(A: jax.Array, b: jax.Array) -> jax.Array:
     """Solve `A x = b` for symmetric positive-definite `A` by Cholesky. A matrix that is
-    not positive definite gives non-finite output (checked by the callers)."""
-    c = jax.scipy.linalg.cho_factor(A, lower=True)
-    return jax.scipy.linalg.cho_solve(c, b)
+    not positive definite gives non-finite output (checked by the callers).
+
+    Small systems (the usual case: one per pendulum, many pendulums under `vmap`) are
+    factorized by an unrolled column Cholesky written with elementwise operations only,
+    so that under `vmap` XLA on CPU runs each operation over the whole batch instead of
+    calling LAPACK once per tiny matrix."""
+    n = A.shape[-1]
+    if n > UNROLL_MAX:
+        c = jax.scipy.linalg.cho_factor(A, lower=True)
+        return jax.scipy.linalg.cho_solve(c, b)
+    idx = jnp.arange(n)
+    cols, work = [], A  # right-looking Cholesky: one rank-1 update per column
+    for k in range(n):
+        col = jnp.where(idx >= k, work[:, k], 0.0) / jnp.sqrt(work[k, k])
+        work = work - col[:, None] * col[None, :]
+        cols.append(col)
+    L = jnp.stack(cols, axis=1)
+    vector = b.ndim == 1
+    r = b[:, None] if vector else b
+    y = []  # forward substitution L y = b, column by column
+    for k in range(n):
+        y.append(r[k] / L[k, k])
+        r = r - L[:, k, None] * y[k]
+    r, x = jnp.stack(y), [None] * n  # back substitution L^T x = y
+    for k in reversed(range(n)):
+        x[k] = r[k] / L[k, k]
+        r = r - L[k, :, None] * x[k]
+    x = jnp.stack(x)
+    return x[:, 0] if vector else x
+
+
+def tridiagonal_matvec(d: jax.Array, e: jax.Array, x: jax.Array) -> jax.Array:
+    """`A x` for the symmetric tridiagonal `A` with diagonal `d` (`(n,)`) and
+    off-diagonal `e` (`(n - 1,)`); `x` is `(n,)` or `(n, k)`."""
+    d, e = (d.reshape(d.shape + (1,) * (x.ndim - 1)), e.reshape(e.shape + (1,) * (x.ndim - 1)))
+    zero = jnp.zeros_like(x[:1])
+    below = jnp.concatenate([zero, e * x[:-1]])  # e_{i-1} x_{i-1}
+    above = jnp.concatenate([e * x[1:], zero])  # e_i x_{i+1}
+    return d * x + below + above
+
+
+def tridiagonal_spd_solve(d: jax.Array, e: jax.Array, b: jax.Array) -> jax.Array:
+    """Solve `A x = b` for a symmetric positive-definite tridiagonal `A` (diagonal `d`,
+    off-diagonal `e`) in O(n): an unrolled `L D L^T` factorization (the Thomas algorithm)
+    with elementwise operations only, fast under `vmap`. `b` is `(n,)` or `(n, k)`.
+    Larger systems than `UNROLL_MAX` run the same recursion in `lax.scan`."""
+    n = d.shape[0]
+    if n > UNROLL_MAX:
+        return _tridiagonal_scan(d, e, b)
+    piv, y = [d[0]], [b[0]]
+    for k in range(1, n):
+        ratio = e[k - 1] / piv[k - 1]
+        piv.append(d[k] - ratio * e[k - 1])
+        y.append(b[k] - ratio * y[k - 1])
+    x = [None] * n
+    x[n - 1] = y[n - 1] / piv[n - 1]
+    for k in reversed(range(n - 1)):
+        x[k] = (y[k] - e[k] * x[k + 1]) / piv[k]
+    return jnp.stack(x)
+
+
+def _tridiagonal_scan(d, e, b):
+    def forward(carry, inputs):
+        piv_prev, y_prev = carry
+        d_k, e_prev, b_k = inputs
+        ratio = e_prev / piv_prev
+        piv, y = d_k - ratio * e_prev, b_k - ratio * y_prev
+        return (piv, y), (piv, y)
+
+    _, (piv, y) = jax.lax.scan(forward, (d[0], b[0]), (d[1:], e, b[1:]))
+    piv, y = jnp.concatenate([d[:1], piv]), jnp.concatenate([b[:1], y])
+
+    def backward(x_next, inputs):
+        y_k, e_k, piv_k = inputs
+        x = (y_k - e_k * x_next) / piv_k
+        return x, x
+
+    last = y[-1] / piv[-1]
+    _, x = jax.lax.scan(backward, last, (y[:-1], e, piv[:-1]), reverse=True)
+    return jnp.concatenate([x, last[None]])

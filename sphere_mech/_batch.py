@@ -1,0 +1,203 @@
+"""`simulate_batch`: many trajectories at once, vmapped, chunked and sharded over devices."""
+
+import math
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, PartitionSpec
+
+from ._simulate import (
+    DEFAULT_MAX_STEPS,
+    _as_time,
+    _controller,
+    _failure_index,
+    _failure_messages,
+    _flag_nonfinite,
+    _retract_saved,
+    _vector_field,
+    default_solver,
+    initial_state,
+)
+from ._system import AbstractSystem
+
+BATCH_AXIS = "batch"
+CPU_CHUNK_LINKS = 512
+"""On CPU, trajectories are integrated in chunks of about `CPU_CHUNK_LINKS / n` (a power
+of two): a chunk's working set then stays in cache, which measured 2-3x faster than one
+vmap over thousands of trajectories. Other backends integrate the whole local batch."""
+
+
+def _leading(tree, size, what):
+    """Static check that every array leaf of `tree` has leading axis `size`."""
+    for path, leaf in jax.tree_util.tree_leaves_with_path(tree, is_leaf=eqx.is_array):
+        if eqx.is_array(leaf) and (leaf.ndim == 0 or leaf.shape[0] != size):
+            raise ValueError(
+                f"{what}{jax.tree_util.keystr(path)} must have a leading batch axis of size "
+                f"{size} (the batch size of y0), got shape {leaf.shape}."
+            )
+
+
+def _pad(tree, size):
+    """Pad every leaf to `size` along axis 0 with copies of entry 0 (a valid trajectory,
+    so padding never fails); the padding is stripped after the solve."""
+
+    def pad(x):
+        if x.shape[0] == size:
+            return x
+        return jnp.concatenate([x, jnp.broadcast_to(x[:1], (size - x.shape[0],) + x.shape[1:])])
+
+    return jax.tree.map(pad, tree)
+
+
+def _solve_one(static, shared, batched, y0):
+    """One trajectory with `throw=False`. Non-finite rates at the initial state (NaN
+    parameters, a zero mass) or NaN saved states give `RESULTS.nonfinite`."""
+    bundle = eqx.combine(batched, shared, static)
+    system, args, solver, controller, saveat, adjoint, t0, t1, dt0, max_steps = bundle
+    rates = system.rates(t0, y0, args)
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(_vector_field), solver, t0, t1, dt0, y0, args=(system, args),
+        saveat=saveat, stepsize_controller=controller, max_steps=max_steps, adjoint=adjoint,
+        throw=False,
+    )
+    sol = _flag_nonfinite(sol)
+    finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(r)) for r in jax.tree.leaves(rates)]))
+    result = diffrax.RESULTS.where(finite, sol.result, diffrax.RESULTS.nonfinite)
+    return eqx.tree_at(lambda s: s.result, sol, result)
+
+
+def _local_solve(static, chunk, shared, batched, y0):
+    """The trajectories held by one device: `lax.map` over chunks of `vmap`."""
+    block = lambda inputs: _solve_one(static, shared, *inputs)
+    if chunk >= y0[0].shape[0]:
+        return jax.vmap(block)((batched, y0))
+    return jax.lax.map(block, (batched, y0), batch_size=chunk)
+
+
+@eqx.filter_jit
+def _solve_batch(static, chunk, mesh, shared, batched, y0, size, padded):
+    y0 = jax.vmap(lambda y: initial_state(static[0], y))(y0)
+    batched, y0 = _pad((batched, y0), padded)
+    solve = lambda s, b, y: _local_solve(static, chunk, s, b, y)
+    if mesh is not None:
+        spec = PartitionSpec(BATCH_AXIS)
+        solve = jax.shard_map(solve, mesh=mesh, in_specs=(PartitionSpec(), spec, spec),
+                              out_specs=spec, check_vma=False)
+    sol = solve(shared, batched, y0)
+    return jax.tree.map(lambda x: x[:size], sol)
+
+
+def _chunk_size(chunk_size, n, local, platform):
+    if chunk_size is None:
+        if platform != "cpu":
+            return local
+        chunk_size = 2 ** int(math.log2(max(1, CPU_CHUNK_LINKS // n)))
+    if chunk_size < 1:
+        raise ValueError(f"chunk_size must be a positive integer, got {chunk_size}.")
+    return min(chunk_size, local)
+
+
+def _raise_failures(sol, max_steps):
+    """Raise after the solve if any trajectory failed: a `RuntimeError` naming how many
+    and which when called eagerly, an `eqx.error_if` check when traced."""
+    index = jax.vmap(_failure_index)(sol.result)
+    if isinstance(index, jax.core.Tracer):
+        message = ("simulate_batch: some trajectories failed (run with throw=False and "
+                   "inspect sol.result to see which)")
+        ys = eqx.error_if(sol.ys, jnp.any(index > 0), message)
+        return eqx.tree_at(lambda s: s.ys, sol, ys)
+    index = np.asarray(index)
+    failed = np.flatnonzero(index > 0)
+    if failed.size:
+        shown = ", ".join(str(i) for i in failed[:10]) + (", ..." if failed.size > 10 else "")
+        first = _failure_messages(max_steps)[index[failed[0]]].replace("simulate: ", "")
+        first = first.split("; pass throw=False")[0]
+        raise RuntimeError(
+            f"simulate_batch: {failed.size} of {index.size} trajectories failed (indices "
+            f"{shown}). Trajectory {failed[0]}: {first}; with throw=False the other "
+            "trajectories are returned and sol.result holds each one's result code."
+        )
+    return sol
+
+
+def simulate_batch(
+    system: AbstractSystem,
+    y0,
+    t1,
+    *,
+    t0=0.0,
+    args=None,
+    batch_args: bool = True,
+    batch_system: bool = False,
+    solver: diffrax.AbstractSolver | None = None,
+    dt0=None,
+    rtol=None,
+    atol=None,
+    stepsize_controller: diffrax.AbstractStepSizeController | None = None,
+    saveat: diffrax.SaveAt | None = None,
+    max_steps: int | None = DEFAULT_MAX_STEPS,
+    adjoint: diffrax.AbstractAdjoint | None = None,
+    throw: bool = True,
+    chunk_size: int | None = None,
+    devices=None,
+) -> diffrax.Solution:
+    """Integrate a batch of trajectories: `simulate` over a leading batch axis.
+
+    **Arguments** (as `sphere_mech.simulate`, except):
+    - `y0`: `(q0, v0)`, arrays of shape `(batch, n, 3)`.
+    - `args`: passed to the system; its array leaves have a leading batch axis (one value
+      per trajectory: masses, gains, ...) unless `batch_args=False` (shared by all).
+    - `batch_system`: if True, every array leaf of `system` has a leading batch axis, e.g.
+      `eqx.filter_vmap(sm.chain_pendulum)(masses, lengths)` for a batch of chains.
+    - `throw`: if True (default) raise after the solve if any trajectory failed, naming
+      how many and which; with False, `sol.result` holds each trajectory's own result
+      (non-finite values, e.g. from NaN parameters, give `RESULTS.nonfinite`) and a failed
+      trajectory does not affect the others.
+    - `chunk_size`: trajectories integrated together by one `vmap` on a device (default:
+      about `512 / n` on CPU, which keeps the working set in cache; the whole batch on
+      other backends). Results do not depend on it.
+    - `devices`: devices to shard the batch over (default: all of JAX's default backend).
+      With more than one, the batch is split along a 1-D `Mesh` with `shard_map`; batch
+      sizes that do not divide the device count are padded and the padding stripped.
+    - No progress bar.
+
+    Compiles once per structure (shapes, dtypes, solver and options): new values of
+    `y0`, `args` or the system's parameters reuse the compiled program.
+
+    **Returns:** a `diffrax.Solution` whose every array has a leading batch axis:
+    `sol.ys = (q, v)` of shape `(batch, times, n, 3)`, `sol.result` and
+    `sol.stats["num_steps"]` per trajectory. The output is sharded over the devices.
+    """
+    if not (isinstance(y0, tuple | list) and len(y0) == 2):
+        raise ValueError("y0 must be a pair (q0, v0) of (batch, n, 3) arrays.")
+    q0, v0 = (jnp.asarray(x) for x in y0)
+    if q0.ndim != 3 or q0.shape[-1] != 3 or q0.shape[0] == 0:
+        raise ValueError(f"q0 must have shape (batch, n, 3) with batch >= 1, got {q0.shape}.")
+    size, n = q0.shape[:2]
+    if batch_args and args is not None:
+        _leading(args, size, "args")
+    if batch_system:
+        _leading(eqx.filter(system, eqx.is_array), size, "system")
+    solver = default_solver() if solver is None else solver
+    controller = _controller(solver, stepsize_controller, rtol, atol, dt0, q0.dtype)
+    saveat = diffrax.SaveAt(t1=True) if saveat is None else saveat
+    adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
+
+    t0, t1 = _as_time(t0, q0.dtype), _as_time(t1, q0.dtype)  # values, not structure
+    dt0 = None if dt0 is None else _as_time(dt0, q0.dtype)
+    bundle = (system, args, solver, controller, saveat, adjoint, t0, t1, dt0, max_steps)
+    dynamic, static = eqx.partition(bundle, eqx.is_array)
+    mask = jax.tree.map(lambda _: False, dynamic)
+    mask = (batch_system, batch_args) + mask[2:]  # prefixes: all of system / args or none
+    batched, shared = eqx.partition(dynamic, mask)
+    devices = jax.devices() if devices is None else list(devices)
+    mesh = Mesh(np.array(devices), (BATCH_AXIS,)) if len(devices) > 1 else None
+    per_device = -(-size // len(devices))
+    chunk = _chunk_size(chunk_size, n, per_device, devices[0].platform)
+    padded = -(-size // (chunk * len(devices))) * chunk * len(devices)
+    sol = _solve_batch(static, chunk, mesh, shared, batched, (q0, v0), size, padded)
+    sol = _retract_saved(sol, saveat)
+    return _raise_failures(sol, max_steps) if throw else sol
