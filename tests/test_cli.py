@@ -1,0 +1,150 @@
+"""`sphere-mech run`: the default scene, scene-file errors (one line, exit status 2),
+every example, and that a failing run keeps earlier outputs."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sphere_mech._cli import main
+
+EXAMPLES = sorted((Path(__file__).resolve().parents[1] / "examples").glob("*.toml"))
+FILES = ("trajectory.npz", "summary.json", "plot.png")
+
+GOOD = """
+name = "test pendulum"
+[[effects]]
+type = "chain"
+masses = [1.0, 1.0]
+lengths = [1.0, 1.0]
+[[effects]]
+type = "gravity"
+[initial]
+polar_deg = [90.0, 120.0]
+azimuth_deg = [0.0, 90.0]
+[integrator]
+method = "tsit5"
+[time]
+duration = 0.5
+"""
+
+
+@pytest.fixture(scope="module")
+def default_run(tmp_path_factory):
+    """`sphere-mech run` with no argument, from another directory, default --out."""
+    cwd = tmp_path_factory.mktemp("cwd")
+    import os
+
+    old = os.getcwd()
+    os.chdir(cwd)
+    try:
+        status = main(["run", "--no-progress"])
+    finally:
+        os.chdir(old)
+    return status, cwd / "sphere_mech_out"
+
+
+def test_default_run_writes_three_sane_files(default_run):
+    status, out = default_run
+    assert status == 0
+    assert sorted(p.name for p in out.iterdir()) == sorted(FILES)  # no temporary left
+    data = np.load(out / "trajectory.npz")
+    t, q, v, x = data["t"], data["q"], data["v"], data["x"]
+    assert t[0] == 0.0 and t[-1] == pytest.approx(20.0) and len(t) == 2001
+    assert q.shape == v.shape == x.shape == (2001, 2, 3)
+    np.testing.assert_allclose(np.linalg.norm(q, axis=-1), 1.0, atol=1e-13)
+    np.testing.assert_allclose(x[:, 1], q[:, 0] + q[:, 1], atol=1e-13)  # unit lengths
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["scene"] == "double spherical pendulum" and summary["t1"] == 20.0
+    assert summary["solver"] == "tsit5" and summary["steps"] > 100
+    assert summary["wall_time_s"] > 0
+    assert summary["max_constraint_error"] < 1e-13
+    assert 0 < summary["max_relative_energy_error"] < 1e-5
+    energy = data["energy"]
+    assert np.max(np.abs(energy - energy[0])) / abs(energy[0]) == pytest.approx(
+        summary["max_relative_energy_error"])
+    png = (out / "plot.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 20_000
+
+
+def _bad(tmp_path, text):
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    return path
+
+
+ERRORS = {
+    "unknown effect": (GOOD.replace('type = "gravity"', 'type = "magnetism"'),
+                       "effects[1].type", "effect type"),
+    "unknown field": (GOOD.replace("masses = [1.0, 1.0]", "masses = [1.0, 1.0]\ncolour = 1"),
+                      "effects[0].colour", "no such field"),
+    "missing field": (GOOD.replace("lengths = [1.0, 1.0]\n", ""), "effects[0].lengths",
+                      "missing"),
+    "wrong type": (GOOD.replace("masses = [1.0, 1.0]", 'masses = "heavy"'),
+                   "effects[0].masses", "array of numbers"),
+    "wrong unit": (GOOD.replace("polar_deg = [90.0, 120.0]", "polar_deg = [90.0, 240.0]"),
+                   "initial.polar_deg", "degrees"),
+    "non-unit direction": (GOOD.replace("polar_deg = [90.0, 120.0]\nazimuth_deg = [0.0, 90.0]",
+                                        "q = [[1.0, 0.0, 0.0], [1.0, 1.0, 0.0]]"),
+                           "initial.q", "unit vectors"),
+    "negative mass": (GOOD.replace("masses = [1.0, 1.0]", "masses = [1.0, -1.0]"),
+                      "effects[0].masses", "> 0"),
+    "negative length": (GOOD.replace("lengths = [1.0, 1.0]", "lengths = [-1.0, 1.0]"),
+                        "effects[0].lengths", "> 0"),
+}
+
+
+@pytest.mark.parametrize("case", list(ERRORS))
+def test_scene_file_error_is_one_line_exit_2(case, tmp_path, capsys):
+    text, field, expected = ERRORS[case]
+    path = _bad(tmp_path, text)
+    assert main(["run", str(path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err
+    assert err.startswith(f"sphere-mech: error: {path}: {field}: ")
+    assert expected in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_error_from_the_installed_command(tmp_path):
+    """The real executable: exit status 2, one line on stderr, no traceback."""
+    path = _bad(tmp_path, GOOD.replace('type = "gravity"', 'type = "magnetism"'))
+    exe = Path(sys.executable).with_name("sphere-mech")
+    proc = subprocess.run([str(exe), "run", str(path)], capture_output=True, text=True,
+                          cwd=tmp_path, timeout=120)
+    assert proc.returncode == 2
+    assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
+    assert f"{path}: effects[1].type" in proc.stderr
+
+
+@pytest.mark.parametrize("example", EXAMPLES, ids=lambda p: p.stem)
+def test_every_example_runs(example, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["run", str(example), "--out", str(out), "--duration", "0.1",
+                 "--no-progress"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["t1"] == 0.1 and summary["max_constraint_error"] < 1e-12
+    error = summary.get("max_relative_energy_error",
+                        summary.get("max_relative_work_energy_balance"))
+    assert error < 1e-5
+    assert "wrote" in capsys.readouterr().out
+
+
+def test_failing_runs_keep_previous_outputs(tmp_path, capsys):
+    out = tmp_path / "out"
+    good = _bad(tmp_path, GOOD)
+    assert main(["run", str(good), "--out", str(out), "--no-progress"]) == 0
+    before = {f: (out / f).read_bytes() for f in FILES}
+    # a scene-file error, then a solver failure (too few steps)
+    bad = _bad(tmp_path, GOOD.replace("masses = [1.0, 1.0]", "masses = [1.0, -1.0]"))
+    assert main(["run", str(bad), "--out", str(out)]) == 2
+    few = tmp_path / "few.toml"
+    few.write_text(GOOD.replace('method = "tsit5"', 'method = "tsit5"\nmax_steps = 3'))
+    assert main(["run", str(few), "--out", str(out), "--no-progress"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and "simulation failed" in err[-1]
+    assert {f: (out / f).read_bytes() for f in FILES} == before
+    assert sorted(p.name for p in out.iterdir()) == sorted(FILES)
