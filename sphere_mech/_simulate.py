@@ -43,11 +43,8 @@ def initial_state(system: AbstractSystem, y0):
         raise ValueError("y0 must be a pair (q0, v0) of (n, 3) arrays.")
     q0, v0 = (jnp.asarray(x) for x in y0)
     check_shapes(q0, v0, system.state_name)
-    if jnp.result_type(q0) != jnp.result_type(v0):
-        raise ValueError(
-            f"q0 and {system.state_name}0 must have the same dtype, got "
-            f"{jnp.result_type(q0)} and {jnp.result_type(v0)}."
-        )
+    dtype = jnp.result_type(q0, v0)  # one floating dtype for the whole state
+    q0, v0 = q0.astype(dtype), v0.astype(dtype)
     q0, v0 = retract(*check_state(q0, v0, system.state_name))
     return q0, v0
 
