@@ -87,8 +87,9 @@ def main():
           "| max rel. energy error | wall (s) | wall / Projected(RK4) | note |")
     print("|---|---:|---:|---:|---:|---:|---:|---|")
     for r in rows:
-        print(f"| {r['name']} | {r['steps']} | {r['c_10']:.2e} | {r['max_c']:.2e} | {r['energy']:.2e} | "
-              f"{r['wall']:.2f} | {r['wall'] / baseline['wall']:.2f} | {r['note']} |")
+        print(f"| {r['name']} | {r['steps']} | {r['c_10']:.2e} | {r['max_c']:.2e} | "
+              f"{r['energy']:.2e} | {r['wall']:.2f} | {r['wall'] / baseline['wall']:.2f} | "
+              f"{r['note']} |")
     plot(curves)
 
 

@@ -263,7 +263,7 @@ def _retract_saved(sol: diffrax.Solution, saveat: diffrax.SaveAt) -> diffrax.Sol
     if isinstance(subs, diffrax.SubSaveAt):
         ys = _retract_if_state(subs, ys)
     elif isinstance(subs, list | tuple) and isinstance(ys, list | tuple):
-        ys = type(ys)(_retract_if_state(s, y) for s, y in zip(subs, ys))
+        ys = type(ys)(_retract_if_state(s, y) for s, y in zip(subs, ys, strict=True))
     return eqx.tree_at(lambda s: s.ys, sol, ys, is_leaf=lambda x: x is None)
 
 

@@ -7,10 +7,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import max_rel_error, tree_allclose
 
 import sphere_mech as sm
-
-from helpers import max_rel_error, tree_allclose
 
 
 def double_pendulum(t, q, qdot, g):

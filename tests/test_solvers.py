@@ -8,10 +8,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import fitted_order, max_rel_error
 
 import sphere_mech as sm
-
-from helpers import fitted_order, max_rel_error
 
 CHAIN = sm.chain_pendulum(jnp.array([1.0, 1.0]), jnp.array([1.0, 1.0]))
 Q0 = jnp.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
@@ -57,7 +56,7 @@ def reference():
 
 
 def _error(y, y_ref):
-    return max(max_rel_error(a, b) for a, b in zip(y, y_ref))
+    return max(max_rel_error(a, b) for a, b in zip(y, y_ref, strict=True))
 
 
 @pytest.mark.parametrize(

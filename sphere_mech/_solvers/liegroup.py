@@ -55,7 +55,8 @@ def _dexpinv(u, k):
 
 def _combine(*terms):
     """`sum_i c_i u_i` over Lie-algebra elements, for `terms = ((c_1, u_1), ...)`."""
-    return jtu.tree_map(lambda *xs: sum(c * x for c, x in zip([c for c, _ in terms], xs)),
+    coeffs = [c for c, _ in terms]
+    return jtu.tree_map(lambda *xs: sum(c * x for c, x in zip(coeffs, xs, strict=True)),
                         *[u for _, u in terms])
 
 

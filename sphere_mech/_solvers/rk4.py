@@ -19,7 +19,9 @@ def axpy(y, *terms):
     """`y + sum_i c_i k_i` over PyTrees, for `terms = ((c_1, k_1), (c_2, k_2), ...)`."""
     leaves = [k for _, k in terms]
     coeffs = [c for c, _ in terms]
-    return jtu.tree_map(lambda a, *ks: a + sum(c * k for c, k in zip(coeffs, ks)), y, *leaves)
+    return jtu.tree_map(
+        lambda a, *ks: a + sum(c * k for c, k in zip(coeffs, ks, strict=True)), y, *leaves
+    )
 
 
 class RK4(AbstractSolver):
