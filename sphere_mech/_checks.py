@@ -35,26 +35,36 @@ def check_shapes(q, v, v_name: str = "v") -> None:
             raise ValueError(f"{name} must be a floating-point array, got {jnp.result_type(x)}.")
 
 
+def _check_all_finite(x, name: str):
+    return eqx.error_if(
+        x, ~jnp.all(jnp.isfinite(x)), f"{name} contains NaN or infinite values."
+    )
+
+
 def check_unit(q):
-    """Error (at run time) unless every row of `q` is a unit vector within tolerance."""
+    """Error (at run time) unless every row of `q` is a finite unit vector within
+    tolerance."""
+    q = _check_all_finite(q, "q")
     tol = unit_tolerance(jnp.result_type(q))
     err = jnp.max(jnp.abs(jnp.linalg.norm(q, axis=-1) - 1.0))
     return eqx.error_if(
         q,
-        ~(err <= tol),
+        err > tol,
         f"q is not on the spheres: some |q_i| differs from 1 by more than {tol:g} "
         "(normalize q, e.g. with sphere_mech.normalize).",
     )
 
 
 def check_tangent(q, v, v_name: str = "v"):
-    """Error (at run time) unless every `v_i` is orthogonal to `q_i` within tolerance."""
+    """Error (at run time) unless every `v_i` is finite and orthogonal to `q_i` within
+    tolerance."""
+    v = _check_all_finite(v, v_name)
     tol = unit_tolerance(jnp.result_type(q))
     normal = jnp.max(jnp.abs(jnp.sum(q * v, axis=-1)))
     scale = 1.0 + jnp.max(jnp.linalg.norm(v, axis=-1))
     return eqx.error_if(
         v,
-        ~(normal <= tol * scale),
+        normal > tol * scale,
         f"{v_name} is not tangent to the spheres: some q_i . {v_name}_i exceeds {tol:g} "
         f"(relative); remove the normal part, e.g. with sphere_mech.project(q, {v_name}).",
     )

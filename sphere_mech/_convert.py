@@ -93,8 +93,53 @@ def invert_momentum(L, t, q, p, args, *, quadratic: bool, max_steps: int = 32):
     return from_tangent(T, a)
 
 
-class _LegendreH(eqx.Module):
+def _materialize(primal, tangent):
+    if tangent is None and eqx.is_inexact_array(primal):
+        return jnp.zeros_like(primal)
+    return tangent
+
+
+@eqx.filter_custom_jvp
+def _legendre_value(lagrangian, t, q, p, args, *, quadratic):
     """`H(t, q, p) = p . v - L(t, q, v)` with `v` the inverse Legendre map of `p`."""
+    v = invert_momentum(lagrangian, t, q, p, args, quadratic=quadratic)
+    return jnp.sum(p * v) - lagrangian(t, q, v, args)
+
+
+@_legendre_value.def_jvp
+def _legendre_jvp(primals, tangents, *, quadratic):
+    """Envelope theorem: no derivative of the inverse Legendre map is needed.
+
+    With `r = p - dL/dv` normal to the spheres at the solution (`r_i = rho_i q_i`) and
+    `v` tangent for every `q` (so `q_i . dv_i = -v_i . dq_i`),
+    `dH = v . dp - dL|_(v fixed) - sum_i rho_i v_i . dq_i`, where `dL|_(v fixed)` also
+    carries the derivatives with respect to `t`, `args` and the Lagrangian's own arrays.
+    Higher derivatives still work: this rule is itself differentiable."""
+    lagrangian, t, q, p, args = primals
+    tangents = jax.tree.map(_materialize, primals, tangents)
+    t_lagrangian, t_t, t_q, t_p, t_args = tangents
+    v = invert_momentum(lagrangian, t, q, p, args, quadratic=quadratic)
+
+    def L_fixed_v(lagrangian_, t_, q_, args_):
+        return lagrangian_(t_, q_, v, args_)
+
+    L, dL = eqx.filter_jvp(
+        L_fixed_v, (lagrangian, t, q, args), (t_lagrangian, t_t, t_q, t_args)
+    )
+    r = p - jax.grad(lambda v_: lagrangian(t, q, v_, args))(v)
+    rho = jnp.sum(q * r, axis=-1) / jnp.sum(q * q, axis=-1)
+    H = jnp.sum(p * v) - L
+    dH = -dL
+    if t_p is not None:
+        dH = dH + jnp.sum(v * t_p)
+    if t_q is not None:
+        dH = dH - jnp.sum(rho * jnp.sum(v * t_q, axis=-1))
+    return H, dH
+
+
+class _LegendreH(eqx.Module):
+    """`H(t, q, p) = p . v - L(t, q, v)` with `v` the inverse Legendre map of `p`.
+    Differentiated by the envelope theorem (`_legendre_jvp`), not through the solve."""
 
     lagrangian: Callable
     quadratic: bool = eqx.field(static=True)
@@ -103,8 +148,7 @@ class _LegendreH(eqx.Module):
         return invert_momentum(self.lagrangian, t, q, p, args, quadratic=self.quadratic)
 
     def __call__(self, t, q, p, args):
-        v = self.velocity(t, q, p, args)
-        return jnp.sum(p * v) - self.lagrangian(t, q, v, args)
+        return _legendre_value(self.lagrangian, t, q, p, args, quadratic=self.quadratic)
 
 
 class _LegendreForces(eqx.Module):
