@@ -33,6 +33,11 @@ class AbstractKinetic(AbstractEffect):
         """The `(n, n)` scalar inertia matrix."""
 
     @abc.abstractmethod
+    def inverse_inertia_bands(self) -> tuple[jax.Array, jax.Array]:
+        """`M^-1` is tridiagonal for every kinetic term here: its diagonal `(n,)` and
+        off-diagonal `(n - 1,)` (used by the O(n) fast path)."""
+
+    @abc.abstractmethod
     def point_masses(self) -> jax.Array:
         """The `(n,)` masses."""
 

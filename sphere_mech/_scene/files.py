@@ -199,7 +199,9 @@ def _show(x) -> str:
 
 def solvers() -> dict:
     """Integrator names a scene file may use -> `(factory, fixed_step)`. Adaptive diffrax
-    solvers run under `Projected`; `rk4` is `Projected(RK4())` with fixed steps."""
+    solvers run under `Projected`; `rk4` is `Projected(RK4())` with fixed steps;
+    `lie_rk4` is `LieRK4()` (adaptive); `variational`/`variational4` are
+    `Variational(order=2/4)` (fixed steps; forced Lagrange-d'Alembert with forces)."""
     import diffrax
 
     import sphere_mech as sm
@@ -213,6 +215,9 @@ def solvers() -> dict:
     }
     if hasattr(sm, "LieRK4"):
         table["lie_rk4"] = (lambda: sm.LieRK4(), False)
+    if hasattr(sm, "Variational"):
+        table["variational"] = (lambda: sm.Variational(order=2), True)
+        table["variational4"] = (lambda: sm.Variational(order=4), True)
     return table
 
 

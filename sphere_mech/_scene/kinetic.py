@@ -40,6 +40,15 @@ class Chain(AbstractKinetic):
         idx = jnp.arange(self.n)
         return jnp.outer(self.lengths, self.lengths) * tail[jnp.maximum(idx[:, None], idx)]
 
+    def inverse_inertia_bands(self):
+        # M = L^T diag(m) L scaled by the lengths, L lower-triangular ones: M^-1 is
+        # tridiagonal (L^-1 is bidiagonal).
+        inv_m = 1.0 / self.masses
+        previous = jnp.concatenate([jnp.zeros_like(inv_m[:1]), inv_m[:-1]])
+        d = (inv_m + previous) / self.lengths**2
+        e = -inv_m[:-1] / (self.lengths[:-1] * self.lengths[1:])
+        return d, e
+
     def point_masses(self):
         return self.masses
 
@@ -81,6 +90,10 @@ class Particles(AbstractKinetic):
     def inertia(self):
         return jnp.diag(self.masses * self.radii**2)
 
+    def inverse_inertia_bands(self):
+        d = 1.0 / (self.masses * self.radii**2)
+        return d, jnp.zeros_like(d[1:])
+
     def point_masses(self):
         return self.masses
 
@@ -107,6 +120,10 @@ class SharedSphere(AbstractKinetic):
 
     def inertia(self):
         return jnp.diag(self.masses * self.radius**2)
+
+    def inverse_inertia_bands(self):
+        d = 1.0 / (self.masses * self.radius**2)
+        return d, jnp.zeros_like(d[1:])
 
     def point_masses(self):
         return self.masses
