@@ -241,7 +241,9 @@ def _raise_on_failure(sol: diffrax.Solution, max_steps) -> diffrax.Solution:
     index = int(index)
     if index == 0:
         return sol
-    ts = np.asarray(sol.ts if sol.ts is not None else [])
+    # With `SaveAt(subs=[...])`, `sol.ts` is a list of arrays of different lengths.
+    ts = [np.ravel(np.asarray(t)) for t in jtu.tree_leaves(sol.ts)]
+    ts = np.concatenate(ts) if ts else np.zeros(0)
     reached = ts[np.isfinite(ts)]
     where = f" Last saved time: t = {reached.max():.6g}." if reached.size else ""
     stats = {k: int(sol.stats[k]) for k in ("num_steps", "num_accepted_steps",
