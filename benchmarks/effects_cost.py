@@ -13,7 +13,6 @@ Run: python benchmarks/effects_cost.py   (writes benchmarks/results/effects_cost
 import time
 from pathlib import Path
 
-import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -67,7 +66,7 @@ def main():
     q0 = sm.normalize(jnp.tile(jnp.array([[0.3, 0.1, -1.0]]), (N_LINKS, 1)))
     y0 = (q0, sm.project(q0, jnp.tile(jnp.array([[0.0, 1.0, 0.0]]), (N_LINKS, 1))))
     cases = [(name, scene, step_runner()) for name, scene in scenes()]
-    eqns = [count_equations(jax.make_jaxpr(lambda y: sc.rates(0.1, y, None))(y0).jaxpr)
+    eqns = [count_equations(jax.make_jaxpr(lambda y, sc=sc: sc.rates(0.1, y, None))(y0).jaxpr)
             for _, sc, _ in cases]
     for _, scene, solve in cases:
         jax.block_until_ready(solve(scene, y0))  # compile everything first
@@ -77,7 +76,7 @@ def main():
             start = time.perf_counter()
             jax.block_until_ready(solve(scene, y0))
             best[k] = min(best[k], (time.perf_counter() - start) / STEPS)
-    rows = [(name, e, t) for (name, _, _), e, t in zip(cases, eqns, best)]
+    rows = [(name, e, t) for (name, _, _), e, t in zip(cases, eqns, best, strict=True)]
     base = rows[0]
     print(f"Cost of effects, {N_LINKS}-link chain, fixed-step Projected(RK4), dt={DT}, "
           f"{STEPS} steps, best of {REPEATS} interleaved rounds; ratios to gravity-only "

@@ -31,11 +31,12 @@ def unit(x):
 
 def test_chain_matches_chain_pendulum(getkey):
     """Scene(Chain, Gravity, BaseTorque, TipForce) == the independent ChainPendulum."""
-    m, l = jnp.array([1.0, 2.0, 0.5]), jnp.array([1.0, 0.7, 1.3])
+    m, lengths = jnp.array([1.0, 2.0, 0.5]), jnp.array([1.0, 0.7, 1.3])
     tau, d = jnp.array([0.1, 0.2, -0.4]), jnp.array([0.3, -0.2, 0.1])
     q, qdot = sm.random_state(getkey(), 3)
-    scene = sm.Scene(sm.Chain(m, l), sm.Gravity(9.81), sm.BaseTorque(tau), sm.TipForce(d))
-    chain = sm.chain_pendulum(m, l, 9.81, torque=tau, tip_force=d)
+    scene = sm.Scene(sm.Chain(m, lengths), sm.Gravity(9.81), sm.BaseTorque(tau),
+                     sm.TipForce(d))
+    chain = sm.chain_pendulum(m, lengths, 9.81, torque=tau, tip_force=d)
     accel = eqx.filter_jit(lambda system: system.acceleration(0.0, q, qdot))
     np.testing.assert_allclose(accel(scene), accel(chain), rtol=0, atol=1e-12)
     np.testing.assert_allclose(scene.energy(0.0, q, qdot), chain.energy(0.0, q, qdot), rtol=1e-14)
@@ -102,12 +103,12 @@ def test_bending_relative_mode_frequency():
     with omega^2 = k u^T M^{-1} u, u = (1, -1), M the planar inertia (numpy, not
     sphere_mech). Released bent by 1e-3 rad at rest, the bend is reversed after half a
     period and restored after a full period."""
-    m, l, k, eps = np.array([1.0, 0.5]), np.array([1.0, 0.6]), 2.0, 1e-3
-    M = np.array([[(m[0] + m[1]) * l[0] ** 2, m[1] * l[0] * l[1]],
-                  [m[1] * l[0] * l[1], m[1] * l[1] ** 2]])
+    m, ell, k, eps = np.array([1.0, 0.5]), np.array([1.0, 0.6]), 2.0, 1e-3
+    M = np.array([[(m[0] + m[1]) * ell[0] ** 2, m[1] * ell[0] * ell[1]],
+                  [m[1] * ell[0] * ell[1], m[1] * ell[1] ** 2]])
     u = np.array([1.0, -1.0])
     period = 2 * np.pi / np.sqrt(k * u @ np.linalg.solve(M, u))
-    scene = sm.Scene(sm.Chain(m, l), sm.Bending(k))
+    scene = sm.Scene(sm.Chain(m, ell), sm.Bending(k))
     q0 = jnp.array([[1.0, 0.0, 0.0], [np.cos(eps), np.sin(eps), 0.0]])
     ts = jnp.array([0.0, 0.5 * period, period])
     sol = sm.simulate(scene, (q0, jnp.zeros_like(q0)), period, saveat=diffrax.SaveAt(ts=ts),
@@ -146,14 +147,14 @@ def test_joint_damping_power_closed_form(getkey):
 def test_base_torque_statics():
     """Constant torque tau e_y on a pendulum: equilibrium at sin(theta) = tau / (m g l),
     q* = (-sin theta, 0, -cos theta). A PD torque toward d: q* = unit(kp d - m g l e3)."""
-    m, g, l, tau = 0.5, 9.81, 1.2, 2.0
-    s = tau / (m * g * l)
-    scene = sm.Scene(sm.Chain([m], [l]), sm.Gravity(g), sm.BaseTorque(jnp.array([0, tau, 0])))
+    m, g, ell, tau = 0.5, 9.81, 1.2, 2.0
+    s = tau / (m * g * ell)
+    scene = sm.Scene(sm.Chain([m], [ell]), sm.Gravity(g), sm.BaseTorque(jnp.array([0, tau, 0])))
     q_star = jnp.array([[-s, 0.0, -np.sqrt(1 - s**2)]])
     np.testing.assert_allclose(at_rest_acceleration(scene, q_star), 0.0, atol=1e-12)
     d, kp = unit([1.0, 1.0, 0.0]), 8.0
-    pd = sm.Scene(sm.Chain([m], [l]), sm.Gravity(g), sm.BaseTorque(sm.PDTorque(kp, 1.0, d)))
-    q_star = unit(kp * d - m * g * l * E3)[None]
+    pd = sm.Scene(sm.Chain([m], [ell]), sm.Gravity(g), sm.BaseTorque(sm.PDTorque(kp, 1.0, d)))
+    q_star = unit(kp * d - m * g * ell * E3)[None]
     np.testing.assert_allclose(at_rest_acceleration(pd, q_star), 0.0, atol=1e-12)
 
 
@@ -169,10 +170,10 @@ def test_tip_force_statics():
 def test_vibrating_support_force_closed_form(getkey):
     """Single link: f = -m l s''(t), s''(t) = -a w^2 cos(w t) dir."""
     q, qdot = sm.random_state(getkey(), 1)
-    a, w, m, l, t = 0.02, 50.0, 0.3, 0.7, 0.123
+    a, w, m, ell, t = 0.02, 50.0, 0.3, 0.7, 0.123
     direction = unit([0.0, 1.0, 1.0])
-    scene = sm.Scene(sm.Chain([m], [l]), sm.VibratingSupport(a, w, direction))
-    expected = m * l * a * w**2 * np.cos(w * t) * direction
+    scene = sm.Scene(sm.Chain([m], [ell]), sm.VibratingSupport(a, w, direction))
+    expected = m * ell * a * w**2 * np.cos(w * t) * direction
     np.testing.assert_allclose(scene.generalized_force(t, q, qdot)[0], expected, rtol=1e-13)
 
 

@@ -261,13 +261,13 @@ def _effect(path, k: int, table):
         raise SceneFileError(path, where, f"{kind}: {e}") from None
 
 
-def _check_indices(path, scene: Scene, effects, tables):
+def _check_indices(path, scene: Scene, effects):
     n = scene.n
-    for k, (e, t) in enumerate(zip(effects, tables)):
+    for k, e in enumerate(effects):
         where = f"effects[{k}]"
         idx = []
         if isinstance(e, Spring):
-            idx = [(f"{where}.{f}", i) for f, i in zip("ab", e.ends) if i is not None]
+            idx = [(f"{where}.{f}", i) for f, i in zip("ab", e.ends, strict=True) if i is not None]
         elif isinstance(e, TipForce):
             idx = [(f"{where}.point", e.point)]
         elif isinstance(e, BaseTorque):
@@ -401,7 +401,7 @@ def load_scene(path) -> SceneSpec:
         scene = Scene(*effects)
     except ValueError as e:
         raise SceneFileError(path, "effects", str(e)) from None
-    _check_indices(path, scene, effects, tables)
+    _check_indices(path, scene, effects)
     if "initial" not in data:
         raise SceneFileError(path, "initial", "missing; expected a table with q or angles")
     q, qdot = _initial(path, data["initial"], scene.n)

@@ -1,6 +1,5 @@
 """`Scene`: the system assembled from exactly the effects it lists."""
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
@@ -19,8 +18,8 @@ class Scene(AbstractConstantInertiaLagrangian):
     `f = sum forces`. Only the effects listed are traced: with no force effect,
     `generalized_force` is `None` and no force operation is compiled. Every kinetic term
     has a constant scalar inertia with a tridiagonal inverse, so the scene runs on the
-    Corollary-1 fast path with O(n) solves (no Hessian, no dense factorization). Each effect's operations carry its class
-    name in the jaxpr's name stack.
+    Corollary-1 fast path with O(n) solves (no Hessian, no dense factorization). Each
+    effect's operations carry its class name in the jaxpr's name stack.
 
     The state is `(q, qdot)`; `positions(q)` gives the masses in the support frame.
     """
@@ -76,21 +75,21 @@ class Scene(AbstractConstantInertiaLagrangian):
         """Positions of the masses in the support frame, `(n, 3)`."""
         o = self._offsets()
         return jnp.concatenate(
-            [k.positions(q[a:b]) for k, a, b in zip(self.kinetic, o[:-1], o[1:])]
+            [k.positions(q[a:b]) for k, a, b in zip(self.kinetic, o[:-1], o[1:], strict=True)]
         )
 
     def parents(self) -> np.ndarray:
         """Global index of each sphere's parent in its joint (-1: the support)."""
         out = []
-        for k, a in zip(self.kinetic, self._offsets()):
+        for k, a in zip(self.kinetic, self._offsets()[:-1], strict=True):
             out += [p + a if p >= 0 else -1 for p in k.parents()]
         return np.asarray(out, dtype=int)
 
     def bend_pairs(self) -> tuple[np.ndarray, np.ndarray]:
         """Global index arrays `(i, j)` of consecutive links."""
-        pairs = [(i + a, j + a) for k, a in zip(self.kinetic, self._offsets())
+        pairs = [(i + a, j + a) for k, a in zip(self.kinetic, self._offsets()[:-1], strict=True)
                  for i, j in k.bends()]
-        i, j = (np.asarray(p, dtype=int) for p in zip(*pairs)) if pairs else ([], [])
+        i, j = (np.asarray(p, dtype=int) for p in zip(*pairs, strict=True)) if pairs else ([], [])
         return np.asarray(i, dtype=int), np.asarray(j, dtype=int)
 
     def potential(self, t, q, args=None):
