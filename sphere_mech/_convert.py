@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import optimistix as optx
 
-from ._checks import check_scalar
+from ._checks import check_finite, check_scalar
 from ._geometry import tangent_basis
 from ._hamiltonian import AngularHamiltonian, Hamiltonian
 from ._lagrangian import AbstractLagrangianSystem, AngularLagrangian
@@ -61,6 +61,13 @@ def angular(system: AbstractSystem) -> AbstractSystem:
     )
 
 
+LEGENDRE_SINGULAR_MESSAGE = (
+    "the Legendre transform is not invertible at this state: the reduced mass matrix "
+    "T^T (d^2 L / d v^2) T is singular or not finite (degenerate Lagrangian, for example a "
+    "zero mass or length, or a sphere without kinetic energy)"
+)
+
+
 def _newton_tolerance(dtype) -> float:
     return float(jnp.finfo(dtype).eps) ** 0.75
 
@@ -84,6 +91,7 @@ def invert_momentum(L, t, q, p, args, *, quadratic: bool, max_steps: int = 32):
     zero = jnp.zeros_like(q)
     p0, hvp = jax.linearize(dL_dv, zero)
     a = jnp.linalg.solve(reduced_matrix(hvp, T), to_tangent(T, p - p0))
+    a = check_finite(a, LEGENDRE_SINGULAR_MESSAGE)
     if not quadratic:
         tol = _newton_tolerance(q.dtype)
         sol = optx.root_find(

@@ -7,7 +7,7 @@ from typing import ClassVar
 import jax
 import jax.numpy as jnp
 
-from ._checks import check_scalar
+from ._checks import check_finite, check_scalar
 from ._custom_types import Args, ForceFn, Points, Scalar, State, Tangents
 from ._geometry import project
 from ._system import AbstractSystem, as_time, user_forces
@@ -37,7 +37,12 @@ class _AbstractHamiltonianSystem(AbstractSystem):
     def vector_field(self, t, q: Points, p: Tangents, args: Args = None) -> State:
         """`(qdot, pdot)` from Hamilton's equations, after checking the state."""
         q, p = self.check_state(q, p)
-        return self.rates(t, (q, p), args)
+        qdot, pdot = self.rates(t, (q, p), args)
+        message = (
+            "Hamilton's equations are not finite at this state: H or its gradient is NaN "
+            "or infinite (degenerate Hamiltonian, or NaN parameters)"
+        )
+        return check_finite(qdot, message), check_finite(pdot, message)
 
 
 class Hamiltonian(_AbstractHamiltonianSystem):

@@ -1,0 +1,171 @@
+"""Each bad input gives an error that names the problem: static problems raise
+`ValueError` at trace time, value problems raise through `equinox.error_if` (also under
+jit). Input within the documented tolerance is accepted."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import pytest
+
+import sphere_mech as sm
+
+NOT_UNIT = "q is not on the spheres"
+SINGULAR = "reduced mass matrix .* is singular"
+LEGENDRE = "Legendre transform is not invertible"
+
+
+def L(t, q, qdot, args):
+    return 0.5 * jnp.sum(qdot**2) - jnp.sum(q[:, 2])
+
+
+def L_first_sphere_only(t, q, qdot, args):
+    """No kinetic energy in the second sphere: a degenerate Lagrangian."""
+    return 0.5 * jnp.sum(qdot[0] ** 2) - jnp.sum(q[:, 2])
+
+
+SYSTEM = sm.Lagrangian(L)
+
+
+@pytest.fixture(scope="module")
+def state():
+    return sm.random_state(jax.random.PRNGKey(0), 2)
+
+
+def all_forms(system):
+    return dict(
+        qdot=lambda t, q, v: system.acceleration(t, q, v, None),
+        omega=lambda t, q, v: sm.angular(system).angular_acceleration(t, q, v, None),
+        mu=lambda t, q, v: sm.legendre(system).vector_field(t, q, v, None),
+        pi=lambda t, q, v: sm.legendre(sm.angular(system)).vector_field(t, q, v, None),
+    )
+
+
+@pytest.mark.parametrize("name", ["qdot", "omega", "mu", "pi"])
+def test_bad_shapes(name, state):
+    q, v = state
+    fn = all_forms(SYSTEM)[name]
+    with pytest.raises(ValueError, match=r"q must have shape \(n, 3\).*got \(2, 2\)"):
+        fn(0.0, q[:, :2], v[:, :2])
+    with pytest.raises(ValueError, match=r"q must have shape \(n, 3\).*got \(6,\)"):
+        fn(0.0, q.reshape(-1), v.reshape(-1))
+    with pytest.raises(ValueError, match=rf"{name} must have the same shape as q, \(2, 3\), "
+                                         r"got \(1, 3\)"):
+        fn(0.0, q, v[:1])
+    with pytest.raises(ValueError, match="q must be a floating-point array"):
+        fn(0.0, jnp.array([[0, 0, 1]]), jnp.zeros((1, 3)))
+
+
+@pytest.mark.parametrize("name", ["qdot", "omega", "mu", "pi"])
+def test_not_on_the_spheres_or_not_tangent(name, state):
+    q, v = state
+    fn = all_forms(SYSTEM)[name]
+    with pytest.raises(eqx.EquinoxRuntimeError, match=NOT_UNIT):
+        fn(0.0, 1.01 * q, v)
+    with pytest.raises(eqx.EquinoxRuntimeError, match=f"{name} is not tangent to the spheres"):
+        fn(0.0, q, v + 0.01 * q)
+    with pytest.raises(eqx.EquinoxRuntimeError, match="q contains NaN or infinite values"):
+        fn(0.0, q.at[0, 0].set(jnp.nan), v)
+    with pytest.raises(eqx.EquinoxRuntimeError, match=f"{name} contains NaN or infinite"):
+        fn(0.0, q, v.at[1, 2].set(jnp.inf))
+
+
+def test_within_tolerance_is_accepted(state):
+    q, v = state
+    tol = sm.unit_tolerance(jnp.float64)
+    assert tol == 1e-6 and sm.unit_tolerance(jnp.float32) == 1e-4
+    q_off = q * (1.0 + 0.5 * tol)
+    v_off = v + 0.5 * tol * q
+    SYSTEM.acceleration(0.0, q_off, v_off, None)
+    # simulate accepts it and puts the initial state exactly on the tangent bundle
+    sol = sm.simulate(SYSTEM, (q_off, v_off), 0.0)
+    q0, v0 = sol.ys[0][0], sol.ys[1][0]
+    assert float(sm.constraint_error(q0)) < 1e-15
+    assert float(jnp.max(jnp.abs(jnp.sum(q0 * v0, -1)))) < 1e-15
+
+
+def test_checks_work_under_jit(state):
+    q, v = state
+    with pytest.raises(eqx.EquinoxRuntimeError, match=NOT_UNIT):
+        eqx.filter_jit(SYSTEM.acceleration)(0.0, 2.0 * q, v, None)
+
+
+def test_non_scalar_lagrangian_or_hamiltonian(state):
+    q, v = state
+    bad = sm.Lagrangian(lambda t, q, qdot, args: qdot)
+    with pytest.raises(ValueError, match=r"L\(t, q, v, args\) must return a scalar, got an "
+                                         r"array of shape \(2, 3\)"):
+        bad.acceleration(0.0, q, v, None)
+    with pytest.raises(ValueError, match="must return a scalar"):
+        sm.legendre(bad).vector_field(0.0, q, v, None)
+    with pytest.raises(ValueError, match=r"H\(t, q, p, args\) must return a scalar"):
+        sm.Hamiltonian(lambda t, q, p, args: p).vector_field(0.0, q, v, None)
+
+
+def test_bad_forces(state):
+    q, v = state
+    system = sm.Lagrangian(L, forces=lambda t, q, qdot, args: qdot[0])
+    with pytest.raises(ValueError, match=r"forces\(t, q, v, args\) must return an array of "
+                                         r"shape \(2, 3\)"):
+        system.acceleration(0.0, q, v, None)
+
+
+@pytest.mark.parametrize("name", ["qdot", "omega"])
+def test_degenerate_lagrangian_lagrangian_forms(name, state):
+    q, v = state
+    with pytest.raises(eqx.EquinoxRuntimeError, match=SINGULAR):
+        all_forms(sm.Lagrangian(L_first_sphere_only))[name](0.0, q, v)
+
+
+@pytest.mark.parametrize("quadratic", [True, False])
+def test_degenerate_lagrangian_hamiltonian_forms(quadratic, state):
+    q, v = state
+    H = sm.legendre(sm.Lagrangian(L_first_sphere_only), quadratic=quadratic)
+    with pytest.raises(eqx.EquinoxRuntimeError, match=LEGENDRE):
+        H.vector_field(0.0, q, v, None)
+
+
+def test_nan_hamiltonian(state):
+    q, v = state
+    H = sm.Hamiltonian(lambda t, q, p, args: jnp.sum(p**2) * jnp.log(-1.0))
+    with pytest.raises(eqx.EquinoxRuntimeError, match="Hamilton's equations are not finite"):
+        H.vector_field(0.0, q, v, None)
+
+
+@pytest.mark.parametrize(
+    "masses, lengths",
+    [([1.0, 0.0], [1.0, 1.0]), ([0.0, 1.0], [1.0, 1.0]), ([1.0, 1.0], [1.0, 0.0])],
+)
+def test_degenerate_chain(masses, lengths, state):
+    q, v = state
+    chain = sm.chain_pendulum(jnp.array(masses), jnp.array(lengths))
+    with pytest.raises(eqx.EquinoxRuntimeError, match=SINGULAR):
+        chain.acceleration(0.0, q, v)
+
+
+def test_chain_constructor():
+    with pytest.raises(ValueError, match="masses and lengths must be 1-D arrays of the same"):
+        sm.chain_pendulum(jnp.ones(2), jnp.ones(3))
+    with pytest.raises(ValueError, match="g must be a scalar"):
+        sm.chain_pendulum(jnp.ones(2), jnp.ones(2), g=jnp.ones(3))
+    with pytest.raises(ValueError, match=r"tip_force must be a \(3,\) vector or a function"):
+        sm.chain_pendulum(jnp.ones(2), jnp.ones(2), tip_force=jnp.ones(2))
+    with pytest.raises(ValueError, match=r"inertia must be a square \(n, n\) matrix"):
+        sm.ConstantInertiaLagrangian(jnp.ones((2, 3)), lambda t, q, args: 0.0)
+
+
+def test_errors_through_simulate(state):
+    q, v = state
+    with pytest.raises(ValueError, match=r"y0 must be a pair \(q0, v0\)"):
+        sm.simulate(SYSTEM, q, 1.0)
+    with pytest.raises(ValueError, match=r"qdot must have the same shape as q"):
+        sm.simulate(SYSTEM, (q, v[:1]), 1.0)
+    with pytest.raises(eqx.EquinoxRuntimeError, match=NOT_UNIT):
+        sm.simulate(SYSTEM, (1.1 * q, v), 1.0)
+    with pytest.raises(eqx.EquinoxRuntimeError, match="qdot is not tangent"):
+        sm.simulate(SYSTEM, (q, v + 0.1 * q), 1.0)
+    with pytest.raises(eqx.EquinoxRuntimeError, match="q contains NaN"):
+        sm.simulate(SYSTEM, (q.at[0, 0].set(jnp.nan), v), 1.0)
+    chain = sm.chain_pendulum(jnp.array([1.0, 0.0]), jnp.ones(2))
+    with pytest.raises(eqx.EquinoxRuntimeError, match="equations of motion are not finite at "
+                                                      "the initial state"):
+        sm.simulate(chain, (q, v), 1.0)
