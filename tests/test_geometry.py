@@ -1,0 +1,80 @@
+"""Geometry helpers of (S^2)^n."""
+
+import jax
+import jax.numpy as jnp
+import jax.scipy.linalg
+import numpy as np
+import pytest
+
+import sphere_mech as sm
+
+
+@pytest.fixture(scope="module")
+def points():
+    q = sm.random_points(jax.random.PRNGKey(0), 6)
+    poles = jnp.array([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [1e-9, 0.0, -1.0]])
+    return jnp.concatenate([q, sm.normalize(poles)])
+
+
+def test_hat(getkey):
+    x, y = jax.random.normal(getkey(), (2, 5, 3))
+    np.testing.assert_allclose(sm.hat(x) @ y[..., None], jnp.cross(x, y)[..., None], atol=1e-15)
+    np.testing.assert_allclose(sm.hat(x), -jnp.swapaxes(sm.hat(x), -1, -2))
+
+
+def test_normalize_project_retract(getkey):
+    x, v = jax.random.normal(getkey(), (2, 4, 3))
+    q = sm.normalize(x)
+    np.testing.assert_allclose(jnp.linalg.norm(q, axis=-1), 1.0, atol=1e-15)
+    assert float(sm.constraint_error(q)) < 1e-15
+    assert float(sm.constraint_error(x)) > 0.01
+    np.testing.assert_allclose(jnp.sum(q * sm.project(q, v), -1), 0.0, atol=1e-15)
+    q2, v2 = sm.retract(2.0 * x, v)
+    np.testing.assert_allclose(q2, q, atol=1e-15)
+    np.testing.assert_allclose(v2, sm.project(q, v), atol=1e-15)
+
+
+def test_tangent_basis_orthonormal_right_handed(points):
+    T = sm.tangent_basis(points)
+    assert T.shape == (points.shape[0], 3, 2)
+    gram = jnp.einsum("ica,icb->iab", T, T)
+    np.testing.assert_allclose(gram, jnp.broadcast_to(jnp.eye(2), gram.shape), atol=1e-14)
+    np.testing.assert_allclose(jnp.einsum("ic,ica->ia", points, T), 0.0, atol=1e-14)
+    np.testing.assert_allclose(jnp.cross(T[..., 0], T[..., 1]), points, atol=1e-14)
+    # points slightly off the sphere are normalized first
+    np.testing.assert_allclose(sm.tangent_basis(1.001 * points), T, atol=1e-14)
+
+
+def test_rotate_and_rotation_matrix(getkey):
+    w = jax.random.normal(getkey(), (4, 3))
+    w = w.at[0].set(1e-5 * w[0]).at[1].set(0.0)  # series branch and exact zero
+    x = jax.random.normal(getkey(), (4, 3))
+    R = sm.rotation_matrix(w)
+    expected = jax.vmap(jax.scipy.linalg.expm)(sm.hat(w))
+    np.testing.assert_allclose(R, expected, atol=1e-13)
+    np.testing.assert_allclose(sm.rotate(w, x), (R @ x[..., None])[..., 0], atol=1e-13)
+    np.testing.assert_allclose(jnp.linalg.det(R), 1.0, atol=1e-13)
+    # smooth derivatives through the small-angle branch
+    g0 = jax.grad(lambda s: jnp.sum(sm.rotate(s * w[2], x[2])))(0.0)
+    np.testing.assert_allclose(g0, jnp.sum(jnp.cross(w[2], x[2])), rtol=1e-12)
+
+
+def test_sphere_exp_follows_great_circles(points, getkey):
+    v = sm.project(points, jax.random.normal(getkey(), points.shape))
+    speed = jnp.linalg.norm(v, axis=-1, keepdims=True)
+    expected = jnp.cos(speed) * points + jnp.sin(speed) * v / speed
+    got = sm.sphere_exp(points, v)
+    np.testing.assert_allclose(got, expected, atol=1e-13)
+    assert float(sm.constraint_error(got)) < 1e-14
+    np.testing.assert_allclose(sm.sphere_exp(points, 0.0 * v), points, atol=1e-15)
+
+
+def test_random_points_and_states(getkey):
+    q = sm.random_points(getkey(), 1000)
+    assert q.shape == (1000, 3)
+    assert float(sm.constraint_error(q)) < 1e-14
+    np.testing.assert_allclose(jnp.mean(q, axis=0), 0.0, atol=0.1)  # roughly uniform
+    q, v = sm.random_state(getkey(), 5, speed=3.0, dtype=jnp.float32)
+    assert q.dtype == v.dtype == jnp.float32
+    assert float(jnp.max(jnp.abs(jnp.sum(q * v, -1)))) < 1e-5
+    assert float(jnp.mean(jnp.linalg.norm(v, axis=-1))) > 1.0
