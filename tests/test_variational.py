@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import fitted_order, max_rel_error
 
 import sphere_mech as sm
 from sphere_mech._solvers.discrete_mechanics import (
@@ -16,8 +17,6 @@ from sphere_mech._solvers.discrete_mechanics import (
     substep,
     velocity_from_momentum,
 )
-
-from helpers import fitted_order, max_rel_error
 
 
 def general_L(t, q, qdot, args):

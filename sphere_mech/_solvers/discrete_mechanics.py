@@ -6,8 +6,9 @@ ambient space R^{3n} by `L(q, P(q) v)`,
     L_d(q0, q1) = h/2 [L(t0, q0, P(q0) c) + L(t1, q1, P(q1) c)],   c = (q1 - q0) / h,
 
 (L is evaluated on the tangent bundle only: `P(q) = I - q q^T` projects the chord
-velocity on each tangent plane), and the constraints `|q_i| = 1` enter through Lagrange multipliers. Projecting the
-discrete Euler-Lagrange equations onto the tangent planes removes the multipliers:
+velocity on each tangent plane), and the constraints `|q_i| = 1` enter through Lagrange
+multipliers. Projecting the discrete Euler-Lagrange equations onto the tangent planes
+removes the multipliers:
 
     P(q0) [mu0 + D1 L_d(q0, q1) + f0] = 0,   |q1_i| = 1       (solved for q1, Newton)
     mu1 = P(q1) [D2 L_d(q0, q1) + f1]

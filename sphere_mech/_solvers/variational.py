@@ -64,24 +64,29 @@ class Variational(AbstractSolver):
 
     Symplectic, time-reversible (stepping back with `-h` returns the initial state to
     rounding), `|q_i| = 1` to rounding, and for conservative systems an energy error
-    that stays bounded over millions of steps instead of drifting. Order 2; `order=4` uses a
-    symmetric composition of the same step (still symplectic and reversible).
+    that stays bounded over millions of steps instead of drifting. Order 2; `order=4`
+    uses a symmetric composition of the same step (still symplectic and reversible).
 
     Works for any `Lagrangian`, `AngularLagrangian`, `ConstantInertiaLagrangian`,
-    `ChainPendulum` or scene: the equations come from `L` by autodiff, each step solves
-    `2n` nonlinear equations by Newton's method (optimistix; implicit differentiation,
-    so `jax.grad` works through it). Time-dependent `L` is supported (the step stays
-    symplectic, energy is of course not conserved). With forces
-    (`system.has_forces`) it becomes the forced Lagrange-d'Alembert integrator (discrete
-    forces `h/2 f` at both ends of the step): still reversible in form and of the same
-    order, no longer symplectic. Hamiltonian systems are refused (ValueError): simulate
-    their Lagrangian form.
+    `ChainPendulum` or scene: the equations come from `L` by autodiff; each (sub)step
+    solves `2n` nonlinear equations by Newton's method (optimistix; implicit
+    differentiation, so `jax.grad` works through it), started from a predictor built
+    from the accelerations so that about two iterations suffice. `L` is evaluated on the
+    tangent bundle only (at the chord velocity projected on each tangent plane), so the
+    discrete trajectory does not depend on how `L` is written off it, and forms 1 and 2
+    give the same steps. Time-dependent `L` is supported (the step stays symplectic;
+    energy is then not conserved, of course). With forces (`system.has_forces`) it is
+    the forced Lagrange-d'Alembert integrator (discrete forces `h/2 f` at both ends of
+    the step): reversible in form and of the same order, no longer symplectic.
+    Hamiltonian systems are refused with a `ValueError`: simulate their Lagrangian form.
 
     Fixed steps only (no error estimate): use it through
-    `sphere_mech.simulate(system, y0, t1, solver=Variational(), dt0=h)`. The solver reads
-    the system from diffrax's `args`, which `simulate` sets to `(system, user_args)`.
-    A Newton iteration that does not converge is reported through the solution's
-    `result` (raised by `simulate` unless `throw=False`).
+    `sphere_mech.simulate(system, y0, t1, solver=Variational(), dt0=h)`. The solver
+    reads the system from diffrax's `args`, which `simulate` sets to
+    `(system, user_args)` (with `diffrax.diffeqsolve` directly, pass the same). A
+    Newton iteration that does not converge is reported through the solution's
+    `result` (and raised by `simulate` unless `throw=False`); the state then stays at
+    the last good step.
 
     **Arguments:**
     - `order`: 2 (the basic step) or 4 (a symmetric composition of it).
@@ -89,9 +94,10 @@ class Variational(AbstractSolver):
       constants) or `"yoshida"` (the triple jump: 3 substeps, one of them backward and
       1.7 times the step, so Newton needs a smaller step to converge).
     - `root_find_max_steps`: Newton iterations allowed per substep (default 16).
-    - `root_find_tol`: Newton tolerance (relative and absolute); default
-      `eps ** 0.75` of the state's dtype. The iteration stops once the predicted
-      remaining error is below 1% of it, so results are accurate to about rounding.
+    - `root_find_tol`: Newton tolerance; default `eps ** 0.75` of the state's dtype.
+      Newton stops when its last correction is below it (relative to the velocity) and
+      the residual, relative to the momenta it is made of, is too; quadratic
+      convergence then leaves errors at about rounding.
     """
 
     gammas: tuple[float, ...] = eqx.field(static=True)
