@@ -117,6 +117,8 @@ def main(argv=None) -> int:
                        help="override the scene's duration (s)")
     p_run.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     ns = parser.parse_args(argv)
+    if ns.duration is not None and not ns.duration > 0:
+        return _fail(f"--duration: expected a positive time in s, got {ns.duration}", 2)
     from ._scene.files import SceneFileError
 
     try:
