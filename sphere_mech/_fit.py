@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
 import optimistix as optx
+from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float, Int, PyTree
 
 from ._geometry import retract
@@ -156,6 +157,7 @@ class _Residuals(eqx.Module):
     fit_initial_state: bool = eqx.field(static=True)
     continuity: float
     sim: dict
+    jac: str = eqx.field(static=True)
 
     def states(self, z, y0):
         """Initial states of all segments, `(B, K, n, 3)` each, on the tangent bundle."""
@@ -170,23 +172,81 @@ class _Residuals(eqx.Module):
     def params(self, u):
         return eqx.combine(_map_flagged(jnp.exp, u, self.positive), self.static_params)
 
+    def segment(self, u, state, ts, obs, t0, t1, mask):
+        """Residuals and final state of one segment."""
+        system, args = _system_and_args(self.model, self.params(u))
+        return _segment_residual(system, args, self.observe, state, ts, t0, t1, obs, mask,
+                                 self.sim)
+
+    def segments(self, u, states, data):
+        """`segment` over all records and segments: `(B, K, ...)` outputs."""
+        ts, obs, _ = data
+        lay = self.layout
+        per_segment = (ts[:, lay.index], obs[:, lay.index], ts[:, lay.bounds[:-1]],
+                       ts[:, lay.bounds[1:]])
+        mask = jnp.asarray(lay.mask)
+        fn = lambda s, *d: self.segment(u, s, *d[:4], d[4])
+        fn = jax.vmap(jax.vmap(fn, in_axes=(0,) * 5 + (0,)), in_axes=(0,) * 5 + (None,))
+        return fn(states, *per_segment, mask)
+
     def __call__(self, unknowns, data):
         u, z = unknowns
-        ts, obs, y0 = data
-        system, args = _system_and_args(self.model, self.params(u))
-        qs, vs = self.states(z, y0)
-        lay = self.layout
-        starts, ends = lay.bounds[:-1], lay.bounds[1:]
-
-        def record(ts_b, obs_b, q_b, v_b):
-            seg = jax.vmap(_segment_residual, in_axes=(None,) * 3 + (0,) * 6 + (None,))
-            return seg(system, args, self.observe, (q_b, v_b), ts_b[lay.index], ts_b[starts],
-                       ts_b[ends], obs_b[lay.index], jnp.asarray(lay.mask), self.sim)
-
-        res, (q_end, v_end) = jax.vmap(record)(ts, obs, qs, vs)
+        qs, vs = self.states(z, data[2])
+        res, (q_end, v_end) = _segments(u, (qs, vs), problem=self, data=data)
         weight = jnp.sqrt(jnp.asarray(self.continuity, res.dtype))
         jump = (weight * (q_end[:, :-1] - qs[:, 1:]), weight * (v_end[:, :-1] - vs[:, 1:]))
         return res, jump
+
+
+@eqx.filter_custom_jvp
+def _segments(u, states, *, problem, data):
+    return problem.segments(u, states, data)
+
+
+@_segments.def_jvp
+def _segments_jvp(primals, tangents, *, problem, data):
+    """Segment `k` depends only on the parameters and its own initial state: build each
+    segment's Jacobian (`dim(u) + 6n` columns, forward mode; or its rows, reverse mode)
+    once, then apply it to any tangent. This keeps the cost of the least-squares
+    Jacobian independent of the number of segments."""
+    u, states = primals
+    du, dstates = tangents
+    u_flat, unravel_u = ravel_pytree(u)
+    s0 = jtu.tree_map(lambda x: x[0, 0], states)
+    s_flat0, unravel_s = ravel_pytree(s0)
+    ts, obs, _ = data
+    lay = problem.layout
+
+    def flat(u_flat_, s_flat_, *d):
+        out = problem.segment(unravel_u(u_flat_), unravel_s(s_flat_), *d)
+        out_flat = ravel_pytree(out)[0]
+        return out_flat, out
+
+    jacobian = jax.jacfwd if problem.jac == "fwd" else jax.jacrev
+    block = jacobian(flat, argnums=(0, 1), has_aux=True)
+    s_flat = jax.vmap(jax.vmap(lambda s: ravel_pytree(s)[0]))(states)
+    per_segment = (ts[:, lay.index], obs[:, lay.index], ts[:, lay.bounds[:-1]],
+                   ts[:, lay.bounds[1:]])
+    mask = jnp.asarray(lay.mask)
+    fn = lambda s, *d: block(u_flat, s, *d[:4], d[4])
+    fn = jax.vmap(jax.vmap(fn, in_axes=(0,) * 5 + (0,)), in_axes=(0,) * 5 + (None,))
+    (J_u, J_s), out = fn(s_flat, *per_segment, mask)
+    t_out = jnp.zeros(J_u.shape[:-1], J_u.dtype)
+    if du is not None:
+        du_flat = ravel_pytree(_fill_zeros(du, u))[0]
+        t_out = t_out + J_u @ du_flat
+    if dstates is not None:
+        ds = _fill_zeros(dstates, states)
+        ds_flat = jax.vmap(jax.vmap(lambda s: ravel_pytree(s)[0]))(ds)
+        t_out = t_out + jnp.einsum("bkrs,bks->bkr", J_s, ds_flat)
+    unravel_out = ravel_pytree(jtu.tree_map(lambda x: x[0, 0], out))[1]
+    return out, jax.vmap(jax.vmap(unravel_out))(t_out)
+
+
+def _fill_zeros(tangents, primals):
+    """Symbolic zero tangents (`None`) of array primals as arrays of zeros."""
+    fill = lambda t, p: jnp.zeros_like(p) if t is None and p is not None else t
+    return jtu.tree_map(fill, tangents, primals, is_leaf=lambda x: x is None)
 
 
 # ----------------------------------------------------------------------------------------
@@ -270,7 +330,7 @@ def _as_batch(ts, observations, y0):
 
 
 def _check_observe(observe, system, ts, observations, y0):
-    out = jax.eval_shape(observe, system, ts[0, 0], y0[0][0], y0[1][0])
+    out = eqx.filter_eval_shape(observe, system, ts[0, 0], y0[0][0], y0[1][0])
     if not hasattr(out, "shape") or out.shape != observations.shape[2:]:
         raise ValueError(
             f"observe(system, t, q, v) returns shape {getattr(out, 'shape', type(out))} but "
@@ -373,10 +433,10 @@ def fit(
     z0 = _initial_unknown_states(system0, args0, ts, y0, layout, segment_states,
                                  fit_initial_state, batched, sim)
     residuals = _Residuals(model, observe, flags, static, layout, fit_initial_state,
-                           continuity, sim)
+                           continuity, sim, jac)
     solver = optx.LevenbergMarquardt(rtol=1e-6, atol=1e-9) if solver is None else solver
     (u, z), loss, steps, converged, losses, result = _least_squares(
-        residuals, solver, (u0, z0), (ts, observations, y0), max_steps, {"jac": jac}
+        residuals, solver, (u0, z0), (ts, observations, y0), max_steps, {"jac": "fwd"}
     )
     states = residuals.states(z, y0)
     if not batched:

@@ -1,0 +1,263 @@
+"""Gradients through `simulate` and parameter fitting with `fit`."""
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+import pytest
+import sphere_mech as sm
+
+from helpers import max_rel_error
+
+# ----------------------------------------------------------------------------------------
+# Gradients through simulate.
+
+P0 = jnp.array([1.0, 0.5, 1.0, 0.7, 9.81])  # m1, m2, l1, l2, g
+TOL = dict(rtol=1e-12, atol=1e-12)
+
+
+def _initial_states(num):
+    q = sm.normalize(jnp.array([[1.0, 0.2, -1.0], [0.6, -0.4, -1.0]]))
+    v = sm.project(q, jnp.array([[0.0, 1.0, 0.0], [0.5, 0.0, 0.3]]))
+    w = jnp.linspace(0.0, 1.0, num)[:, None, None] * jnp.array([0.0, 0.3, 0.2])
+    return jax.vmap(lambda w_: (sm.rotate(jnp.broadcast_to(w_, (2, 3)), q),
+                                sm.rotate(jnp.broadcast_to(w_, (2, 3)), v)))(w)
+
+
+def _quantity(p, y0, adjoint, solver=None, dt0=None, tol=TOL):
+    """A weighted sum of the tip position after 1 s."""
+    chain = sm.chain_pendulum(p[:2], p[2:4], p[4])
+    sol = sm.simulate(chain, y0, 1.0, adjoint=adjoint, solver=solver, dt0=dt0, **tol)
+    return jnp.dot(chain.positions(sol.ys[0][-1])[-1], jnp.array([1.0, 2.0, 3.0]))
+
+
+def _central_differences(f, p, eps):
+    return jnp.stack([(f(p + e) - f(p - e)) / (2 * eps) for e in eps * jnp.eye(p.size)], -1)
+
+
+@pytest.fixture(scope="module")
+def adaptive():
+    """Value, reverse-mode gradient and forward-mode Jacobian with adaptive steps, each
+    vmapped over three initial conditions (compiled once for the module)."""
+    rev = lambda p, y: _quantity(p, y, diffrax.RecursiveCheckpointAdjoint())
+    fwd = lambda p, y: _quantity(p, y, diffrax.ForwardMode())
+    batch = lambda f: eqx.filter_jit(jax.vmap(f, in_axes=(None, 0)))
+    return batch(rev), batch(jax.grad(rev)), batch(jax.jacfwd(fwd)), _initial_states(3)
+
+
+def test_gradient_adaptive_matches_finite_differences(adaptive):
+    value, grad, _, y0 = adaptive
+    fd = _central_differences(lambda p: value(p, y0), P0, 1e-5)
+    g = grad(P0, y0)
+    assert g.shape == (3, 5)
+    assert max_rel_error(g, fd) < 1e-6
+    # vmap changes nothing: each row is the gradient of its own initial condition
+    assert not np.allclose(g[0], g[1], rtol=1e-3)
+
+
+def test_forward_mode_matches_reverse_mode(adaptive):
+    _, grad, jacfwd, y0 = adaptive
+    assert max_rel_error(jacfwd(P0, y0), grad(P0, y0)) < 1e-10
+
+
+def test_gradient_fixed_steps_and_initial_state():
+    """RK4 with fixed steps: gradient with respect to the parameters and a directional
+    derivative with respect to the initial velocity, against finite differences."""
+    y0 = jax.tree.map(lambda x: x[0], _initial_states(1))
+    kw = dict(solver=sm.Projected(sm.RK4()), dt0=0.01, tol={})
+
+    @eqx.filter_jit
+    def f(p, v0):
+        return _quantity(p, (y0[0], v0), diffrax.RecursiveCheckpointAdjoint(), **kw)
+
+    g_p, g_v = jax.jit(jax.grad(f, argnums=(0, 1)))(P0, y0[1])
+    assert max_rel_error(g_p, _central_differences(lambda p: f(p, y0[1]), P0, 1e-5)) < 1e-6
+    direction = sm.project(y0[0], jnp.array([[0.3, -0.2, 0.5], [0.1, 0.4, -0.2]]))
+    eps = 1e-5
+    fd = (f(P0, y0[1] + eps * direction) - f(P0, y0[1] - eps * direction)) / (2 * eps)
+    assert abs(jnp.sum(g_v * direction) - fd) < 1e-6 * abs(fd)
+
+
+# ----------------------------------------------------------------------------------------
+# Fitting a damped double spherical pendulum.
+
+
+class DampedChain(sm.AbstractConstantInertiaLagrangian):
+    """A chain pendulum with viscous joint damping, from the Rayleigh function
+    `R = c/2 sum_i |omega_i - omega_{i-1}|^2` (`omega_0 = 0`): `f = -dR/dqdot`."""
+
+    chain: sm.ChainPendulum
+    damping: jax.Array
+
+    def inertia(self, args=None):
+        return self.chain.inertia(args)
+
+    def potential(self, t, q, args=None):
+        return self.chain.potential(t, q, args)
+
+    @property
+    def has_forces(self):
+        return True
+
+    def generalized_force(self, t, q, qdot, args):
+        def rayleigh(qdot_):
+            w = jnp.cross(q, qdot_)
+            rel = w - jnp.concatenate([jnp.zeros_like(w[:1]), w[:-1]])
+            return 0.5 * self.damping * jnp.sum(rel**2)
+
+        return -jax.grad(rayleigh)(qdot)
+
+
+def damped_chain(p):
+    masses = jnp.stack([jnp.ones_like(p["ratio"]), p["ratio"]])
+    lengths = jnp.stack([p["l1"], p["l2"]])
+    return DampedChain(sm.chain_pendulum(masses, lengths, 9.81), p["c"])
+
+
+def mass_positions(system, t, q, v):
+    """The observation: positions of both masses (the tips of the two links)."""
+    return system.chain.positions(q)
+
+
+TRUE = dict(ratio=jnp.array(0.5), l1=jnp.array(1.0), l2=jnp.array(0.7), c=jnp.array(0.1))
+START = {k: 1.3 * v for k, v in TRUE.items()}
+SIM = dict(rtol=1e-7, atol=1e-9)
+
+
+def _record(y0, t1, num, key, truth=TRUE, noise=1e-3):
+    """Noisy observed positions (noise 1e-3 of the first link's length)."""
+    ts = jnp.linspace(0.0, t1, num)
+    system = damped_chain(truth)
+    sol = sm.simulate(system, y0, t1, saveat=diffrax.SaveAt(ts=ts), rtol=1e-10, atol=1e-12)
+    x = jax.vmap(system.chain.positions)(sol.ys[0])
+    return ts, x + noise * truth["l1"] * jr.normal(key, x.shape)
+
+
+def _states_from_data(ts, x):
+    """Rough states from observed positions: link directions, finite-difference rates."""
+    q = sm.normalize(jnp.concatenate([x[:, :1], x[:, 1:] - x[:, :-1]], 1))
+    return sm.retract(q, jnp.gradient(q, ts, axis=0))
+
+
+def _rel_errors(params, truth=TRUE):
+    return {k: abs(float(params[k] / truth[k]) - 1.0) for k in truth}
+
+
+def test_fit_recovers_parameters(getkey):
+    y0 = jax.tree.map(lambda x: x[0], _initial_states(1))
+    ts, obs = _record(y0, 5.0, 51, getkey())
+    result = sm.fit(damped_chain, START, ts, obs, mass_positions, y0=y0, positive=True,
+                    simulate_options=SIM)
+    assert bool(result.converged)
+    assert max(_rel_errors(result.params).values()) < 0.01, result.params
+    losses = np.asarray(result.losses[: int(result.num_steps)])
+    assert losses[-1] < 1e-3 * losses[0]
+    assert np.isclose(result.loss, losses[-1], rtol=1e-8)
+
+
+# A chaotic record: the lightly damped double pendulum thrown hard from above the
+# horizontal (nearby trajectories separate by 1e7 in 8 s).
+TRUE_CHAOS = dict(TRUE, c=jnp.array(0.01))
+START_CHAOS = {k: 1.3 * v for k, v in TRUE_CHAOS.items()}
+Q_CHAOS = sm.normalize(jnp.array([[1.0, 0.0, 0.3], [0.0, 1.0, 0.5]]))
+V_CHAOS = sm.project(Q_CHAOS, jnp.array([[0.0, 10.0, 0.0], [5.0, 0.0, 10.0]]))
+
+
+def _shooting(t1, segments, key):
+    ts, obs = _record((Q_CHAOS, V_CHAOS), t1, int(20 * t1) + 1, key, TRUE_CHAOS)
+    q, v = _states_from_data(ts, obs)
+    bounds = np.round(np.linspace(0, len(ts) - 1, segments + 1)).astype(int)
+    options = dict(positive=True, fit_initial_state=True, simulate_options=SIM, max_steps=60)
+    multiple = sm.fit(damped_chain, START_CHAOS, ts, obs, mass_positions, y0=(q[0], v[0]),
+                      segments=segments, segment_states=(q[bounds[1:-1]], v[bounds[1:-1]]),
+                      **options)
+    single = sm.fit(damped_chain, START_CHAOS, ts, obs, mass_positions, y0=(q[0], v[0]),
+                    **options)
+    return multiple, single
+
+
+def _check_shooting(multiple, single):
+    assert bool(multiple.converged)
+    assert max(_rel_errors(multiple.params, TRUE_CHAOS).values()) < 0.01, multiple.params
+    # single shooting from the same start stalls in a local minimum far from the truth
+    assert max(_rel_errors(single.params, TRUE_CHAOS).values()) > 0.05, single.params
+    assert single.loss > 100 * multiple.loss
+
+
+def test_multiple_shooting_chaotic(getkey):
+    _check_shooting(*_shooting(8.0, 16, getkey()))
+
+
+@pytest.mark.slow
+def test_multiple_shooting_chaotic_20s(getkey):
+    _check_shooting(*_shooting(20.0, 40, getkey()))
+
+
+def test_fit_errors():
+    y0 = jax.tree.map(lambda x: x[0], _initial_states(1))
+    ts = jnp.linspace(0.0, 1.0, 11)
+    obs = jnp.zeros((11, 2, 3))
+    with pytest.raises(ValueError, match="observations must have shape"):
+        sm.fit(damped_chain, START, ts, obs[:5], mass_positions, y0=y0)
+    with pytest.raises(ValueError, match="observe"):
+        sm.fit(damped_chain, START, ts, obs, lambda s, t, q, v: q[0], y0=y0)
+    with pytest.raises(ValueError, match="y0"):
+        sm.fit(damped_chain, START, ts, obs, mass_positions, y0=y0[0])
+    with pytest.raises(ValueError, match="segments"):
+        sm.fit(damped_chain, START, ts, obs, mass_positions, y0=y0, segments=11)
+    with pytest.raises(ValueError, match="positive"):
+        sm.fit(damped_chain, dict(START, c=-1.0), ts, obs, mass_positions, y0=y0,
+               positive=True)
+    with pytest.raises(ValueError, match="segment_states"):
+        sm.fit(damped_chain, START, ts, obs, mass_positions, y0=y0, segments=2,
+               segment_states=(y0[0], y0[1]))
+    with pytest.raises(ValueError, match="model"):
+        sm.fit(lambda p: p, START, ts, obs, mass_positions, y0=y0)
+
+
+# ----------------------------------------------------------------------------------------
+# Learning an unknown potential: a neural Lagrangian on (S^2)^2, no angles.
+
+
+class NeuralPotential(eqx.Module):
+    """Known gravity plus an MLP of the unit vectors `q` (the unknown joint stiffness)."""
+
+    chain: sm.ChainPendulum
+    mlp: eqx.nn.MLP
+
+    def __call__(self, t, q, args):
+        return self.chain.potential(t, q) + self.mlp(q.reshape(-1))
+
+
+CHAIN = sm.chain_pendulum(jnp.array([1.0, 0.5]), jnp.array([1.0, 0.7]))
+
+
+def stiff_joint(t, q, args):
+    """The truth: gravity and a stiff elastic joint between the links."""
+    return CHAIN.potential(t, q) + 8.0 * (1.0 - jnp.dot(q[0], q[1]))
+
+
+def neural_lagrangian(mlp):
+    return sm.ConstantInertiaLagrangian(CHAIN.inertia(), NeuralPotential(CHAIN, mlp))
+
+
+def test_learned_potential(getkey):
+    truth = sm.ConstantInertiaLagrangian(CHAIN.inertia(), stiff_joint)
+    y0 = _initial_states(3)
+    ts = jnp.linspace(0.0, 1.5, 16)
+    simulate_q = lambda system, y: sm.simulate(system, y, ts[-1],
+                                               saveat=diffrax.SaveAt(ts=ts), **SIM).ys[0]
+    data = jax.vmap(lambda y: simulate_q(truth, y))(y0)
+    mlp = eqx.nn.MLP(6, "scalar", 8, 1, activation=jnp.tanh, key=getkey())
+    result = sm.fit(neural_lagrangian, mlp, ts, data, lambda s, t, q, v: q, y0=y0,
+                    simulate_options=SIM, max_steps=40)
+
+    def error(mlp_):
+        pred = jax.vmap(lambda y: simulate_q(neural_lagrangian(mlp_), y))(y0)
+        return float(jnp.sqrt(jnp.mean((pred - data) ** 2)))
+
+    assert isinstance(result.params, eqx.nn.MLP)
+    assert result.segment_states[0].shape == (3, 1, 2, 3)  # a batch of three records
+    assert error(result.params) < 0.1 * error(mlp)
