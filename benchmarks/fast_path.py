@@ -1,0 +1,129 @@
+"""Cost of one acceleration evaluation: the constant-inertia fast path against the general
+autodiff path, on the same Lagrangian.
+
+The chain pendulum (`sm.chain_pendulum`, the paper's Corollary 1: constant scalar
+inertia, no Hessian of L) against `sm.Lagrangian(chain.lagrangian)` (the Hessian of the
+same L by forward-over-reverse autodiff and a 2n x 2n solve), both with a tip force and a
+base torque, in float64, for n = 1, 2, 4, 8, 16, 32 links. Each is `jax.jit`-compiled
+(compile time reported separately), `jax.vmap`-ed over a batch of states, and timed as the
+median over repeats of the wall time per batch divided by the batch size. The two paths
+are first checked to agree. The baseline is the general path measured in the same run.
+Prints a markdown table; writes benchmarks/results/fast_path.{png,md}.
+
+    python benchmarks/fast_path.py [--quick]
+"""
+
+import argparse
+import pathlib
+import statistics
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import matplotlib
+import numpy as np
+
+jax.config.update("jax_enable_x64", True)
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+import sphere_mech as sm  # noqa: E402
+
+RESULTS = pathlib.Path(__file__).parent / "results"
+
+
+def make_systems(n):
+    rng = np.random.default_rng(n)
+    chain = sm.chain_pendulum(
+        rng.uniform(0.5, 2.0, n), rng.uniform(0.5, 2.0, n), 9.81,
+        torque=jnp.array([0.1, -0.2, 0.3]), tip_force=jnp.array([0.5, 0.0, -0.4]),
+    )
+    general = sm.Lagrangian(chain.lagrangian, forces=chain.generalized_force)
+    return chain, general
+
+
+def batched_accelerations(system):
+    """jit(vmap(accelerations)) with a guard against recompilation."""
+
+    @jax.jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def run(q, qdot):
+        return jax.vmap(lambda q_, v_: system.rates(0.0, (q_, v_), None)[1])(q, qdot)
+
+    return run
+
+
+def time_per_evaluation(fn, q, qdot, repeats):
+    """(median seconds per single evaluation, seconds of the first call = compilation)."""
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(q, qdot))
+    compile_time = time.perf_counter() - t0
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(q, qdot))
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times) / q.shape[0], compile_time
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="n <= 8, fewer repeats")
+    parser.add_argument("--batch", type=int, default=256)
+    opts = parser.parse_args()
+    ns = [1, 2, 4, 8] if opts.quick else [1, 2, 4, 8, 16, 32]
+    repeats = 5 if opts.quick else 20
+    rows = []
+    for n in ns:
+        chain, general = make_systems(n)
+        keys = jax.random.split(jax.random.PRNGKey(n), opts.batch)
+        q, qdot = jax.vmap(lambda k: sm.random_state(k, n))(keys)
+        fast_fn, general_fn = batched_accelerations(chain), batched_accelerations(general)
+        fast, fast_compile = time_per_evaluation(fast_fn, q, qdot, repeats)
+        slow, slow_compile = time_per_evaluation(general_fn, q, qdot, repeats)
+        reference = general_fn(q, qdot)
+        error = float(jnp.max(jnp.abs(fast_fn(q, qdot) - reference)))
+        scale = float(jnp.max(jnp.abs(reference)))
+        assert error < 1e-10 * scale, f"paths disagree at n={n}: {error}"
+        rows.append((n, fast, slow, slow / fast, fast_compile, slow_compile, error / scale))
+        print(f"n={n}: fast {fast * 1e6:.2f} us, general {slow * 1e6:.2f} us", flush=True)
+
+    header = (
+        f"Acceleration evaluations, float64, jit(vmap) over a batch of {opts.batch} states, "
+        f"median of {repeats} repeats, {jax.device_count()} device(s).\n\n"
+        "| n | fast path (us/eval) | general path (us/eval) | speed-up | compile fast (s) "
+        "| compile general (s) | max rel. difference |\n"
+        "|---:|---:|---:|---:|---:|---:|---:|\n"
+    )
+    table = header + "".join(
+        f"| {n} | {f * 1e6:.3f} | {s * 1e6:.3f} | {r:.1f}x | {cf:.2f} | {cs:.2f} | {e:.1e} |\n"
+        for n, f, s, r, cf, cs, e in rows
+    )
+    print()
+    print(table)
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / "fast_path.md").write_text(table)
+
+    n_arr = np.array([r[0] for r in rows])
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
+    ax1.loglog(n_arr, [r[1] * 1e6 for r in rows], "o-", label="fast path (constant inertia)")
+    ax1.loglog(n_arr, [r[2] * 1e6 for r in rows], "s-", label="general path (autodiff Hessian)")
+    ax1.set_xlabel("links n")
+    ax1.set_ylabel("time per acceleration evaluation (us)")
+    ax1.set_xscale("log", base=2)
+    ax1.legend()
+    ax1.grid(True, which="both", alpha=0.3)
+    ax2.semilogx(n_arr, [r[3] for r in rows], "o-", color="C2")
+    ax2.set_xscale("log", base=2)
+    ax2.set_xlabel("links n")
+    ax2.set_ylabel("speed-up of the fast path (x)")
+    ax2.grid(True, which="both", alpha=0.3)
+    fig.suptitle(f"Chain pendulum accelerations, float64, batch {opts.batch}")
+    fig.tight_layout()
+    fig.savefig(RESULTS / "fast_path.png", dpi=120)
+    print(f"wrote {RESULTS / 'fast_path.png'} and {RESULTS / 'fast_path.md'}")
+
+
+if __name__ == "__main__":
+    main()
