@@ -114,7 +114,7 @@ def main():
     ax1.set_xscale("log", base=2)
     ax1.legend()
     ax1.grid(True, which="both", alpha=0.3)
-    ax2.semilogx(n_arr, [r[3] for r in rows], "o-", color="C2")
+    ax2.loglog(n_arr, [r[3] for r in rows], "o-", color="C2")
     ax2.set_xscale("log", base=2)
     ax2.set_xlabel("links n")
     ax2.set_ylabel("speed-up of the fast path (x)")
