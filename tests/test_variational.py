@@ -263,3 +263,16 @@ def test_long_time_energy_million_steps():
     assert np.max(constraint) < 1e-15
     t, error, _, _, _ = bench.run(sm.Projected(sm.RK4()), 0.01, 1_000_000)
     assert bench.envelope_trend(t, error)[3] > 1.0
+
+
+@pytest.mark.parametrize("composition", ["suzuki", "yoshida"])
+def test_composition_conditions(composition):
+    """Symmetric compositions of a symmetric order-2 step reach order 4 exactly when
+    sum gamma = 1 and sum gamma^3 = 0 (Hairer, Lubich & Wanner, II.4); the Suzuki one
+    is measured end to end in test_order."""
+    gammas = np.array(sm.Variational(4, composition=composition).gammas)
+    assert len(gammas) == (5 if composition == "suzuki" else 3)
+    assert np.allclose(gammas, gammas[::-1], atol=0, rtol=1e-15)
+    assert abs(np.sum(gammas) - 1) < 1e-14
+    assert abs(np.sum(gammas**3)) < 1e-14
+    assert sm.Variational().gammas == (1.0,)
