@@ -78,8 +78,14 @@ def _local_solve(static, chunk, shared, batched, y0):
 
 
 @eqx.filter_jit
+def _initial_states(system, y0):
+    """Validate and retract the initial states, outside the sharded program (its checks
+    are host callbacks, which should not run inside `shard_map`)."""
+    return jax.vmap(lambda y: initial_state(system, y))(y0)
+
+
+@eqx.filter_jit
 def _solve_batch(static, chunk, mesh, shared, batched, y0, size, padded):
-    y0 = jax.vmap(lambda y: initial_state(static[0], y))(y0)
     batched, y0 = _pad((batched, y0), padded)
     solve = lambda s, b, y: _local_solve(static, chunk, s, b, y)
     if mesh is not None:
@@ -198,6 +204,7 @@ def simulate_batch(
     per_device = -(-size // len(devices))
     chunk = _chunk_size(chunk_size, n, per_device, devices[0].platform)
     padded = -(-size // (chunk * len(devices))) * chunk * len(devices)
-    sol = _solve_batch(static, chunk, mesh, shared, batched, (q0, v0), size, padded)
+    y0 = _initial_states(eqx.filter(system, lambda x: not eqx.is_array(x)), (q0, v0))
+    sol = _solve_batch(static, chunk, mesh, shared, batched, y0, size, padded)
     sol = _retract_saved(sol, saveat)
     return _raise_failures(sol, max_steps) if throw else sol
