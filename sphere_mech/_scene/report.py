@@ -10,6 +10,7 @@ step `h`, with `P' = dP/dt` along the flow computed exactly by `jax.jvp`.
 """
 
 import dataclasses
+import time
 
 import diffrax
 import equinox as eqx
@@ -88,8 +89,6 @@ def run_scene(spec, *, duration=None, progress=False) -> SceneResult:
     if forced:
         saveat = diffrax.SaveAt(subs=[diffrax.SubSaveAt(ts=ts),
                                       diffrax.SubSaveAt(t0=True, steps=True)])
-    import time
-
     start = time.perf_counter()
     sol = simulate(scene, spec.y0, t1, solver=spec.solver, dt0=spec.dt, rtol=spec.rtol,
                    atol=spec.atol, saveat=saveat, max_steps=spec.max_steps,
