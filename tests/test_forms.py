@@ -131,17 +131,18 @@ def evaluate(systems, t, q, qdot, p):
     out = {}
     for name, system in systems.items():
         v = variables[name]
-        rates = system.rates(t, (q, v), p)
+        # the checked public entry points (their values are the unchecked `rates`)
+        if name == "lag":
+            rates = (qdot, qddot)
+        elif name == "ang":
+            rates = (sm.qdot_from_omega(q, v), system.angular_acceleration(t, q, v, p))
+        else:
+            rates = system.vector_field(t, q, v, p)
         energy, dE = jax.jvp(
             lambda t_, q_, v_: system.energy(t_, q_, v_, p), (t, q, v), (jnp.ones_like(t), *rates)
         )
         out[name] = dict(rates=rates, energy=energy, dE=dE, power=system.power(t, q, v, p))
-    # the checked public entry points give the same as the unchecked rates
-    out["lag"]["checked"] = qddot
-    out["ang"]["checked"] = systems["ang"].angular_acceleration(t, q, variables["ang"], p)
     out["ang"]["momentum"] = systems["ang"].momentum(t, q, variables["ang"], p)
-    for name in ("ham", "ang_ham"):
-        out[name]["checked"] = systems[name].vector_field(t, q, variables[name], p)[1]
     return ref, out
 
 
@@ -158,8 +159,6 @@ def assert_forms_agree(systems, t, q, qdot, p, tol=TOL):
         assert max_rel_error(qdot_k, qdot) < tol, name
         assert max_rel_error(vdot_k, ref[SECOND[name]]) < tol, name
         assert abs(float(o["energy"] - energy)) < tol * (1 + abs(float(energy))), name
-        if "checked" in o:
-            assert max_rel_error(o["checked"], vdot_k) < tol, name
     assert max_rel_error(out["ang"]["momentum"], ref["pi"]) < tol
     return ref, out
 
