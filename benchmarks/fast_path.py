@@ -36,8 +36,11 @@ RESULTS = pathlib.Path(__file__).parent / "results"
 def make_systems(n):
     rng = np.random.default_rng(n)
     chain = sm.chain_pendulum(
-        rng.uniform(0.5, 2.0, n), rng.uniform(0.5, 2.0, n), 9.81,
-        torque=jnp.array([0.1, -0.2, 0.3]), tip_force=jnp.array([0.5, 0.0, -0.4]),
+        rng.uniform(0.5, 2.0, n),
+        rng.uniform(0.5, 2.0, n),
+        9.81,
+        torque=jnp.array([0.1, -0.2, 0.3]),
+        tip_force=jnp.array([0.5, 0.0, -0.4]),
     )
     general = sm.Lagrangian(chain.lagrangian, forces=chain.generalized_force)
     return chain, general
@@ -78,7 +81,7 @@ def main():
     for n in ns:
         chain, general = make_systems(n)
         keys = jax.random.split(jax.random.PRNGKey(n), opts.batch)
-        q, qdot = jax.vmap(lambda k: sm.random_state(k, n))(keys)
+        q, qdot = jax.vmap(lambda k, n=n: sm.random_state(k, n))(keys)
         fast_fn, general_fn = batched_accelerations(chain), batched_accelerations(general)
         fast, fast_compile = time_per_evaluation(fast_fn, q, qdot, repeats)
         slow, slow_compile = time_per_evaluation(general_fn, q, qdot, repeats)

@@ -36,9 +36,7 @@ def check_shapes(q, v, v_name: str = "v") -> None:
 
 
 def _check_all_finite(x, name: str):
-    return eqx.error_if(
-        x, ~jnp.all(jnp.isfinite(x)), f"{name} contains NaN or infinite values."
-    )
+    return eqx.error_if(x, ~jnp.all(jnp.isfinite(x)), f"{name} contains NaN or infinite values.")
 
 
 def check_unit(q):

@@ -131,9 +131,7 @@ def _legendre_jvp(primals, tangents, *, quadratic):
     def L_fixed_v(lagrangian_, t_, q_, args_):
         return lagrangian_(t_, q_, v, args_)
 
-    L, dL = eqx.filter_jvp(
-        L_fixed_v, (lagrangian, t, q, args), (t_lagrangian, t_t, t_q, t_args)
-    )
+    L, dL = eqx.filter_jvp(L_fixed_v, (lagrangian, t, q, args), (t_lagrangian, t_t, t_q, t_args))
     r = p - jax.grad(lambda v_: lagrangian(t, q, v_, args))(v)
     rho = jnp.sum(q * r, axis=-1) / jnp.sum(q * q, axis=-1)
     H = jnp.sum(p * v) - L

@@ -48,8 +48,11 @@ def test_bad_shapes(name, state):
         fn(0.0, q[:, :2], v[:, :2])
     with pytest.raises(ValueError, match=r"q must have shape \(n, 3\).*got \(6,\)"):
         fn(0.0, q.reshape(-1), v.reshape(-1))
-    with pytest.raises(ValueError, match=rf"{name} must have the same shape as q, \(2, 3\), "
-                                         r"got \(1, 3\)"):
+    with pytest.raises(
+        ValueError,
+        match=rf"{name} must have the same shape as q, \(2, 3\), "
+        r"got \(1, 3\)",
+    ):
         fn(0.0, q, v[:1])
     with pytest.raises(ValueError, match="q must be a floating-point array"):
         fn(0.0, jnp.array([[0, 0, 1]]), jnp.zeros((1, 3)))
@@ -92,8 +95,11 @@ def test_checks_work_under_jit(state):
 def test_non_scalar_lagrangian_or_hamiltonian(state):
     q, v = state
     bad = sm.Lagrangian(lambda t, q, qdot, args: qdot)
-    with pytest.raises(ValueError, match=r"L\(t, q, v, args\) must return a scalar, got an "
-                                         r"array of shape \(2, 3\)"):
+    with pytest.raises(
+        ValueError,
+        match=r"L\(t, q, v, args\) must return a scalar, got an "
+        r"array of shape \(2, 3\)",
+    ):
         bad.acceleration(0.0, q, v, None)
     with pytest.raises(ValueError, match="must return a scalar"):
         sm.legendre(bad).vector_field(0.0, q, v, None)
@@ -104,8 +110,11 @@ def test_non_scalar_lagrangian_or_hamiltonian(state):
 def test_bad_forces(state):
     q, v = state
     system = sm.Lagrangian(L, forces=lambda t, q, qdot, args: qdot[0])
-    with pytest.raises(ValueError, match=r"forces\(t, q, v, args\) must return an array of "
-                                         r"shape \(2, 3\)"):
+    with pytest.raises(
+        ValueError,
+        match=r"forces\(t, q, v, args\) must return an array of "
+        r"shape \(2, 3\)",
+    ):
         system.acceleration(0.0, q, v, None)
 
 
@@ -166,6 +175,7 @@ def test_errors_through_simulate(state):
     with pytest.raises(eqx.EquinoxRuntimeError, match="q contains NaN"):
         sm.simulate(SYSTEM, (q.at[0, 0].set(jnp.nan), v), 1.0)
     chain = sm.chain_pendulum(jnp.array([1.0, 0.0]), jnp.ones(2))
-    with pytest.raises(eqx.EquinoxRuntimeError, match="equations of motion are not finite at "
-                                                      "the initial state"):
+    with pytest.raises(
+        eqx.EquinoxRuntimeError, match="equations of motion are not finite at the initial state"
+    ):
         sm.simulate(chain, (q, v), 1.0)

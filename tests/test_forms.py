@@ -31,8 +31,9 @@ TIMES = st.floats(-2.0, 2.0)
 # ----------------------------------------------------------------------------------------
 
 
-def random_params(seed, n, *, quartic=0.0, relativistic=0.0, augment=0.0, time=True,
-                  forced=True) -> dict:
+def random_params(
+    seed, n, *, quartic=0.0, relativistic=0.0, augment=0.0, time=True, forced=True
+) -> dict:
     rng = np.random.default_rng(seed)
     m = 3 * n
     R = rng.normal(size=(m, m)) / np.sqrt(m)
@@ -79,8 +80,12 @@ def lagrangian(t, q, qdot, p):
     # c^2 sum_i (1 - sqrt(1 - |v_i|^2 / c^2)) with 1 / c^2 = kr, and 0 when kr = 0
     relativistic = jnp.sum(1.0 - jnp.sqrt(1.0 - kr * v2)) / jnp.where(kr > 0, kr, 1.0)
     return (
-        0.5 * v @ A @ v + gyro - (1.0 + p["time"][1] * jnp.sin(t)) * potential
-        + k4 * quartic + relativistic + ka * vanishing_terms(q, qdot, p)
+        0.5 * v @ A @ v
+        + gyro
+        - (1.0 + p["time"][1] * jnp.sin(t)) * potential
+        + k4 * quartic
+        + relativistic
+        + ka * vanishing_terms(q, qdot, p)
     )
 
 
@@ -115,7 +120,9 @@ def evaluate(systems, t, q, qdot, p):
     qddot = lag.acceleration(t, q, qdot, p)
     mu = lag.momentum(t, q, qdot, p)
     _, mudot = jax.jvp(
-        lambda t_, q_, v_: lag.momentum(t_, q_, v_, p), (t, q, qdot), (jnp.ones_like(t), qdot, qddot)
+        lambda t_, q_, v_: lag.momentum(t_, q_, v_, p),
+        (t, q, qdot),
+        (jnp.ones_like(t), qdot, qddot),
     )
     pi = sm.pi_from_mu(q, mu)
     ref = dict(
@@ -138,9 +145,8 @@ def evaluate(systems, t, q, qdot, p):
             rates = (sm.qdot_from_omega(q, v), system.angular_acceleration(t, q, v, p))
         else:
             rates = system.vector_field(t, q, v, p)
-        energy, dE = jax.jvp(
-            lambda t_, q_, v_: system.energy(t_, q_, v_, p), (t, q, v), (jnp.ones_like(t), *rates)
-        )
+        energy_fn = lambda t_, q_, v_, system=system: system.energy(t_, q_, v_, p)
+        energy, dE = jax.jvp(energy_fn, (t, q, v), (jnp.ones_like(t), *rates))
         out[name] = dict(rates=rates, energy=energy, dE=dE, power=system.power(t, q, v, p))
     out["ang"]["momentum"] = systems["ang"].momentum(t, q, variables["ang"], p)
     return ref, out

@@ -37,10 +37,12 @@ def double_pendulum_angles(th, dth, m1, m2, l1, l2, g):
     """Textbook: theta'' of the planar double pendulum (point masses, massless rods)."""
     d = th[0] - th[1]
     A = np.array([[(m1 + m2) * l1, m2 * l2 * np.cos(d)], [l1 * np.cos(d), l2]])
-    b = -np.array([
-        m2 * l2 * dth[1] ** 2 * np.sin(d) + (m1 + m2) * g * np.sin(th[0]),
-        -l1 * dth[0] ** 2 * np.sin(d) + g * np.sin(th[1]),
-    ])
+    b = -np.array(
+        [
+            m2 * l2 * dth[1] ** 2 * np.sin(d) + (m1 + m2) * g * np.sin(th[0]),
+            -l1 * dth[0] ** 2 * np.sin(d) + g * np.sin(th[1]),
+        ]
+    )
     return np.linalg.solve(A, b)
 
 
@@ -61,13 +63,13 @@ def accelerations(system, q, qdot):
 
 
 def test_planar_double_pendulum_matches_textbook():
-    m, l = np.array([1.3, 0.7]), np.array([0.9, 1.4])
-    chain = sm.chain_pendulum(m, l, G)
-    general = sm.Lagrangian(cartesian_chain_lagrangian(jnp.asarray(m), jnp.asarray(l), G))
+    m, ell = np.array([1.3, 0.7]), np.array([0.9, 1.4])
+    chain = sm.chain_pendulum(m, ell, G)
+    general = sm.Lagrangian(cartesian_chain_lagrangian(jnp.asarray(m), jnp.asarray(ell), G))
     rng = np.random.default_rng(0)
     for _ in range(5):
         th, dth = rng.uniform(-3, 3, 2), rng.normal(size=2) * 2
-        ddth = double_pendulum_angles(th, dth, *m, *l, G)
+        ddth = double_pendulum_angles(th, dth, *m, *ell, G)
         q, qdot, qddot = planar(th, dth, ddth)
         for system in (chain, general):
             got = accelerations(system, jnp.asarray(q), jnp.asarray(qdot))
@@ -76,23 +78,30 @@ def test_planar_double_pendulum_matches_textbook():
 
 def test_planar_double_pendulum_trajectory():
     """A simulated planar motion stays in its plane and follows the angle equations."""
-    m, l = np.array([1.0, 2.0]), np.array([1.0, 0.5])
+    m, ell = np.array([1.0, 2.0]), np.array([1.0, 0.5])
     th0, dth0 = np.array([2.0, -1.0]), np.array([0.0, 1.5])
     t1 = 3.0
     ts = jnp.linspace(0.0, t1, 7)
-    chain = sm.chain_pendulum(m, l, G)
-    sol = sm.simulate(chain, planar(th0, dth0), t1, rtol=1e-11, atol=1e-12,
-                      saveat=diffrax.SaveAt(ts=ts))
+    chain = sm.chain_pendulum(m, ell, G)
+    sol = sm.simulate(
+        chain, planar(th0, dth0), t1, rtol=1e-11, atol=1e-12, saveat=diffrax.SaveAt(ts=ts)
+    )
 
     def angle_rates(t, y, args):
         th, dth = y
-        ddth = jnp.asarray(double_pendulum_angles_jnp(th, dth, *m, *l, G))
+        ddth = jnp.asarray(double_pendulum_angles_jnp(th, dth, *m, *ell, G))
         return dth, ddth
 
     ref = diffrax.diffeqsolve(
-        diffrax.ODETerm(angle_rates), diffrax.Tsit5(), 0.0, t1, 1e-3,
-        (jnp.asarray(th0), jnp.asarray(dth0)), saveat=diffrax.SaveAt(ts=ts),
-        stepsize_controller=diffrax.PIDController(rtol=1e-11, atol=1e-12), max_steps=100_000,
+        diffrax.ODETerm(angle_rates),
+        diffrax.Tsit5(),
+        0.0,
+        t1,
+        1e-3,
+        (jnp.asarray(th0), jnp.asarray(dth0)),
+        saveat=diffrax.SaveAt(ts=ts),
+        stepsize_controller=diffrax.PIDController(rtol=1e-11, atol=1e-12),
+        max_steps=100_000,
     )
     q_ref = jax.vmap(lambda th: jnp.stack([jnp.sin(th), 0 * th, -jnp.cos(th)], -1))(ref.ys[0])
     q = sol.ys[0]
@@ -103,10 +112,12 @@ def test_planar_double_pendulum_trajectory():
 def double_pendulum_angles_jnp(th, dth, m1, m2, l1, l2, g):
     d = th[0] - th[1]
     A = jnp.array([[(m1 + m2) * l1, m2 * l2 * jnp.cos(d)], [l1 * jnp.cos(d), l2]])
-    b = -jnp.array([
-        m2 * l2 * dth[1] ** 2 * jnp.sin(d) + (m1 + m2) * g * jnp.sin(th[0]),
-        -l1 * dth[0] ** 2 * jnp.sin(d) + g * jnp.sin(th[1]),
-    ])
+    b = -jnp.array(
+        [
+            m2 * l2 * dth[1] ** 2 * jnp.sin(d) + (m1 + m2) * g * jnp.sin(th[0]),
+            -l1 * dth[0] ** 2 * jnp.sin(d) + g * jnp.sin(th[1]),
+        ]
+    )
     return jnp.linalg.solve(A, b)
 
 
@@ -120,32 +131,33 @@ def spherical_q(angles):
     return jnp.array([[jnp.sin(th) * jnp.cos(ph), jnp.sin(th) * jnp.sin(ph), -jnp.cos(th)]])
 
 
-def spherical_pendulum_angles(angles, rates, m, l, g, d):
+def spherical_pendulum_angles(angles, rates, m, ell, g, d):
     """Textbook equations in spherical angles, with the generalized forces of a tip force
-    `d` computed from `Q_k = d . dx/dangle_k` (x = l q)."""
+    `d` computed from `Q_k = d . dx/dangle_k` (x = ell q)."""
     th, ph = angles
     dth, dph = rates
-    J = jax.jacfwd(lambda a: l * spherical_q(a)[0])(angles)  # (3, 2)
+    J = jax.jacfwd(lambda a: ell * spherical_q(a)[0])(angles)  # (3, 2)
     Q = d @ J
-    ddth = jnp.sin(th) * jnp.cos(th) * dph**2 - g / l * jnp.sin(th) + Q[0] / (m * l**2)
-    ddph = (-2.0 * jnp.cos(th) * dth * dph + Q[1] / (m * l**2 * jnp.sin(th))) / jnp.sin(th)
+    ddth = jnp.sin(th) * jnp.cos(th) * dph**2 - g / ell * jnp.sin(th) + Q[0] / (m * ell**2)
+    ddph = (-2.0 * jnp.cos(th) * dth * dph + Q[1] / (m * ell**2 * jnp.sin(th))) / jnp.sin(th)
     return jnp.array([ddth, ddph])
 
 
 def test_spherical_pendulum_matches_angle_equations():
-    m, l = 1.7, 0.8
+    m, ell = 1.7, 0.8
     d = jnp.array([0.4, -1.1, 0.6])
-    chain = sm.chain_pendulum(jnp.array([m]), jnp.array([l]), G, tip_force=d)
-    L = cartesian_chain_lagrangian(jnp.array([m]), jnp.array([l]), G)
-    general = sm.Lagrangian(L, forces=lambda t, q, qdot, args: l * d[None, :])
+    chain = sm.chain_pendulum(jnp.array([m]), jnp.array([ell]), G, tip_force=d)
+    L = cartesian_chain_lagrangian(jnp.array([m]), jnp.array([ell]), G)
+    general = sm.Lagrangian(L, forces=lambda t, q, qdot, args: ell * d[None, :])
     rng = np.random.default_rng(1)
     for _ in range(5):
         angles = jnp.array([rng.uniform(0.3, np.pi - 0.3), rng.uniform(-np.pi, np.pi)])
         rates = jnp.asarray(rng.normal(size=2))
-        acc = spherical_pendulum_angles(angles, rates, m, l, G, d)
+        acc = spherical_pendulum_angles(angles, rates, m, ell, G, d)
         q, qdot = jax.jvp(spherical_q, (angles,), (rates,))
         # qddot = J ddangles + (d/ds)^2 q along the rates
-        second = jax.jvp(lambda a: jax.jvp(spherical_q, (a,), (rates,))[1], (angles,), (rates,))[1]
+        velocity = lambda a, r=rates: jax.jvp(spherical_q, (a,), (r,))[1]
+        second = jax.jvp(velocity, (angles,), (rates,))[1]
         qddot = jax.jvp(spherical_q, (angles,), (acc,))[1] + second
         for system in (chain, general):
             assert max_rel_error(accelerations(system, q, qdot), qddot) < 1e-12
@@ -172,14 +184,14 @@ def linearized_accelerations(chain):
 @pytest.mark.parametrize("n", [2, 5])
 def test_small_oscillation_frequencies(n):
     rng = np.random.default_rng(n)
-    m, l = rng.uniform(0.5, 2.0, n), rng.uniform(0.5, 2.0, n)
+    m, ell = rng.uniform(0.5, 2.0, n), rng.uniform(0.5, 2.0, n)
     tail = np.cumsum(m[::-1])[::-1]  # sum_{k >= i} m_k
     idx = np.arange(n)
-    M = np.outer(l, l) * tail[np.maximum(idx[:, None], idx[None, :])]
-    K = np.diag(G * l * tail)
+    M = np.outer(ell, ell) * tail[np.maximum(idx[:, None], idx[None, :])]
+    K = np.diag(G * ell * tail)
     C = np.linalg.inv(np.linalg.cholesky(M))  # K v = w^2 M v  <=>  (C K C^T) u = w^2 u
     w2 = np.linalg.eigvalsh(C @ K @ C.T)
-    J = np.asarray(linearized_accelerations(sm.chain_pendulum(m, l, G)))
+    J = np.asarray(linearized_accelerations(sm.chain_pendulum(m, ell, G)))
     got = np.sort(np.linalg.eigvals(-J).real)
     np.testing.assert_allclose(got, np.sort(np.repeat(w2, 2)), rtol=1e-10)
 
@@ -202,17 +214,18 @@ def equilibrium(system):
         q = config(a)
         return jnp.einsum("ica,ic->ia", T0, system.acceleration(0.0, q, jnp.zeros_like(q)))
 
-    sol = optx.root_find(residual, optx.Newton(rtol=1e-13, atol=1e-13), jnp.zeros(2 * n),
-                         max_steps=50)
+    sol = optx.root_find(
+        residual, optx.Newton(rtol=1e-13, atol=1e-13), jnp.zeros(2 * n), max_steps=50
+    )
     return config(sol.value)
 
 
 def test_statics_tip_force():
     """Link j carries the weight of the masses below it plus the tip force, so it points
     along F_j = d - g e3 sum_{k >= j} m_k."""
-    m, l = np.array([1.0, 0.5, 2.0]), np.array([1.2, 0.7, 1.0])
+    m, ell = np.array([1.0, 0.5, 2.0]), np.array([1.2, 0.7, 1.0])
     d = np.array([3.0, -1.5, 0.8])
-    chain = sm.chain_pendulum(m, l, G, tip_force=jnp.asarray(d))
+    chain = sm.chain_pendulum(m, ell, G, tip_force=jnp.asarray(d))
     F = d[None, :] - G * np.cumsum(m[::-1])[::-1][:, None] * np.array([0.0, 0.0, 1.0])
     expected = F / np.linalg.norm(F, axis=-1, keepdims=True)
     np.testing.assert_allclose(equilibrium(chain), expected, atol=1e-11)
@@ -225,10 +238,10 @@ def test_statics_tip_force():
 def test_statics_base_torque():
     """A base torque tau = tau_y e2 on link 1 tilts link 1 to sin(theta) = -tau_y /
     (g l_1 sum_k m_k) (moment balance about the base); the other links hang vertically."""
-    m, l = np.array([1.0, 0.5, 2.0]), np.array([1.2, 0.7, 1.0])
+    m, ell = np.array([1.0, 0.5, 2.0]), np.array([1.2, 0.7, 1.0])
     tau_y = 9.0
-    chain = sm.chain_pendulum(m, l, G, torque=jnp.array([0.0, tau_y, 0.0]))
-    s = -tau_y / (G * l[0] * m.sum())
+    chain = sm.chain_pendulum(m, ell, G, torque=jnp.array([0.0, tau_y, 0.0]))
+    s = -tau_y / (G * ell[0] * m.sum())
     expected = np.array([[s, 0.0, -np.sqrt(1 - s**2)], [0.0, 0.0, -1.0], [0.0, 0.0, -1.0]])
     np.testing.assert_allclose(equilibrium(chain), expected, atol=1e-11)
 
@@ -258,8 +271,11 @@ def chain_outputs(system, t, q, qdot):
 def test_chain_fast_path_equals_general_path(n, getkey):
     rng = np.random.default_rng(n)
     chain = sm.chain_pendulum(
-        rng.uniform(0.5, 2.0, n), rng.uniform(0.5, 2.0, n), G,
-        torque=time_dependent_torque, tip_force=jnp.asarray(rng.normal(size=3)),
+        rng.uniform(0.5, 2.0, n),
+        rng.uniform(0.5, 2.0, n),
+        G,
+        torque=time_dependent_torque,
+        tip_force=jnp.asarray(rng.normal(size=3)),
     )
     general = sm.Lagrangian(chain.lagrangian, forces=chain.generalized_force)
     for _ in range(3):
