@@ -27,8 +27,9 @@ import numpy as np
 
 jax.config.update("jax_enable_x64", True)
 sys.path.insert(0, str(pathlib.Path(__file__).parents[1] / "tests"))
-import sphere_mech as sm  # noqa: E402
 from test_fit import START, TRUE, _initial_states, _record, damped_chain, mass_positions  # noqa: E402
+
+import sphere_mech as sm  # noqa: E402
 
 SIM = dict(rtol=1e-7, atol=1e-9)
 
@@ -49,8 +50,7 @@ def main():
 
     def loss(p, adjoint):
         system = damped_chain(p)
-        sol = sm.simulate(system, y0, ts[-1], saveat=diffrax.SaveAt(ts=ts), adjoint=adjoint,
-                          **SIM)
+        sol = sm.simulate(system, y0, ts[-1], saveat=diffrax.SaveAt(ts=ts), adjoint=adjoint, **SIM)
         pred = jax.vmap(system.chain.positions)(sol.ys[0])
         return 0.5 * jnp.sum((pred - obs) ** 2)
 
@@ -58,13 +58,26 @@ def main():
     fwd = eqx.filter_jit(jax.jacfwd(lambda p: loss(p, diffrax.ForwardMode())))
     g_rev, g_fwd = rev(START), fwd(START)
     assert all(np.isclose(g_rev[k], g_fwd[k], rtol=1e-8) for k in g_rev)
-    fit = lambda jac: sm.fit(damped_chain, START, ts, obs, mass_positions, y0=y0,
-                             positive=True, jac=jac, simulate_options=SIM).params
+    fit = lambda jac: (
+        sm.fit(
+            damped_chain,
+            START,
+            ts,
+            obs,
+            mass_positions,
+            y0=y0,
+            positive=True,
+            jac=jac,
+            simulate_options=SIM,
+        ).params
+    )
     rows = [
-        ("gradient of the loss", median_time(lambda: rev(START)),
-         median_time(lambda: fwd(START))),
-        ("fit (Levenberg-Marquardt)", median_time(lambda: fit("bwd"), 3),
-         median_time(lambda: fit("fwd"), 3)),
+        ("gradient of the loss", median_time(lambda: rev(START)), median_time(lambda: fwd(START))),
+        (
+            "fit (Levenberg-Marquardt)",
+            median_time(lambda: fit("bwd"), 3),
+            median_time(lambda: fit("fwd"), 3),
+        ),
     ]
     fitted = fit("fwd")
     print("| task | reverse (checkpointed) [s] | forward [s] | reverse / forward |")

@@ -12,7 +12,7 @@ import jax.tree_util as jtu
 import numpy as np
 import optimistix as optx
 from jax.flatten_util import ravel_pytree
-from jaxtyping import Array, Bool, Float, Int, PyTree
+from jaxtyping import Array, PyTree
 
 from ._geometry import retract
 from ._simulate import simulate
@@ -33,10 +33,10 @@ class FitResult(eqx.Module):
     """
 
     params: PyTree
-    loss: Float[Array, ""]
-    num_steps: Int[Array, ""]
-    converged: Bool[Array, ""]
-    losses: Float[Array, " steps"]
+    loss: Array
+    num_steps: Array
+    converged: Array
+    losses: Array
     segment_states: tuple[Array, Array]
     result: optx.RESULTS
 
@@ -47,8 +47,10 @@ class FitResult(eqx.Module):
 
 def _as_arrays(params):
     """Python and NumPy floats in `params` become JAX arrays (so they are fitted)."""
-    is_float = lambda x: isinstance(x, float | np.floating) or (
-        isinstance(x, np.ndarray) and np.issubdtype(x.dtype, np.floating))
+    is_float = lambda x: (
+        isinstance(x, float | np.floating)
+        or (isinstance(x, np.ndarray) and np.issubdtype(x.dtype, np.floating))
+    )
     return jtu.tree_map(lambda x: jnp.asarray(x) if is_float(x) else x, params)
 
 
@@ -57,14 +59,15 @@ def _positive_flags(params0, positive) -> tuple[bool, ...]:
     if isinstance(positive, bool):
         positive = jtu.tree_map(lambda _: positive, params0)
     try:
-        flags = jtu.tree_map(lambda p, f: bool(f) if eqx.is_inexact_array(p) else None,
-                             params0, positive)
+        flags = jtu.tree_map(
+            lambda p, f: bool(f) if eqx.is_inexact_array(p) else None, params0, positive
+        )
     except (ValueError, TypeError) as e:
         raise ValueError(
             "positive must be a bool or a pytree of bools with the structure of params0."
         ) from e
     dynamic = eqx.filter(params0, eqx.is_inexact_array)
-    for p, f in zip(jtu.tree_leaves(dynamic), jtu.tree_leaves(flags)):
+    for p, f in zip(jtu.tree_leaves(dynamic), jtu.tree_leaves(flags), strict=True):
         if f and not bool(jnp.all(p > 0)):
             raise ValueError(
                 "a parameter flagged positive (fitted in log space) is not > 0 in params0."
@@ -74,7 +77,9 @@ def _positive_flags(params0, positive) -> tuple[bool, ...]:
 
 def _map_flagged(fn, tree, flags):
     leaves, treedef = jtu.tree_flatten(tree)
-    return jtu.tree_unflatten(treedef, [fn(x) if f else x for x, f in zip(leaves, flags)])
+    return jtu.tree_unflatten(
+        treedef, [fn(x) if f else x for x, f in zip(leaves, flags, strict=True)]
+    )
 
 
 # ----------------------------------------------------------------------------------------
@@ -107,8 +112,7 @@ def _layout(num_times: int, segments: int) -> _Layout:
         raise ValueError(f"segments must be a positive integer, got {segments!r}.")
     if segments > num_times - 1:
         raise ValueError(
-            f"segments={segments} needs at least {segments + 1} observation times, "
-            f"got {num_times}."
+            f"segments={segments} needs at least {segments + 1} observation times, got {num_times}."
         )
     bounds = np.round(np.linspace(0, num_times - 1, segments + 1)).astype(int)
     owned = [np.arange(bounds[k], bounds[k + 1]) for k in range(segments)]
@@ -116,8 +120,9 @@ def _layout(num_times: int, segments: int) -> _Layout:
     width = max(len(o) for o in owned)
     index = np.stack([np.pad(o, (0, width - len(o)), mode="edge") for o in owned])
     mask = np.stack([np.arange(width) < len(o) for o in owned])
-    return _Layout(tuple(bounds.tolist()), tuple(map(tuple, index.tolist())),
-                   tuple(map(tuple, mask.tolist())))
+    return _Layout(
+        tuple(bounds.tolist()), tuple(map(tuple, index.tolist())), tuple(map(tuple, mask.tolist()))
+    )
 
 
 # ----------------------------------------------------------------------------------------
@@ -140,8 +145,9 @@ def _segment_residual(system, args, observe, y_start, ts, t0, t1, obs, mask, sim
     """Simulate one segment from `y_start` at `t0` to `t1`, saving at `ts`; return the
     masked observation residuals and the state at `t1`."""
     save = jnp.concatenate([ts, t1[None]])
-    sol = simulate(system, y_start, t1, t0=t0, args=args,
-                   saveat=diffrax.SaveAt(ts=save), throw=False, **sim)
+    sol = simulate(
+        system, y_start, t1, t0=t0, args=args, saveat=diffrax.SaveAt(ts=save), throw=False, **sim
+    )
     q, v = sol.ys
     pred = jax.vmap(observe, in_axes=(None, 0, 0, 0))(system, ts, q[:-1], v[:-1])
     shape = (-1,) + (1,) * (pred.ndim - 1)
@@ -175,15 +181,18 @@ class _Residuals(eqx.Module):
     def segment(self, u, state, ts, obs, t0, t1, mask):
         """Residuals and final state of one segment."""
         system, args = _system_and_args(self.model, self.params(u))
-        return _segment_residual(system, args, self.observe, state, ts, t0, t1, obs, mask,
-                                 self.sim)
+        return _segment_residual(system, args, self.observe, state, ts, t0, t1, obs, mask, self.sim)
 
     def segments(self, u, states, data):
         """`segment` over all records and segments: `(B, K, ...)` outputs."""
         ts, obs, _ = data
         lay = self.layout
-        per_segment = (ts[:, lay.index], obs[:, lay.index], ts[:, lay.bounds[:-1]],
-                       ts[:, lay.bounds[1:]])
+        per_segment = (
+            ts[:, lay.index],
+            obs[:, lay.index],
+            ts[:, lay.bounds[:-1]],
+            ts[:, lay.bounds[1:]],
+        )
         mask = jnp.asarray(lay.mask)
         fn = lambda s, *d: self.segment(u, s, *d[:4], d[4])
         fn = jax.vmap(jax.vmap(fn, in_axes=(0,) * 5 + (0,)), in_axes=(0,) * 5 + (None,))
@@ -225,8 +234,12 @@ def _segments_jvp(primals, tangents, *, problem, data):
     jacobian = jax.jacfwd if problem.jac == "fwd" else jax.jacrev
     block = jacobian(flat, argnums=(0, 1), has_aux=True)
     s_flat = jax.vmap(jax.vmap(lambda s: ravel_pytree(s)[0]))(states)
-    per_segment = (ts[:, lay.index], obs[:, lay.index], ts[:, lay.bounds[:-1]],
-                   ts[:, lay.bounds[1:]])
+    per_segment = (
+        ts[:, lay.index],
+        obs[:, lay.index],
+        ts[:, lay.bounds[:-1]],
+        ts[:, lay.bounds[1:]],
+    )
     mask = jnp.asarray(lay.mask)
     fn = lambda s, *d: block(u_flat, s, *d[:4], d[4])
     fn = jax.vmap(jax.vmap(fn, in_axes=(0,) * 5 + (0,)), in_axes=(0,) * 5 + (None,))
@@ -289,8 +302,14 @@ def _least_squares(fn, solver, y0, data, max_steps, options):
         optx.RESULTS.nonlinear_max_steps_reached,
         result,
     )
-    return y, _loss(fn(y, data)[0]), steps, terminate & (result == optx.RESULTS.successful), \
-        losses, result
+    return (
+        y,
+        _loss(fn(y, data)[0]),
+        steps,
+        terminate & (result == optx.RESULTS.successful),
+        losses,
+        result,
+    )
 
 
 # ----------------------------------------------------------------------------------------
@@ -343,8 +362,16 @@ def _guess_states(system, args, ts, y0, layout, sim):
     times = ts[:, layout.bounds[1:-1]]
 
     def one(t_b, q_b, v_b):
-        sol = simulate(system, (q_b, v_b), t_b[-1], t0=ts[0, 0], args=args,
-                       saveat=diffrax.SaveAt(ts=t_b), throw=False, **sim)
+        sol = simulate(
+            system,
+            (q_b, v_b),
+            t_b[-1],
+            t0=ts[0, 0],
+            args=args,
+            saveat=diffrax.SaveAt(ts=t_b),
+            throw=False,
+            **sim,
+        )
         return sol.ys
 
     q, v = jax.vmap(one)(times, *y0)
@@ -403,9 +430,12 @@ def fit(
     - `solver`: an optimistix least-squares solver; default
       `optx.LevenbergMarquardt(rtol=1e-6, atol=1e-9)`.
     - `max_steps`: maximum number of solver iterations.
-    - `jac`: `"fwd"` (default: Jacobian by forward mode, with `diffrax.ForwardMode()`;
-      faster with few unknowns) or `"bwd"` (reverse mode, with
-      `diffrax.RecursiveCheckpointAdjoint()`).
+    - `jac`: how each segment's Jacobian (columns: the parameters and the segment's own
+      initial state) is computed: `"fwd"` (default) by `jax.jacfwd` through `simulate`
+      with `diffrax.ForwardMode()`, or `"bwd"` by `jax.jacrev` with
+      `diffrax.RecursiveCheckpointAdjoint()`. Forward mode is faster whenever there are
+      fewer unknowns per segment than residuals (5.5x on the 5 s double-pendulum fit of
+      `benchmarks/fit_adjoint.py`).
     - `adjoint`: override the diffrax adjoint chosen from `jac`.
     - `simulate_options`: keyword arguments for `simulate` (`solver`, `rtol`, `atol`,
       `dt0`, `stepsize_controller`, `max_steps`).
@@ -430,10 +460,12 @@ def fit(
     u0 = _map_flagged(jnp.log, dynamic, flags)
     system0, args0 = _system_and_args(model, params0)
     _check_observe(observe, system0, ts, observations, y0)
-    z0 = _initial_unknown_states(system0, args0, ts, y0, layout, segment_states,
-                                 fit_initial_state, batched, sim)
-    residuals = _Residuals(model, observe, flags, static, layout, fit_initial_state,
-                           continuity, sim, jac)
+    z0 = _initial_unknown_states(
+        system0, args0, ts, y0, layout, segment_states, fit_initial_state, batched, sim
+    )
+    residuals = _Residuals(
+        model, observe, flags, static, layout, fit_initial_state, continuity, sim, jac
+    )
     solver = optx.LevenbergMarquardt(rtol=1e-6, atol=1e-9) if solver is None else solver
     (u, z), loss, steps, converged, losses, result = _least_squares(
         residuals, solver, (u0, z0), (ts, observations, y0), max_steps, {"jac": "fwd"}
@@ -444,8 +476,7 @@ def fit(
     return FitResult(residuals.params(u), loss, steps, converged, losses, states, result)
 
 
-def _initial_unknown_states(system, args, ts, y0, layout, guess, fit_initial_state, batched,
-                            sim):
+def _initial_unknown_states(system, args, ts, y0, layout, guess, fit_initial_state, batched, sim):
     num_segments = len(layout.bounds) - 1
     if guess is None:
         guess = _guess_states(system, args, ts, y0, layout, sim) if num_segments > 1 else None

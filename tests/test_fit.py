@@ -7,9 +7,9 @@ import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 import pytest
-import sphere_mech as sm
-
 from helpers import max_rel_error
+
+import sphere_mech as sm
 
 # ----------------------------------------------------------------------------------------
 # Gradients through simulate.
@@ -22,8 +22,12 @@ def _initial_states(num):
     q = sm.normalize(jnp.array([[1.0, 0.2, -1.0], [0.6, -0.4, -1.0]]))
     v = sm.project(q, jnp.array([[0.0, 1.0, 0.0], [0.5, 0.0, 0.3]]))
     w = jnp.linspace(0.0, 1.0, num)[:, None, None] * jnp.array([0.0, 0.3, 0.2])
-    return jax.vmap(lambda w_: (sm.rotate(jnp.broadcast_to(w_, (2, 3)), q),
-                                sm.rotate(jnp.broadcast_to(w_, (2, 3)), v)))(w)
+    return jax.vmap(
+        lambda w_: (
+            sm.rotate(jnp.broadcast_to(w_, (2, 3)), q),
+            sm.rotate(jnp.broadcast_to(w_, (2, 3)), v),
+        )
+    )(w)
 
 
 def _quantity(p, y0, adjoint, solver=None, dt0=None, tol=TOL):
@@ -148,8 +152,9 @@ def _rel_errors(params, truth=TRUE):
 def test_fit_recovers_parameters(getkey):
     y0 = jax.tree.map(lambda x: x[0], _initial_states(1))
     ts, obs = _record(y0, 5.0, 51, getkey())
-    result = sm.fit(damped_chain, START, ts, obs, mass_positions, y0=y0, positive=True,
-                    simulate_options=SIM)
+    result = sm.fit(
+        damped_chain, START, ts, obs, mass_positions, y0=y0, positive=True, simulate_options=SIM
+    )
     assert bool(result.converged)
     assert max(_rel_errors(result.params).values()) < 0.01, result.params
     losses = np.asarray(result.losses[: int(result.num_steps)])
@@ -170,11 +175,21 @@ def _shooting(t1, segments, key):
     q, v = _states_from_data(ts, obs)
     bounds = np.round(np.linspace(0, len(ts) - 1, segments + 1)).astype(int)
     options = dict(positive=True, fit_initial_state=True, simulate_options=SIM)
-    multiple = sm.fit(damped_chain, START_CHAOS, ts, obs, mass_positions, y0=(q[0], v[0]),
-                      segments=segments, segment_states=(q[bounds[1:-1]], v[bounds[1:-1]]),
-                      max_steps=60, **options)
-    single = sm.fit(damped_chain, START_CHAOS, ts, obs, mass_positions, y0=(q[0], v[0]),
-                    max_steps=30, **options)
+    multiple = sm.fit(
+        damped_chain,
+        START_CHAOS,
+        ts,
+        obs,
+        mass_positions,
+        y0=(q[0], v[0]),
+        segments=segments,
+        segment_states=(q[bounds[1:-1]], v[bounds[1:-1]]),
+        max_steps=60,
+        **options,
+    )
+    single = sm.fit(
+        damped_chain, START_CHAOS, ts, obs, mass_positions, y0=(q[0], v[0]), max_steps=30, **options
+    )
     return multiple, single
 
 
@@ -208,11 +223,18 @@ def test_fit_errors():
     with pytest.raises(ValueError, match="segments"):
         sm.fit(damped_chain, START, ts, obs, mass_positions, y0=y0, segments=11)
     with pytest.raises(ValueError, match="positive"):
-        sm.fit(damped_chain, dict(START, c=-1.0), ts, obs, mass_positions, y0=y0,
-               positive=True)
+        sm.fit(damped_chain, dict(START, c=-1.0), ts, obs, mass_positions, y0=y0, positive=True)
     with pytest.raises(ValueError, match="segment_states"):
-        sm.fit(damped_chain, START, ts, obs, mass_positions, y0=y0, segments=2,
-               segment_states=(y0[0], y0[1]))
+        sm.fit(
+            damped_chain,
+            START,
+            ts,
+            obs,
+            mass_positions,
+            y0=y0,
+            segments=2,
+            segment_states=(y0[0], y0[1]),
+        )
     with pytest.raises(ValueError, match="model"):
         sm.fit(lambda p: p, START, ts, obs, mass_positions, y0=y0)
 
@@ -247,12 +269,21 @@ def test_learned_potential(getkey):
     truth = sm.ConstantInertiaLagrangian(CHAIN.inertia(), stiff_joint)
     y0 = _initial_states(3)
     ts = jnp.linspace(0.0, 1.5, 16)
-    simulate_q = lambda system, y: sm.simulate(system, y, ts[-1],
-                                               saveat=diffrax.SaveAt(ts=ts), **SIM).ys[0]
+    simulate_q = lambda system, y: sm.simulate(
+        system, y, ts[-1], saveat=diffrax.SaveAt(ts=ts), **SIM
+    ).ys[0]
     data = jax.vmap(lambda y: simulate_q(truth, y))(y0)
     mlp = eqx.nn.MLP(6, "scalar", 8, 1, activation=jnp.tanh, key=getkey())
-    result = sm.fit(neural_lagrangian, mlp, ts, data, lambda s, t, q, v: q, y0=y0,
-                    simulate_options=SIM, max_steps=25)
+    result = sm.fit(
+        neural_lagrangian,
+        mlp,
+        ts,
+        data,
+        lambda s, t, q, v: q,
+        y0=y0,
+        simulate_options=SIM,
+        max_steps=25,
+    )
 
     def error(mlp_):
         pred = jax.vmap(lambda y: simulate_q(neural_lagrangian(mlp_), y))(y0)
