@@ -445,9 +445,15 @@ def figure(rows, path=None):
 
     scenes = list(dict.fromkeys(r["scene"] for r in rows))
     labels = list(dict.fromkeys(r["method"] for r in rows))
-    colors = {m: plt.cm.tab10(i % 10) for i, m in enumerate(labels)}
-    fig, axes = plt.subplots(1, len(scenes), figsize=(4.6 * len(scenes), 4.2), squeeze=False)
-    for ax, scene in zip(axes[0], scenes):
+    palette = [plt.cm.tab10(i) for i in range(10)] + ["black", "0.6"]
+    colors = {m: palette[i % len(palette)] for i, m in enumerate(labels)}
+    ncols = min(2, len(scenes))
+    nrows = -(-len(scenes) // ncols)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(5.2 * ncols, 3.9 * nrows + 0.8),
+                             squeeze=False)
+    for ax in axes.flat[len(scenes):]:
+        ax.set_visible(False)
+    for ax, scene in zip(axes.flat, scenes):
         for m in labels:
             pts = sorted((r["wall_time"], r["final_error"]) for r in rows
                          if r["scene"] == scene and r["method"] == m and r["success"]
@@ -458,16 +464,17 @@ def figure(rows, path=None):
         ax.set_title(scene, fontsize=10)
         ax.set_xlabel("wall time after compilation (s)")
         ax.grid(True, which="major", alpha=0.3)
-    axes[0][0].set_ylabel("max position error at t1 (m)")
+    for row in axes:
+        row[0].set_ylabel("max position error at t1 (m)")
     handles, names = [], []
-    for ax in axes[0]:
+    for ax in axes.flat:
         for h, n in zip(*ax.get_legend_handles_labels()):
             if n not in names:
                 handles.append(h)
                 names.append(n)
     fig.legend(handles, names, loc="lower center", ncol=min(4, len(names)), fontsize=8,
                frameon=False)
-    fig.tight_layout(rect=(0, 0.12 if len(names) > 4 else 0.08, 1, 1))
+    fig.tight_layout(rect=(0, 0.1 if len(names) > 4 else 0.06, 1, 1))
     if path is not None:
         fig.savefig(path, dpi=110)
         plt.close(fig)
