@@ -333,7 +333,8 @@ def measure(scene, method, param, ref_positions, repeats, max_steps):
     return dict(
         scene=scene.name, method=method.label, adaptive=adaptive, param=float(param),
         final_error=final_error, energy_error=energy_error, constraint_error=constraint(ys_all),
-        wall_time=wall, wall_time_min=fastest, compile_time=max(first - wall, 0.0), evaluations=evaluations,
+        wall_time=wall, wall_time_min=fastest, compile_time=max(first - wall, 0.0),
+        evaluations=evaluations,
         steps=int(num_steps), success=ok,
     )
 
@@ -453,14 +454,15 @@ def figure(rows, path=None):
                              squeeze=False)
     for ax in axes.flat[len(scenes):]:
         ax.set_visible(False)
-    for ax, scene in zip(axes.flat, scenes):
+    for ax, scene in zip(axes.flat, scenes, strict=False):
         for m in labels:
             pts = sorted((r["wall_time"], r["final_error"]) for r in rows
                          if r["scene"] == scene and r["method"] == m and r["success"]
                          and r["final_error"] > 0)
             if pts:
                 style = "--" if "angles" in m or "no projection" in m else "-"
-                ax.loglog(*zip(*pts), style, marker="o", ms=3, color=colors[m], label=m)
+                ax.loglog(*zip(*pts, strict=True), style, marker="o", ms=3, color=colors[m],
+                          label=m)
         ax.set_title(scene, fontsize=10)
         ax.set_xlabel("wall time after compilation (s)")
         ax.grid(True, which="major", alpha=0.3)
@@ -468,7 +470,7 @@ def figure(rows, path=None):
         row[0].set_ylabel("max position error at t1 (m)")
     handles, names = [], []
     for ax in axes.flat:
-        for h, n in zip(*ax.get_legend_handles_labels()):
+        for h, n in zip(*ax.get_legend_handles_labels(), strict=True):
             if n not in names:
                 handles.append(h)
                 names.append(n)

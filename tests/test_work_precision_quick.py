@@ -43,8 +43,8 @@ def test_error_decreases_with_tolerance(results):
         rows = _rows(data, scene, "Projected(Tsit5)")
         errors = [r["final_error"] for r in rows]
         evals = [r["evaluations"] for r in rows]
-        assert all(a > b for a, b in zip(errors, errors[1:])), errors
-        assert all(a < b for a, b in zip(evals, evals[1:])), evals
+        assert all(a > b for a, b in zip(errors, errors[1:], strict=False)), errors
+        assert all(a < b for a, b in zip(evals, evals[1:], strict=False)), evals
         # Tolerance-proportional: within a factor 30 of the tolerance at every setting.
         assert all(r["final_error"] < 30 * r["param"] for r in rows)
     rows = _rows(data, "double pendulum", "LieRK4 (fixed steps)")
@@ -64,12 +64,12 @@ def test_pole_passage_costs_the_angle_baseline(results):
     assert data["info"]["pole_closest_approach"] < 2e-6
     ours = _rows(data, "pole passage (double pendulum)", "Projected(Tsit5)")
     angles = _rows(data, "pole passage (double pendulum)", "angles + Tsit5 (LNN-style)")
-    for a, b in zip(angles, ours):
+    for a, b in zip(angles, ours, strict=True):
         assert a["param"] == b["param"]
         assert a["evaluations"] > 3 * b["evaluations"]
         assert a["steps"] > 3 * b["steps"]
     # Away from the pole the angle baseline needs about as many steps as ours.
     regular_ours = _rows(data, "double pendulum", "Projected(Tsit5)")
     regular_angles = _rows(data, "double pendulum", "angles + Tsit5 (LNN-style)")
-    for a, b in zip(regular_angles, regular_ours):
+    for a, b in zip(regular_angles, regular_ours, strict=True):
         assert a["steps"] < 2 * b["steps"]
