@@ -14,9 +14,9 @@ step dt = 1e-3, so each does the same work per step (four force evaluations):
 
 First the three are checked to agree (mass positions to 1e-8 after 0.2 s). Then
 pendulum-steps per second (trajectories x steps / wall time, after compilation; median
-of repeats) for n = 2, 8, 32 links and batch 1, 64, 1024, 8192, with the ratio to
-MuJoCo measured in the same run; then the cost of one step of a single trajectory
-against n. Prints markdown tables, writes benchmarks/results/throughput.{png,md}.
+of 3 repeats, one for runs over 5 s) for n = 2, 8, 32 links and batch 1, 64, 1024,
+8192, with the ratio to MuJoCo measured in the same run; then the cost of one step of a
+single trajectory against n. Prints markdown tables, writes benchmarks/results/throughput.{png,md}.
 
     python benchmarks/throughput.py [--quick]
 """
@@ -27,11 +27,11 @@ CORES = os.cpu_count() or 1
 os.environ.setdefault("XLA_FLAGS", f"--xla_force_host_platform_device_count={CORES}")
 
 import argparse  # noqa: E402
+import json  # noqa: E402
 import pathlib  # noqa: E402
 import statistics  # noqa: E402
 import time  # noqa: E402
 
-import diffrax  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import matplotlib  # noqa: E402
@@ -45,6 +45,7 @@ from mujoco import rollout  # noqa: E402
 
 import sphere_mech as sm  # noqa: E402
 from sphere_mech._batch import _solve_batch  # noqa: E402
+from sphere_mech._linalg import spd_solve  # noqa: E402
 
 DT, G = 1e-3, 9.81
 RESULTS = pathlib.Path(__file__).parent / "results"
@@ -91,7 +92,12 @@ def angles_to_q(angles):
 
 class Angles:
     """Lagrangian-neural-network style: L(theta, thetadot) by autodiff, then
-    thetaddot = H^-1 (dL/dtheta - d2L/dthetadot dtheta thetadot), H = d2L/dthetadot2."""
+    thetaddot = H^-1 (dL/dtheta - d2L/dthetadot dtheta thetadot), H = d2L/dthetadot2.
+
+    H is solved by the elementwise unrolled Cholesky that sphere_mech uses for small
+    dense systems: `jnp.linalg.solve` under `vmap` calls LAPACK once per tiny matrix,
+    which is slow on CPU and twice stalled (no CPU use, never returned) in this script's
+    two-host-device setting at batch 8192."""
 
     name = "angles (autodiff EL)"
 
@@ -107,7 +113,7 @@ class Angles:
             H = jax.hessian(lagrangian, 1)(th, thd)
             dq = jax.grad(lagrangian, 0)(th, thd)
             mixed = jax.jacfwd(jax.grad(lagrangian, 1), 0)(th, thd)
-            return jnp.linalg.solve(H, dq - mixed @ thd)
+            return spd_solve(H, dq - mixed @ thd)
 
         def rk4(y, _):
             f = lambda y_: (y_[1], accel(*y_))
@@ -204,7 +210,8 @@ class MuJoCo:
         return states
 
     def run(self, states, nsteps):
-        out, _ = rollout.rollout(self.model, self.data, states, nstep=nsteps)
+        data = self.data[: len(states)]  # no idle threads for tiny batches
+        out, _ = rollout.rollout(self.model, data, states, nstep=nsteps)
         return out, nsteps
 
     def positions(self, out):
@@ -227,7 +234,7 @@ def throughput(method, n, batch, budget, repeats):
     first = time.perf_counter() - start
     times, steps = [], nsteps
     cache = _solve_batch._cached._cache_size()
-    for _ in range(repeats):
+    for _ in range(repeats if first < 5.0 else 1):  # slow configurations: one repeat
         start = time.perf_counter()
         _, steps = method.run(y, nsteps)
         times.append(time.perf_counter() - start)
@@ -241,7 +248,8 @@ def check_agreement(n=3, batch=4, nsteps=200):
     y = random_states(n, batch, seed=7)
     methods = [SphereMech(n), MuJoCo(n), Angles(n)]
     pos = [m.positions(m.run(m.prepare(*y), nsteps)[0]) for m in methods]
-    errors = {m.name: float(np.max(np.abs(p - pos[0]))) for m, p in zip(methods[1:], pos[1:])}
+    pairs = zip(methods[1:], pos[1:], strict=True)
+    errors = {m.name: float(np.max(np.abs(p - pos[0]))) for m, p in pairs}
     lines = [f"| {name} | {err:.1e} |" for name, err in errors.items()]
     print(f"\nAgreement with sphere_mech, max |x_i| difference after {nsteps * DT:g} s "
           f"(n = {n}, {batch} random states):\n\n| method | difference |\n|---|---|")
@@ -250,66 +258,69 @@ def check_agreement(n=3, batch=4, nsteps=200):
     return errors
 
 
-def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="fewer sizes and steps")
-    opts = parser.parse_args()
-    ns = (2, 8) if opts.quick else (2, 8, 32)
-    batches = (1, 1024) if opts.quick else (1, 64, 1024, 8192)
-    budget = 5e4 if opts.quick else 2e5  # pendulum-steps per timed run at n = 2
-    repeats = 3
-    print(f"devices: {jax.devices()}  (cores: {CORES}); float64, RK4, dt = {DT}")
-    errors = check_agreement()
+ANGLES_MAX_N = 8
+"""The angle baseline is not run above this n: at n = 32 a trial run took 142 s to
+compile and managed 19 pendulum-steps/s at batch 1 (dense 64 x 64 Hessians)."""
 
-    rows, records = [], []
+
+def measure_batches(ns, batches, budget, records):
     for n in ns:
         for batch in batches:
-            per = {}
             for cls in (MuJoCo, SphereMech, Angles):
-                method = cls(n)
-                work = budget * 2 / n
-                if cls is Angles:
-                    work /= 4 if n >= 8 else 1
-                rate, compile_s, _ = throughput(method, n, batch, work, repeats)
-                per[cls.name] = (rate, compile_s)
-            mj = per["MuJoCo"][0]
-            for name, (rate, compile_s) in per.items():
-                rows.append(f"| {name} | {n} | {batch} | {rate:.3g} | {rate / mj:.2f} | "
-                            f"{compile_s:.1f} |")
-                records.append((name, n, batch, rate))
-            print(rows[-3], rows[-2], rows[-1], sep="\n", flush=True)
-    header = ("| method | n | batch | pendulum-steps/s | ratio to MuJoCo | compile (s) |\n"
-              "|---|---|---|---|---|---|")
-    table = header + "\n" + "\n".join(rows)
-    print("\n" + table)
+                if cls is Angles and n > ANGLES_MAX_N:
+                    continue
+                work = budget * 2 / n / (4 if cls is Angles and n >= 8 else 1)
+                rate, compile_s, _ = throughput(cls(n), n, batch, work, repeats=3)
+                records["batch"][f"{cls.name}|{n}|{batch}"] = (rate, compile_s)
+                print(f"{cls.name}, n={n}, batch={batch}: {rate:.3g} steps/s", flush=True)
 
-    per_n = (1, 4, 16) if opts.quick else (1, 2, 4, 8, 16, 32, 64)
-    cost_rows, cost = [], {"sphere_mech": [], "MuJoCo": []}
+
+def measure_cost(per_n, records):
     for n in per_n:
-        sm_cost = throughput(SphereMech(n), n, 1, 2000, repeats)[2]
-        mj_cost = throughput(MuJoCo(n, nthread=1), n, 1, 2000, repeats)[2]
-        cost["sphere_mech"].append(sm_cost)
-        cost["MuJoCo"].append(mj_cost)
-        cost_rows.append(f"| {n} | {sm_cost * 1e6:.2f} | {mj_cost * 1e6:.2f} |")
-        print(cost_rows[-1], flush=True)
-    cost_table = ("| n | sphere_mech (us/step) | MuJoCo (us/step) |\n|---|---|---|\n"
-                  + "\n".join(cost_rows))
-    print("\nOne trajectory, cost per RK4 step:\n\n" + cost_table)
+        for cls, kwargs in ((SphereMech, {}), (MuJoCo, {"nthread": 1})):
+            cost = throughput(cls(n, **kwargs), n, 1, 2000, repeats=3)[2]
+            records["cost"][f"{cls.name}|{n}"] = cost
+            print(f"{cls.name}, n={n}, one trajectory: {cost * 1e6:.2f} us/step", flush=True)
 
-    RESULTS.mkdir(exist_ok=True)
+
+def report(records, errors):
+    rows = []
+    for key, (rate, compile_s) in records["batch"].items():
+        name, n, batch = key.split("|")
+        mj = records["batch"].get(f"MuJoCo|{n}|{batch}", (np.nan,))[0]
+        rows.append((int(n), int(batch), name, rate, rate / mj, compile_s))
+    order = {"MuJoCo": 0, "sphere_mech": 1}
+    rows.sort(key=lambda r: (r[0], r[1], order.get(r[2], 2)))
+    table = ("| method | n | batch | pendulum-steps/s | ratio to MuJoCo | compile (s) |\n"
+             "|---|---|---|---|---|---|\n" + "\n".join(
+                 f"| {m} | {n} | {b} | {r:.3g} | {x:.2f} | {c:.1f} |"
+                 for n, b, m, r, x, c in rows))
+    cost = {}
+    for key, value in records["cost"].items():
+        name, n = key.split("|")
+        cost.setdefault(int(n), {})[name] = value
+    cost_table = ("| n | sphere_mech (us/step) | MuJoCo (us/step) |\n|---|---|---|\n" + "\n".join(
+        f"| {n} | {c.get('sphere_mech', np.nan) * 1e6:.2f} | {c.get('MuJoCo', np.nan) * 1e6:.2f} |"
+        for n, c in sorted(cost.items())))
+    print("\n" + table + "\n\nOne trajectory, cost per RK4 step:\n\n" + cost_table)
+
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 4.2))
     colors = {"sphere_mech": "C0", "MuJoCo": "C3", "angles (autodiff EL)": "C2"}
-    styles = dict(zip(ns, ("-", "--", ":")))
-    for name in colors:
+    ns = sorted({r[0] for r in rows})
+    styles = dict(zip(ns, ("-", "--", ":", "-.")[: len(ns)], strict=True))
+    for name, color in colors.items():
         for n in ns:
-            pts = [(b, r) for m, nn, b, r in records if m == name and nn == n]
-            ax.loglog(*zip(*pts), styles[n], marker="o", color=colors[name],
-                      label=f"{name}, n={n}")
+            pts = sorted((b, r) for nn, b, m, r, _, _ in rows if m == name and nn == n)
+            if pts:
+                ax.loglog(*zip(*pts, strict=True), styles[n], marker="o", color=color,
+                          label=f"{name}, n={n}")
     ax.set(xlabel="batch size", ylabel="pendulum-steps per second",
-           title="Throughput (RK4, dt = 1e-3, float64)")
-    ax.legend(fontsize=7, ncol=1)
-    for name, values in cost.items():
-        ax2.loglog(per_n, np.array(values) * 1e6, marker="o", color=colors[name], label=name)
+           title="Throughput (RK4, dt = 1e-3, float64, 2 cores)")
+    ax.legend(fontsize=7)
+    for name in ("sphere_mech", "MuJoCo"):
+        pts = sorted((n, c[name] * 1e6) for n, c in cost.items() if name in c)
+        if pts:
+            ax2.loglog(*zip(*pts, strict=True), marker="o", color=colors[name], label=name)
     ax2.set(xlabel="links n", ylabel="microseconds per step", title="One trajectory")
     ax2.legend()
     fig.tight_layout()
@@ -317,9 +328,36 @@ def main():
     agreement = "\n".join(f"- {k}: {v:.1e}" for k, v in errors.items())
     (RESULTS / "throughput.md").write_text(
         f"Agreement with sphere_mech (max position difference after 0.2 s):\n{agreement}\n\n"
-        f"{table}\n\nOne trajectory:\n\n{cost_table}\n"
+        f"{table}\n\nOne trajectory, cost per RK4 step:\n\n{cost_table}\n"
     )
     print(f"\nwrote {RESULTS / 'throughput.png'} and {RESULTS / 'throughput.md'}")
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="fewer sizes and steps")
+    parser.add_argument("--ns", type=int, nargs="*", help="links to measure (default 2 8 32)")
+    parser.add_argument("--batches", type=int, nargs="*", help="batch sizes")
+    parser.add_argument("--per-n", type=int, nargs="*", help="n for the single-trajectory cost")
+    parser.add_argument("--merge", action="store_true",
+                        help="add to the results of earlier runs in results/throughput.json")
+    opts = parser.parse_args()
+    ns = opts.ns if opts.ns is not None else ((2, 8) if opts.quick else (2, 8, 32))
+    batches = opts.batches or ((1, 1024) if opts.quick else (1, 64, 1024, 8192))
+    per_n = opts.per_n if opts.per_n is not None else (
+        (1, 4, 16) if opts.quick else (1, 2, 4, 8, 16, 32, 64))
+    budget = 5e4 if opts.quick else 2e5  # pendulum-steps per timed run at n = 2
+    print(f"devices: {jax.devices()}  (cores: {CORES}); float64, RK4, dt = {DT}")
+    RESULTS.mkdir(exist_ok=True)
+    store = RESULTS / "throughput.json"
+    records = {"batch": {}, "cost": {}, "agreement": {}}
+    if opts.merge and store.exists():
+        records = json.loads(store.read_text())
+    records["agreement"] = check_agreement()
+    measure_batches(ns, batches, budget, records)
+    measure_cost(per_n, records)
+    store.write_text(json.dumps(records, indent=1))
+    report(records, records["agreement"])
 
 
 if __name__ == "__main__":
