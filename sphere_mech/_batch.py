@@ -161,7 +161,9 @@ def simulate_batch(
     - `throw`: if True (default) raise after the solve if any trajectory failed, naming
       how many and which; with False, `sol.result` holds each trajectory's own result
       (non-finite values, e.g. from NaN parameters, give `RESULTS.nonfinite`) and a failed
-      trajectory does not affect the others.
+      trajectory does not affect the others. (With an adaptive controller a trajectory
+      whose vector field is NaN keeps rejecting steps until `max_steps`, which the batch
+      waits for; fixed-step solvers stop it at its first step.)
     - `chunk_size`: trajectories integrated together by one `vmap` on a device (default:
       about `512 / n` on CPU, which keeps the working set in cache; the whole batch on
       other backends). Results do not depend on it.

@@ -47,7 +47,7 @@ def test_agrees_with_loop_over_simulate(chain):
     assert sol.ys[0].shape == (BATCH, TS.size, N, 3)
     for i in range(BATCH):
         ref = sm.simulate(chain, (y0[0][i], y0[1][i]), 1.0, saveat=saveat)
-        for a, b in zip(sol.ys, ref.ys):
+        for a, b in zip(sol.ys, ref.ys, strict=True):
             np.testing.assert_allclose(a[i], b, rtol=0, atol=1e-12)
         assert int(sol.stats["num_steps"][i]) == int(ref.stats["num_steps"])
     assert len(set(np.asarray(sol.stats["num_steps"]).tolist())) > 1  # per trajectory
@@ -88,7 +88,7 @@ def test_nan_trajectory_is_reported_and_isolated(masses):
     assert codes[2] == diffrax.RESULTS.nonfinite._value
     assert np.all(np.delete(codes, 2) == 0)
     keep = np.array([0, 1, 3, 4])
-    for a, b in zip(sol.ys, good.ys):
+    for a, b in zip(sol.ys, good.ys, strict=True):
         np.testing.assert_array_equal(a[keep], b[keep])
     with pytest.raises(RuntimeError, match=r"1 of 5 trajectories failed \(indices 2\)"):
         sm.simulate_batch(chains(bad_masses), y0, 1.0, batch_system=True, **FIXED)
