@@ -53,8 +53,11 @@ def scalar_inertia_matrix(M: jax.Array, T: jax.Array) -> jax.Array:
 
 
 UNROLL_MAX = 64
-"""Largest size solved by the unrolled elementwise algorithms below; larger systems use
-LAPACK (`jax.scipy.linalg.cho_solve`)."""
+"""Largest tridiagonal system solved by the unrolled recursion below (larger ones run the
+same recursion in `lax.scan`)."""
+DENSE_UNROLL_MAX = 16
+"""Largest dense system factorized by the unrolled Cholesky below; larger systems use
+LAPACK (`jax.scipy.linalg.cho_solve`), whose compile time does not grow with n."""
 
 
 def spd_solve(A: jax.Array, b: jax.Array) -> jax.Array:
@@ -66,7 +69,7 @@ def spd_solve(A: jax.Array, b: jax.Array) -> jax.Array:
     so that under `vmap` XLA on CPU runs each operation over the whole batch instead of
     calling LAPACK once per tiny matrix."""
     n = A.shape[-1]
-    if n > UNROLL_MAX:
+    if n > DENSE_UNROLL_MAX:
         c = jax.scipy.linalg.cho_factor(A, lower=True)
         return jax.scipy.linalg.cho_solve(c, b)
     idx = jnp.arange(n)
