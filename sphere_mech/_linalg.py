@@ -9,8 +9,6 @@ independent of which tangent basis is used.
 import jax
 import jax.numpy as jnp
 
-from ._geometry import tangent_basis
-
 
 def to_tangent(T: jax.Array, v: jax.Array) -> jax.Array:
     """Coordinates of `v` (`(n, 3)`) in the basis `T`, flattened to `(2n,)`."""
@@ -34,22 +32,6 @@ def reduced_matrix(hvp, T: jax.Array) -> jax.Array:
     """`T^T H T` (2n x 2n) for a linear map `hvp: (n, 3) -> (n, 3)` applying `H`."""
     HT = jax.vmap(hvp)(basis_directions(T))  # (2n, n, 3): H applied to each direction
     return jax.vmap(lambda col: to_tangent(T, col), out_axes=1)(HT)
-
-
-def tangent_solve(hvp, q: jax.Array, rhs: jax.Array, T: jax.Array | None = None):
-    """Solve `P H x = P rhs` for a tangent `x`, with `H` given as a linear map `hvp`."""
-    if T is None:
-        T = tangent_basis(q)
-    A = reduced_matrix(hvp, T)
-    return from_tangent(T, jnp.linalg.solve(A, to_tangent(T, rhs)))
-
-
-def scalar_inertia_matrix(M: jax.Array, T: jax.Array) -> jax.Array:
-    """`T^T (M kron I_3) T` for a scalar inertia matrix `M` (n x n): block (i, j) is
-    `M_ij T_i^T T_j`. No Hessian, no autodiff: the Corollary-1 fast path."""
-    n = M.shape[0]
-    G = jnp.einsum("ica,jcb->iajb", T, T) * M[:, None, :, None]
-    return G.reshape(2 * n, 2 * n)
 
 
 UNROLL_MAX = 64
