@@ -11,7 +11,7 @@ def tree_allclose(x, y, *, rtol=1e-5, atol=1e-8):
         return False
     return all(
         jnp.shape(a) == jnp.shape(b) and bool(jnp.allclose(a, b, rtol=rtol, atol=atol))
-        for a, b in zip(jtu.tree_leaves(x), jtu.tree_leaves(y))
+        for a, b in zip(jtu.tree_leaves(x), jtu.tree_leaves(y), strict=True)
     )
 
 
