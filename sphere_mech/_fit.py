@@ -183,8 +183,9 @@ class _Residuals(eqx.Module):
         system, args = _system_and_args(self.model, self.params(u))
         return _segment_residual(system, args, self.observe, state, ts, t0, t1, obs, mask, self.sim)
 
-    def segments(self, u, states, data):
-        """`segment` over all records and segments: `(B, K, ...)` outputs."""
+    def over_segments(self, fn, states, data):
+        """Map `fn(state, ts, obs, t0, t1, mask)` over all records and segments:
+        `(B, K, ...)` outputs (the mask is shared by the records)."""
         ts, obs, _ = data
         lay = self.layout
         per_segment = (
@@ -193,10 +194,12 @@ class _Residuals(eqx.Module):
             ts[:, lay.bounds[:-1]],
             ts[:, lay.bounds[1:]],
         )
-        mask = jnp.asarray(lay.mask)
-        fn = lambda s, *d: self.segment(u, s, *d[:4], d[4])
         fn = jax.vmap(jax.vmap(fn, in_axes=(0,) * 5 + (0,)), in_axes=(0,) * 5 + (None,))
-        return fn(states, *per_segment, mask)
+        return fn(states, *per_segment, jnp.asarray(lay.mask))
+
+    def segments(self, u, states, data):
+        """`segment` over all records and segments: `(B, K, ...)` outputs."""
+        return self.over_segments(lambda s, *d: self.segment(u, s, *d), states, data)
 
     def __call__(self, unknowns, data):
         u, z = unknowns
@@ -223,8 +226,6 @@ def _segments_jvp(primals, tangents, *, problem, data):
     u_flat, unravel_u = ravel_pytree(u)
     s0 = jtu.tree_map(lambda x: x[0, 0], states)
     s_flat0, unravel_s = ravel_pytree(s0)
-    ts, obs, _ = data
-    lay = problem.layout
 
     def flat(u_flat_, s_flat_, *d):
         out = problem.segment(unravel_u(u_flat_), unravel_s(s_flat_), *d)
@@ -234,16 +235,7 @@ def _segments_jvp(primals, tangents, *, problem, data):
     jacobian = jax.jacfwd if problem.jac == "fwd" else jax.jacrev
     block = jacobian(flat, argnums=(0, 1), has_aux=True)
     s_flat = jax.vmap(jax.vmap(lambda s: ravel_pytree(s)[0]))(states)
-    per_segment = (
-        ts[:, lay.index],
-        obs[:, lay.index],
-        ts[:, lay.bounds[:-1]],
-        ts[:, lay.bounds[1:]],
-    )
-    mask = jnp.asarray(lay.mask)
-    fn = lambda s, *d: block(u_flat, s, *d[:4], d[4])
-    fn = jax.vmap(jax.vmap(fn, in_axes=(0,) * 5 + (0,)), in_axes=(0,) * 5 + (None,))
-    (J_u, J_s), out = fn(s_flat, *per_segment, mask)
+    (J_u, J_s), out = problem.over_segments(lambda s, *d: block(u_flat, s, *d), s_flat, data)
     t_out = jnp.zeros(J_u.shape[:-1], J_u.dtype)
     if du is not None:
         du_flat = ravel_pytree(_fill_zeros(du, u))[0]
