@@ -32,17 +32,15 @@ V0 = jnp.array([[0.0, 0.5, 1.0], [0.0, 0.0, 2.0]])
 
 
 def _per_step(t, y, args):
-    system, user_args = args
-    return sm.constraint_error(y[0]), system.energy(t, y[0], y[1], user_args)
+    return sm.constraint_error(y[0]), CHAIN.energy(t, y[0], y[1], args)
 
 
 @eqx.filter_jit
 @eqx.debug.assert_max_traces(max_traces=4)  # one per solver, never per call
 def run(solver, dt, t1):
     """Fixed steps with diffrax directly, so that nothing retracts the saved states."""
-    term = diffrax.ODETerm(lambda t, y, args: args[0].rates(t, y, args[1]))
     saveat = diffrax.SaveAt(steps=True, fn=_per_step)
-    return diffrax.diffeqsolve(term, solver, 0.0, t1, dt, (Q0, V0), args=(CHAIN, None),
+    return diffrax.diffeqsolve(sm.MechanicsTerm(CHAIN), solver, 0.0, t1, dt, (Q0, V0),
                                saveat=saveat, stepsize_controller=diffrax.ConstantStepSize(),
                                max_steps=STEPS, throw=False)
 

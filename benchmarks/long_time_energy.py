@@ -90,7 +90,7 @@ def main():
     print("|---|---|---|---|---|---|---|---|")
     for name, (t, err, cons, result, wall) in results.items():
         _, _, slope, growth = envelope_trend(t, err)
-        status = "ok" if result == diffrax.RESULTS.successful else "failed"
+        status = "ok" if result == sm.RESULTS.successful else "failed"
         print(f"| {name} | {status} | {np.nanmax(err):.3e} | {slope:.3e} | {growth:+.3f} | "
               f"{np.nanmax(cons):.1e} | {wall:.1f} | {wall / base_wall:.2f} |")
     plot(results, opts)

@@ -65,18 +65,18 @@ def _tick():
     _CALLS[0] += 1
 
 
-class CountedChain(sm.ChainPendulum):
-    """The same chain; every evaluation of its potential bumps a host-side counter.
-    (A subclass rather than a wrapper so that solvers that need a Lagrangian system,
-    such as `Variational`, accept it.)"""
+class Counter(sm.AbstractPotential):
+    """A zero potential whose every evaluation bumps a host-side counter: added to a
+    scene, it counts the evaluations of the vector field (a scene, so that solvers that
+    need a Lagrangian system, such as `Variational`, accept it)."""
 
-    def potential(self, t, q, args=None):
+    def potential(self, t, q, scene, args):
         jax.debug.callback(_tick)
-        return super().potential(t, q, args)
+        return jnp.zeros((), q.dtype)
 
 
 def counted(chain):
-    return CountedChain(chain.masses, chain.lengths, chain.g, chain.torque, chain.tip_force)
+    return sm.Scene(*chain.effects, Counter())
 
 
 # ----------------------------------------------------------------------------------------
@@ -93,7 +93,7 @@ def unit_from_angles(x):
 class AngleChain(eqx.Module):
     """The same chain, in angles: `L(x, xt) = chain.lagrangian(q(x), dq/dx xt)`."""
 
-    chain: sm.ChainPendulum
+    chain: sm.Scene
 
     def lagrangian(self, x, xt):
         q, qdot = jax.jvp(unit_from_angles, (x,), (xt,))
@@ -142,7 +142,7 @@ def _angle_vector_field_counted(t, y, system):
 @dataclasses.dataclass
 class Scene:
     name: str
-    chain: sm.ChainPendulum
+    chain: sm.Scene
     y0: tuple
     t1: float
     steps: tuple  # step sizes for fixed-step methods
@@ -251,7 +251,7 @@ def _integrate(chain, solver, y0, t1, param, adaptive, diagnostics, max_steps):
     sol = sm.simulate(system, y0, t1, solver=solver, saveat=saveat, max_steps=max_steps,
                       throw=False, **step)
     ys = (sol.ys["q"], sol.ys["v"])
-    return sol.ts, ys, sol.result == diffrax.RESULTS.successful, sol.stats["num_steps"]
+    return sol.ts, ys, sol.result == sm.RESULTS.successful, sol.stats["num_steps"]
 
 
 @eqx.filter_jit
@@ -360,7 +360,7 @@ def predictability_time(scene, t_max, eps=1e-10, threshold=1e-2):
     xa = jax.vmap(scene.chain.positions)(run((q0, v0)))
     xb = jax.vmap(scene.chain.positions)(run((q1, v1)))
     sep = np.max(np.linalg.norm(np.asarray(xa - xb), axis=-1), axis=-1)
-    size = float(jnp.sum(scene.chain.lengths))
+    size = float(jnp.sum(scene.chain.kinetic[0].lengths))
     above = np.nonzero(sep > threshold * size)[0]
     return float(ts[above[0]]) if above.size else float("inf")
 

@@ -1,26 +1,27 @@
 """sphere_mech: global Lagrangian and Hamiltonian mechanics on (S^2)^n, derived by
 autodiff from a user's L or H and integrated with diffrax on the spheres."""
 
+import importlib.metadata
+
 from ._batch import simulate_batch as simulate_batch
-from ._chain import ChainPendulum as ChainPendulum
 from ._chain import chain_pendulum as chain_pendulum
 from ._checks import unit_tolerance as unit_tolerance
-from ._convert import (
+from ._legendre import (
     angular as angular,
 )
-from ._convert import (
+from ._legendre import (
     legendre as legendre,
 )
-from ._convert import (
+from ._legendre import (
     mu_from_pi as mu_from_pi,
 )
-from ._convert import (
+from ._legendre import (
     omega_from_qdot as omega_from_qdot,
 )
-from ._convert import (
+from ._legendre import (
     pi_from_mu as pi_from_mu,
 )
-from ._convert import (
+from ._legendre import (
     qdot_from_omega as qdot_from_omega,
 )
 from ._fit import FitResult as FitResult
@@ -65,9 +66,6 @@ from ._inertia import (
 )
 from ._inertia import (
     ConstantInertiaLagrangian as ConstantInertiaLagrangian,
-)
-from ._lagrangian import (
-    AbstractLagrangianSystem as AbstractLagrangianSystem,
 )
 from ._lagrangian import (
     AngularLagrangian as AngularLagrangian,
@@ -142,13 +140,13 @@ from ._scene.report import (
     work_energy_balance as work_energy_balance,
 )
 from ._scene.scene import Scene as Scene
-from ._simulate import (
+from ._solve import (
     DEFAULT_MAX_STEPS as DEFAULT_MAX_STEPS,
 )
-from ._simulate import (
+from ._solve import (
     DEFAULT_TOLERANCES as DEFAULT_TOLERANCES,
 )
-from ._simulate import (
+from ._solve import (
     default_solver as default_solver,
 )
 from ._simulate import (
@@ -158,6 +156,10 @@ from ._solvers.liegroup import LieRK4 as LieRK4
 from ._solvers.projected import Projected as Projected
 from ._solvers.rk4 import RK4 as RK4
 from ._solvers.variational import Variational as Variational
+from ._results import RESULTS as RESULTS
+from ._system import AbstractHamiltonianSystem as AbstractHamiltonianSystem
+from ._system import AbstractLagrangianSystem as AbstractLagrangianSystem
 from ._system import AbstractSystem as AbstractSystem
+from ._term import MechanicsTerm as MechanicsTerm
 
-__version__ = "0.1.0"
+__version__ = importlib.metadata.version("sphere_mech")

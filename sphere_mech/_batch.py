@@ -9,18 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 
-from ._simulate import (
-    DEFAULT_MAX_STEPS,
-    _as_time,
-    _controller,
-    _failure_index,
-    _failure_messages,
-    _flag_nonfinite,
-    _retract_saved,
-    _vector_field,
-    default_solver,
-    initial_state,
-)
+from ._results import raise_on_failure
+from ._solve import DEFAULT_MAX_STEPS, as_arrays, initial_state, options, solve, times
 from ._system import AbstractSystem
 
 BATCH_AXIS = "batch"
@@ -52,26 +42,13 @@ def _pad(tree, size):
     return jax.tree.map(pad, tree)
 
 
-def _solve_one(static, shared, batched, y0):
-    """One trajectory with `throw=False`. Non-finite rates at the initial state (NaN
-    parameters, a zero mass) or NaN saved states give `RESULTS.nonfinite`."""
-    bundle = eqx.combine(batched, shared, static)
-    system, args, solver, controller, saveat, adjoint, t0, t1, dt0, max_steps = bundle
-    rates = system.rates(t0, y0, args)
-    sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(_vector_field), solver, t0, t1, dt0, y0, args=(system, args),
-        saveat=saveat, stepsize_controller=controller, max_steps=max_steps, adjoint=adjoint,
-        throw=False,
-    )
-    sol = _flag_nonfinite(sol)
-    finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(r)) for r in jax.tree.leaves(rates)]))
-    result = diffrax.RESULTS.where(finite, sol.result, diffrax.RESULTS.nonfinite)
-    return eqx.tree_at(lambda s: s.result, sol, result)
-
-
 def _local_solve(static, chunk, shared, batched, y0):
     """The trajectories held by one device: `lax.map` over chunks of `vmap`."""
-    block = lambda inputs: _solve_one(static, shared, *inputs)
+
+    def block(inputs):
+        system, args, t0, t1, dt0, opts = eqx.combine(inputs[0], shared, static)
+        return solve(system, inputs[1], t0, t1, dt0, args, opts)
+
     if chunk >= y0[0].shape[0]:
         return jax.vmap(block)((batched, y0))
     return jax.lax.map(block, (batched, y0), batch_size=chunk)
@@ -106,29 +83,6 @@ def _chunk_size(chunk_size, n, local, platform):
     return min(chunk_size, local)
 
 
-def _raise_failures(sol, max_steps):
-    """Raise after the solve if any trajectory failed: a `RuntimeError` naming how many
-    and which when called eagerly, an `eqx.error_if` check when traced."""
-    index = jax.vmap(_failure_index)(sol.result)
-    if isinstance(index, jax.core.Tracer):
-        message = ("simulate_batch: some trajectories failed (run with throw=False and "
-                   "inspect sol.result to see which)")
-        ys = eqx.error_if(sol.ys, jnp.any(index > 0), message)
-        return eqx.tree_at(lambda s: s.ys, sol, ys)
-    index = np.asarray(index)
-    failed = np.flatnonzero(index > 0)
-    if failed.size:
-        shown = ", ".join(str(i) for i in failed[:10]) + (", ..." if failed.size > 10 else "")
-        first = _failure_messages(max_steps)[index[failed[0]]].replace("simulate: ", "")
-        first = first.split("; pass throw=False")[0]
-        raise RuntimeError(
-            f"simulate_batch: {failed.size} of {index.size} trajectories failed (indices "
-            f"{shown}). Trajectory {failed[0]}: {first}; with throw=False the other "
-            "trajectories are returned and sol.result holds each one's result code."
-        )
-    return sol
-
-
 def simulate_batch(
     system: AbstractSystem,
     y0,
@@ -145,6 +99,7 @@ def simulate_batch(
     stepsize_controller: diffrax.AbstractStepSizeController | None = None,
     saveat: diffrax.SaveAt | None = None,
     max_steps: int | None = DEFAULT_MAX_STEPS,
+    progress: bool = False,
     adjoint: diffrax.AbstractAdjoint | None = None,
     throw: bool = True,
     chunk_size: int | None = None,
@@ -158,19 +113,21 @@ def simulate_batch(
       per trajectory: masses, gains, ...) unless `batch_args=False` (shared by all).
     - `batch_system`: if True, every array leaf of `system` has a leading batch axis, e.g.
       `eqx.filter_vmap(sm.chain_pendulum)(masses, lengths)` for a batch of chains.
-    - `throw`: if True (default) raise after the solve if any trajectory failed, naming
-      how many and which; with False, `sol.result` holds each trajectory's own result
-      (non-finite values, e.g. from NaN parameters, give `RESULTS.nonfinite`) and a failed
-      trajectory does not affect the others. (With an adaptive controller a trajectory
-      whose vector field is NaN keeps rejecting steps until `max_steps`, which the batch
-      waits for; fixed-step solvers stop it at its first step.)
+    - `throw`: as in `simulate`: `True` (default) raises after the solve if any
+      trajectory failed, naming how many, which, and the first one's cause (the same
+      message as `simulate`); `False` never raises for a run-time failure: `sol.result`
+      holds each trajectory's own `sm.RESULTS` code (NaN parameters give
+      `RESULTS.nonfinite_initial`) and a failed trajectory does not affect the others.
+      (With an adaptive controller a trajectory whose vector field is NaN keeps
+      rejecting steps until `max_steps`, which the batch waits for; fixed-step solvers
+      stop it at its first step.)
     - `chunk_size`: trajectories integrated together by one `vmap` on a device (default:
       about `512 / n` on CPU, which keeps the working set in cache; the whole batch on
       other backends). Results do not depend on it.
     - `devices`: devices to shard the batch over (default: all of JAX's default backend).
       With more than one, the batch is split along a 1-D `Mesh` with `shard_map`; batch
       sizes that do not divide the device count are padded and the padding stripped.
-    - No progress bar.
+    - `progress`: diffrax's progress bar over the batch's time.
 
     Compiles once per structure (shapes, dtypes, solver and options): new values of
     `y0`, `args` or the system's parameters reuse the compiled program.
@@ -189,15 +146,11 @@ def simulate_batch(
         _leading(args, size, "args")
     if batch_system:
         _leading(eqx.filter(system, eqx.is_array), size, "system")
-    solver = default_solver() if solver is None else solver
-    controller = _controller(solver, stepsize_controller, rtol, atol, dt0, q0.dtype)
-    saveat = diffrax.SaveAt(t1=True) if saveat is None else saveat
-    adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
-
-    t0, t1 = _as_time(t0, q0.dtype), _as_time(t1, q0.dtype)  # values, not structure
-    dt0 = None if dt0 is None else _as_time(dt0, q0.dtype)
-    bundle = (system, args, solver, controller, saveat, adjoint, t0, t1, dt0, max_steps)
-    dynamic, static = eqx.partition(bundle, eqx.is_array)
+    system, args = as_arrays((system, args))
+    opts = options(solver, dt0, rtol, atol, stepsize_controller, saveat, max_steps, adjoint,
+                   progress, q0.dtype)
+    t0, t1, dt0 = times(q0.dtype, t0, t1, dt0)  # values, not structure
+    dynamic, static = eqx.partition((system, args, t0, t1, dt0, opts), eqx.is_array)
     mask = jax.tree.map(lambda _: False, dynamic)
     mask = (batch_system, batch_args) + mask[2:]  # prefixes: all of system / args or none
     batched, shared = eqx.partition(dynamic, mask)
@@ -208,5 +161,4 @@ def simulate_batch(
     padded = -(-size // (chunk * len(devices))) * chunk * len(devices)
     y0 = _initial_states(eqx.filter(system, lambda x: not eqx.is_array(x)), (q0, v0))
     sol = _solve_batch(static, chunk, mesh, shared, batched, y0, size, padded)
-    sol = _retract_saved(sol, saveat)
-    return _raise_failures(sol, max_steps) if throw else sol
+    return raise_on_failure(sol, max_steps, "simulate_batch") if throw else sol

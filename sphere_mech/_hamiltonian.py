@@ -4,55 +4,24 @@
 from collections.abc import Callable
 from typing import ClassVar
 
-import jax
 import jax.numpy as jnp
 
-from ._checks import check_finite, check_scalar
-from ._custom_types import Args, ForceFn, Points, Scalar, State, Tangents
+from ._custom_types import ForceFn
 from ._geometry import project
-from ._system import AbstractSystem, as_time, user_forces
+from ._system import AbstractHamiltonianSystem
 
 
-class _AbstractHamiltonianSystem(AbstractSystem):
-    H: Callable
-    forces: ForceFn | None = None
-
-    @property
-    def has_forces(self) -> bool:
-        return self.forces is not None
-
-    def generalized_force(self, t, q, p, args):
-        return user_forces(self.forces, t, q, p, args)
-
-    def _gradients(self, t, q, p, args):
-        def H(q_, p_):
-            return check_scalar(self.H(as_time(t, q), q_, p_, args), "H(t, q, p, args)")
-
-        return jax.grad(H, argnums=(0, 1))(q, p)
-
-    def energy(self, t, q: Points, p: Tangents, args: Args = None) -> Scalar:
-        """The Hamiltonian `H(t, q, p, args)`."""
-        return self.H(t, q, p, args)
-
-    def vector_field(self, t, q: Points, p: Tangents, args: Args = None) -> State:
-        """`(qdot, pdot)` from Hamilton's equations, after checking the state."""
-        q, p = self.check_state(q, p)
-        qdot, pdot = self.rates(t, (q, p), args)
-        message = (
-            "Hamilton's equations are not finite at this state: H or its gradient is NaN "
-            "or infinite (degenerate Hamiltonian, or NaN parameters)"
-        )
-        return check_finite(qdot, message), check_finite(pdot, message)
-
-
-class Hamiltonian(_AbstractHamiltonianSystem):
+class Hamiltonian(AbstractHamiltonianSystem):
     """A system given by a Hamiltonian `H(t, q, mu, args) -> scalar` in the momenta
     `mu_i = (I - q_i q_i^T) dL/dqdot_i` (form 3, Proposition 3); state `(q, mu)`.
 
     `forces(t, q, mu, args) -> (n, 3)` (virtual-work convention).
     """
 
+    H: Callable
+    forces: ForceFn | None = None
     state_name: ClassVar[str] = "mu"
+    angular: ClassVar[bool] = False
 
     def rates(self, t, y, args):
         q, mu = y
@@ -62,18 +31,18 @@ class Hamiltonian(_AbstractHamiltonianSystem):
         mudot = -project(q, force) + jnp.cross(dH_dmu, jnp.cross(mu, q))
         return project(q, dH_dmu), mudot
 
-    def velocity(self, t, q, mu, args):
-        return project(q, self._gradients(t, q, mu, args)[1])
 
-
-class AngularHamiltonian(_AbstractHamiltonianSystem):
+class AngularHamiltonian(AbstractHamiltonianSystem):
     """A system given by a Hamiltonian `H(t, q, pi, args) -> scalar` in the momenta
     `pi_i` conjugate to the angular velocities (form 4, Proposition 4); state `(q, pi)`.
 
     `forces(t, q, pi, args) -> (n, 3)` (virtual-work convention).
     """
 
+    H: Callable
+    forces: ForceFn | None = None
     state_name: ClassVar[str] = "pi"
+    angular: ClassVar[bool] = True
 
     def rates(self, t, y, args):
         q, pi = y
@@ -81,6 +50,3 @@ class AngularHamiltonian(_AbstractHamiltonianSystem):
         f = self.generalized_force(t, q, pi, args)
         torque = -dH_dq if f is None else f - dH_dq
         return jnp.cross(dH_dpi, q), jnp.cross(q, torque) + jnp.cross(dH_dpi, pi)
-
-    def velocity(self, t, q, pi, args):
-        return jnp.cross(self._gradients(t, q, pi, args)[1], q)

@@ -17,21 +17,24 @@ from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
+from diffrax import RESULTS
 
 from ._checks import check_scalar
-from ._custom_types import Args, ForceFn, Points, Scalar, Tangents
-from ._geometry import normalize, project
-from ._lagrangian import AbstractLagrangianSystem
+from ._custom_types import Args, ForceFn, Points, Scalar
+from ._geometry import normalize
 from ._linalg import spd_solve, tridiagonal_matvec, tridiagonal_spd_solve
-from ._system import as_time, user_forces
+from ._system import AbstractLagrangianSystem, as_time
 
 
 class AbstractConstantInertiaLagrangian(AbstractLagrangianSystem):
     """Base of systems whose kinetic energy is `1/2 sum_jk M_jk qdot_j . qdot_k` with a
-    constant symmetric positive-definite `M` (n x n). Subclasses give `inertia` and
-    `potential` (and `generalized_force`)."""
+    constant symmetric positive-definite `M` (n x n); state `(q, qdot)`. Subclasses give
+    `inertia`, `potential` and `forces`, and may override `inverse_inertia_bands` (O(n)
+    solves) and `kinetic_energy` (a cheaper formula than the dense one)."""
 
     quadratic_in_velocity: ClassVar[bool] = True
+    state_name: ClassVar[str] = "qdot"
+    angular: ClassVar[bool] = False
 
     @abc.abstractmethod
     def inertia(self, args: Args) -> jax.Array:
@@ -41,27 +44,20 @@ class AbstractConstantInertiaLagrangian(AbstractLagrangianSystem):
     def potential(self, t, q: Points, args: Args) -> Scalar:
         """The potential energy `U(t, q, args)`."""
 
-    def _potential_gradient(self, t, q, args):
-        U = lambda q_: check_scalar(self.potential(t, q_, args), "potential(t, q, args)")
-        return jax.grad(U)(q)
+    def inverse_inertia_bands(self, args: Args) -> tuple[jax.Array, jax.Array] | None:
+        """If `M^-1` is tridiagonal, its diagonal `(n,)` and off-diagonal `(n - 1,)`
+        (then every solve costs O(n)); `None` (the default) for a dense `M`."""
+        return None
 
     def kinetic_energy(self, q, qdot, args) -> Scalar:
-        M = self.inertia(args)
-        return 0.5 * jnp.sum(M * (qdot @ qdot.T))
+        """`1/2 sum_jk M_jk qdot_j . qdot_k`."""
+        return 0.5 * jnp.sum(self.inertia(args) * (qdot @ qdot.T))
 
     def lagrangian(self, t, q, qdot, args):
         return self.kinetic_energy(q, qdot, args) - self.potential(t, q, args)
 
     def energy(self, t, q, qdot, args=None):
         return self.kinetic_energy(q, qdot, args) + self.potential(t, q, args)
-
-    def momentum(self, t, q, qdot, args=None):
-        return project(q, self.inertia(args).astype(qdot.dtype) @ qdot)
-
-    def inverse_inertia_bands(self, args: Args) -> tuple[jax.Array, jax.Array] | None:
-        """If `M^-1` is tridiagonal, its diagonal `(n,)` and off-diagonal `(n - 1,)`
-        (then the accelerations cost O(n)); `None` (the default) for a dense `M`."""
-        return None
 
     def _multiplier_solve(self, q, rhs, target, args):
         """The `x` with `sum_j M_ij x_j = rhs_i + lam_i q_i` and `q_i . x_i = target_i`
@@ -83,17 +79,23 @@ class AbstractConstantInertiaLagrangian(AbstractLagrangianSystem):
         lam = solve(target - jnp.sum(q * y, axis=-1))
         return y + apply(lam[:, None] * q)
 
-    def _acceleration(self, t, q, qdot, args):
+    def _vdot(self, t, q, qdot, args):
         t = as_time(t, q)
-        g = -self._potential_gradient(t, q, args)
+        U = lambda q_: check_scalar(self.potential(t, q_, args), "potential(t, q, args)")
+        g = -jax.grad(U)(q)
         f = self.generalized_force(t, q, qdot, args)
-        if f is not None:
-            g = g + f
+        g = g if f is None else g + f
         return self._multiplier_solve(q, g, -jnp.sum(qdot * qdot, axis=-1), args)
 
-    def velocity_from_momentum(self, t, q, mu, args=None) -> Tangents:
-        """The inverse Legendre map: the tangent `qdot` with `P M qdot = mu` (exact)."""
-        return self._multiplier_solve(q, mu, jnp.zeros(q.shape[:1], dtype=q.dtype), args)
+    def velocity_from_momentum(self, t, q, p, args=None, *, guess=None, quadratic=None,
+                               tol=None, max_steps=32):
+        """The fast path of the inverse Legendre map: the tangent `qdot` with
+        `P M qdot = p`, exact, by the same multiplier solve as the accelerations (O(n)
+        when `M^-1` is tridiagonal). The options of the general method do not apply."""
+        del guess, quadratic, tol, max_steps
+        v = self._multiplier_solve(q, p, jnp.zeros(q.shape[:1], dtype=q.dtype), args)
+        return v, RESULTS.where(jnp.all(jnp.isfinite(v)), RESULTS.successful,
+                                RESULTS.singular)
 
 
 class ConstantInertiaLagrangian(AbstractConstantInertiaLagrangian):
@@ -129,10 +131,3 @@ class ConstantInertiaLagrangian(AbstractConstantInertiaLagrangian):
 
     def potential(self, t, q, args):
         return self.potential_fn(t, q, args)
-
-    @property
-    def has_forces(self) -> bool:
-        return self.forces is not None
-
-    def generalized_force(self, t, q, qdot, args):
-        return user_forces(self.forces, t, q, qdot, args)

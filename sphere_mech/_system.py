@@ -1,14 +1,22 @@
-"""The abstract base shared by every mechanical system on (S^2)^n."""
+"""The abstract systems: `AbstractSystem` (every mechanical system on (S^2)^n) and its two
+families, `AbstractLagrangianSystem` and `AbstractHamiltonianSystem`."""
 
 import abc
-from typing import ClassVar
+from collections.abc import Callable
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._checks import check_forces, check_state
-from ._custom_types import Args, Points, Scalar, State, Tangents
+from ._checks import check_finite, check_forces, check_scalar, check_state
+from ._custom_types import Args, ForceFn, Points, Scalar, State, Tangents
+from ._geometry import project
+from ._momentum import invert_momentum, newton_tolerance
+
+SINGULAR_MESSAGE = (
+    "the reduced mass matrix T^T (d^2 L / d v^2) T is singular or not finite: the "
+    "Lagrangian is degenerate at this state (for example a zero mass or length)"
+)
 
 
 def as_time(t, like: jax.Array) -> jax.Array:
@@ -18,40 +26,47 @@ def as_time(t, like: jax.Array) -> jax.Array:
 
 class AbstractSystem(eqx.Module):
     """A mechanical system whose state is `(q, v)`: `q` an `(n, 3)` array of unit vectors
-    and `v` the system's second state variable (`qdot`, `omega`, `mu` or `pi`, named by
-    `state_name`), tangent to the spheres in every form.
+    and `v` the system's second state variable, tangent to the spheres: `qdot` or `omega`
+    (Lagrangian forms), `mu` or `pi` (Hamiltonian forms), named by `state_name`.
+    `angular` says whether `v` is an angular variable (`omega`, `pi`: `q_i x` the linear
+    one) or a linear one (`qdot`, `mu`).
 
-    Concrete systems implement `rates` (the unchecked time derivative of the state, what
-    the integrators call), `energy`, `velocity` (the `qdot` of a state) and
-    `generalized_force`.
+    `forces` is `None` or `forces(t, q, v, args) -> (n, 3)`, generalized forces with
+    virtual work `sum_i f_i . delta q_i`. Concrete systems implement `rates` (the
+    unchecked time derivative of the state, the vector field handed to diffrax),
+    `energy` and `velocity` (the `qdot` of a state).
     """
 
-    state_name: ClassVar[str]
+    forces: eqx.AbstractVar[ForceFn | None]
+    state_name: eqx.AbstractClassVar[str]
+    angular: eqx.AbstractClassVar[bool]
 
     @abc.abstractmethod
     def rates(self, t, y: State, args: Args) -> State:
-        """`d(q, v)/dt` at the state `y = (q, v)`, with no input checks: this is the
-        vector field handed to diffrax (its stages may be slightly off the spheres)."""
+        """`d(q, v)/dt` at `y = (q, v)`, with no input checks (diffrax's Runge-Kutta
+        stages may be slightly off the spheres)."""
 
     @abc.abstractmethod
-    def energy(self, t, q: Points, v: Tangents, args: Args) -> Scalar:
+    def energy(self, t, q: Points, v: Tangents, args: Args = None) -> Scalar:
         """Total energy (the Hamiltonian) at the state `(q, v)`."""
 
     @abc.abstractmethod
-    def velocity(self, t, q: Points, v: Tangents, args: Args) -> Tangents:
+    def velocity(self, t, q: Points, v: Tangents, args: Args = None) -> Tangents:
         """`qdot` at the state `(q, v)`."""
 
-    @abc.abstractmethod
-    def generalized_force(self, t, q: Points, v: Tangents, args: Args) -> Tangents | None:
-        """The generalized force `f` (virtual work `sum_i f_i . delta q_i`) at `(q, v)`, or
-        `None` when the system has no forces (then no force operation is compiled)."""
-
     @property
-    @abc.abstractmethod
     def has_forces(self) -> bool:
         """Whether non-conservative forces act (static)."""
+        return self.forces is not None
 
-    def power(self, t, q: Points, v: Tangents, args: Args) -> Scalar:
+    def generalized_force(self, t, q: Points, v: Tangents, args: Args = None):
+        """The generalized force at `(q, v)`, or `None` without forces (then no force
+        operation is compiled)."""
+        if self.forces is None:
+            return None
+        return check_forces(self.forces(t, q, v, args), jnp.shape(q))
+
+    def power(self, t, q: Points, v: Tangents, args: Args = None) -> Scalar:
         """Power of the generalized forces, `sum_i f_i . qdot_i` (zero without forces)."""
         f = self.generalized_force(t, q, v, args)
         if f is None:
@@ -63,9 +78,107 @@ class AbstractSystem(eqx.Module):
         tangency); returns the unchanged state."""
         return check_state(q, v, self.state_name)
 
+    def to_linear(self, q: Points, v: Tangents) -> Tangents:
+        """The linear variable (`qdot` or `mu`) of the state variable `v`."""
+        return jnp.cross(v, q) if self.angular else v
 
-def user_forces(forces, t, q, v, args):
-    """Evaluate a user's `forces(t, q, v, args)` (or `None`) and check its shape."""
-    if forces is None:
-        return None
-    return check_forces(forces(t, q, v, args), jnp.shape(q))
+    def from_linear(self, q: Points, x: Tangents) -> Tangents:
+        """The state variable of the linear variable `x` (`qdot` or `mu`)."""
+        return jnp.cross(q, x) if self.angular else x
+
+
+class AbstractLagrangianSystem(AbstractSystem):
+    """A system given by a Lagrangian `L(t, q, v, args)` in its velocity variable `v`
+    (`qdot`, form 1, or `omega`, form 2).
+
+    `quadratic_in_velocity` declares `L` (at most) quadratic in `v`: the inverse
+    Legendre map is then one linear solve instead of Newton's method. Systems whose
+    inverse is cheaper override `velocity_from_momentum` (the constant-inertia fast
+    path)."""
+
+    quadratic_in_velocity: eqx.AbstractVar[bool]
+
+    @abc.abstractmethod
+    def lagrangian(self, t, q: Points, v: Tangents, args: Args) -> Scalar:
+        """The Lagrangian in the system's own velocity variable."""
+
+    @abc.abstractmethod
+    def _vdot(self, t, q: Points, v: Tangents, args: Args) -> Tangents:
+        """`dv/dt` from the Euler-Lagrange equations, with no input checks."""
+
+    def rates(self, t, y, args):
+        q, v = y
+        return self.to_linear(q, v), self._vdot(t, q, v, args)
+
+    def acceleration(self, t, q: Points, v: Tangents, args: Args = None) -> Tangents:
+        """`qddot` at the state `(q, v)` (Proposition 1; in form 2 the time derivative of
+        `omega x q`). Checks its input (shapes, unit `q`, tangent `v`) and raises on a
+        singular reduced mass matrix."""
+        q, v = self.check_state(q, v)
+        qddot = jax.jvp(self.to_linear, (q, v), self.rates(t, (q, v), args))[1]
+        return check_finite(qddot, SINGULAR_MESSAGE)
+
+    def velocity(self, t, q, v, args=None):
+        return self.to_linear(q, v)
+
+    def lagrangian_qdot(self, t, q: Points, qdot: Tangents, args: Args) -> Scalar:
+        """The Lagrangian as a function of `qdot`, whatever the form."""
+        return self.lagrangian(t, q, self.from_linear(q, qdot), args)
+
+    def _dL_dv(self, t, q, v, args) -> Tangents:
+        L = lambda v_: check_scalar(self.lagrangian(t, q, v_, args), "L(t, q, v, args)")
+        return jax.grad(L)(v)
+
+    def momentum(self, t, q: Points, v: Tangents, args: Args = None) -> Tangents:
+        """The conjugate momentum `P dL/dv` (`mu` in form 1, `pi` in form 2)."""
+        return project(q, self._dL_dv(t, q, v, args))
+
+    def energy(self, t, q, v, args=None):
+        """`E = sum_i v_i . dL/dv_i - L`."""
+        return jnp.sum(v * self._dL_dv(t, q, v, args)) - self.lagrangian(t, q, v, args)
+
+    def velocity_from_momentum(self, t, q: Points, p: Tangents, args: Args = None, *,
+                               guess=None, quadratic: bool | None = None, tol=None,
+                               max_steps: int = 32):
+        """The inverse Legendre map: the tangent velocity `v` with `P dL/dv = p`, and a
+        `RESULTS` code (never raised here). One linear solve around `guess` (default
+        zero) when `L` is quadratic (`quadratic`, default `quadratic_in_velocity`),
+        otherwise refined by Newton's method (tolerance `tol`, default `eps ** 0.75`)."""
+        return invert_momentum(
+            self.lagrangian, t, q, p, args,
+            guess=jnp.zeros_like(q) if guess is None else guess,
+            quadratic=self.quadratic_in_velocity if quadratic is None else quadratic,
+            tol=newton_tolerance(q.dtype) if tol is None else tol, max_steps=max_steps,
+        )
+
+
+class AbstractHamiltonianSystem(AbstractSystem):
+    """A system given by a Hamiltonian `H(t, q, p, args)` in its momentum `p` (`mu`,
+    form 3, or `pi`, form 4). Hamilton's equations need gradients of `H` only."""
+
+    H: eqx.AbstractVar[Callable]
+
+    def _gradients(self, t, q, p, args):
+        def H(q_, p_):
+            return check_scalar(self.H(as_time(t, q), q_, p_, args), "H(t, q, p, args)")
+
+        return jax.grad(H, argnums=(0, 1))(q, p)
+
+    def energy(self, t, q, p, args=None):
+        """The Hamiltonian `H(t, q, p, args)`."""
+        return self.H(t, q, p, args)
+
+    def velocity(self, t, q, p, args=None):
+        """`qdot = P dH/dmu`; in angular variables `dH/dpi x q`."""
+        dH_dp = self._gradients(t, q, p, args)[1]
+        return self.to_linear(q, dH_dp) if self.angular else project(q, dH_dp)
+
+    def vector_field(self, t, q: Points, p: Tangents, args: Args = None) -> State:
+        """`(qdot, pdot)` from Hamilton's equations, after checking the state."""
+        q, p = self.check_state(q, p)
+        qdot, pdot = self.rates(t, (q, p), args)
+        message = (
+            "Hamilton's equations are not finite at this state: H or its gradient is NaN "
+            "or infinite (degenerate Hamiltonian, or NaN parameters)"
+        )
+        return check_finite(qdot, message), check_finite(pdot, message)

@@ -40,7 +40,7 @@ def eager():
 def test_default_run(eager):
     q, v = eager.ys
     assert q.shape == v.shape == (5, 2, 3)
-    assert eager.result == diffrax.RESULTS.successful
+    assert eager.result == sm.RESULTS.successful
     assert float(sm.constraint_error(q)) < 1e-14
     energy = jax.vmap(SYSTEM.energy, (None, 0, 0, None))(0.0, q, v, G)
     assert float(jnp.max(jnp.abs(energy - energy[0]))) < 1e-7
@@ -150,11 +150,11 @@ def test_failures_are_reported(case):
     ts = jnp.linspace(0.0, 2.0, 9)
     if case == "max_steps":
         kwargs = dict(system=SYSTEM, y0=(Q0, V0), args=G, max_steps=30)
-        code, match = diffrax.RESULTS.max_steps_reached, "max_steps=30"
+        code, match = sm.RESULTS.max_steps_reached, "max_steps=30"
     elif case == "nan":
         kwargs = dict(system=sm.Lagrangian(singular), y0=Y_SINGULAR, solver=sm.RK4(),
                       dt0=0.01)
-        code, match = diffrax.RESULTS.nonfinite, "became NaN"
+        code, match = sm.RESULTS.nonfinite, "became NaN"
     else:
         chord = diffrax.VeryChord(rtol=1e-10, atol=1e-10)
         kwargs = dict(system=SYSTEM, y0=(Q0, V0), args=G, dt0=0.25,
@@ -163,8 +163,8 @@ def test_failures_are_reported(case):
         code, match = None, "Newton iterations"
     sol = sm.simulate(t1=2.0, saveat=diffrax.SaveAt(ts=ts), throw=False, **kwargs)
     if code is None:
-        assert sol.result in (diffrax.RESULTS.nonlinear_divergence,
-                              diffrax.RESULTS.nonlinear_max_steps_reached)
+        assert sol.result in (sm.RESULTS.nonlinear_divergence,
+                              sm.RESULTS.nonlinear_max_steps_reached)
     else:
         assert sol.result == code
     _check_partial_trajectory(sol)

@@ -8,16 +8,12 @@ import equinox as eqx
 import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
-from diffrax import (
-    RESULTS,
-    AbstractSolver,
-    AbstractTerm,
-    ThirdOrderHermitePolynomialInterpolation,
-)
+from diffrax import RESULTS, AbstractSolver, ThirdOrderHermitePolynomialInterpolation
 from jax import lax
 
-from .._system import AbstractSystem
-from .discrete_mechanics import lagrangian_view, substep
+from .._momentum import newton_tolerance
+from .._term import MechanicsTerm, physical_time, system_of
+from .discrete_mechanics import check_lagrangian, substep
 
 
 def composition_coefficients(order: int, composition: str) -> tuple[float, ...]:
@@ -38,25 +34,6 @@ def composition_coefficients(order: int, composition: str) -> tuple[float, ...]:
     )
 
 
-def _default_tolerance(dtype) -> float:
-    return float(jnp.finfo(dtype).eps) ** 0.75
-
-
-def _system_and_args(args):
-    if not (isinstance(args, tuple) and len(args) == 2 and isinstance(args[0], AbstractSystem)):
-        raise ValueError(
-            "Variational reads the mechanical system from the diffrax args: use it through "
-            "sphere_mech.simulate(system, y0, t1, solver=Variational(), dt0=...), or call "
-            "diffrax.diffeqsolve with args=(system, user_args)."
-        )
-    return args
-
-
-def _physical_time(terms, t):
-    """diffrax runs `t1 < t0` as `-t` with terms wrapped (`WrapTerm.direction = -1`)."""
-    return getattr(terms, "direction", 1) * t
-
-
 class Variational(AbstractSolver):
     """The variational integrator for Lagrangian systems on (S^2)^n: the discrete
     Euler-Lagrange (RATTLE-type) equations of the trapezoidal discrete Lagrangian, with
@@ -67,8 +44,8 @@ class Variational(AbstractSolver):
     that stays bounded over millions of steps instead of drifting. Order 2; `order=4`
     uses a symmetric composition of the same step (still symplectic and reversible).
 
-    Works for any `Lagrangian`, `AngularLagrangian`, `ConstantInertiaLagrangian`,
-    `ChainPendulum` or scene: the equations come from `L` by autodiff; each (sub)step
+    Works for any `Lagrangian`, `AngularLagrangian`, `ConstantInertiaLagrangian`
+    or `Scene`: the equations come from `L` by autodiff; each (sub)step
     solves `2n` nonlinear equations by Newton's method (optimistix; implicit
     differentiation, so `jax.grad` works through it), started from a predictor built
     from the accelerations so that about two iterations suffice. `L` is evaluated on the
@@ -80,10 +57,10 @@ class Variational(AbstractSolver):
     the step): reversible in form and of the same order, no longer symplectic.
     Hamiltonian systems are refused with a `ValueError`: simulate their Lagrangian form.
 
-    Fixed steps only (no error estimate): use it through
-    `sphere_mech.simulate(system, y0, t1, solver=Variational(), dt0=h)`. The solver
-    reads the system from diffrax's `args`, which `simulate` sets to
-    `(system, user_args)` (with `diffrax.diffeqsolve` directly, pass the same). A
+    Fixed steps only (no error estimate): `sphere_mech.simulate(system, y0, t1,
+    solver=Variational(), dt0=h)`, or `diffrax.diffeqsolve(sphere_mech.MechanicsTerm(
+    system), Variational(), t0, t1, h, y0, args=args)`: the solver takes the system
+    from its term (`term_structure = MechanicsTerm`) and `args` stay the user's. A
     Newton iteration that does not converge is reported through the solution's
     `result` (and raised by `simulate` unless `throw=False`); the state then stays at
     the last good step.
@@ -105,7 +82,7 @@ class Variational(AbstractSolver):
     root_find_max_steps: int = eqx.field(static=True)
     root_find_tol: float | None = eqx.field(static=True)
 
-    term_structure: ClassVar = AbstractTerm
+    term_structure: ClassVar = MechanicsTerm
     interpolation_cls: ClassVar[Callable[..., ThirdOrderHermitePolynomialInterpolation]] = (
         ThirdOrderHermitePolynomialInterpolation.from_k
     )
@@ -127,22 +104,18 @@ class Variational(AbstractSolver):
         return self.claimed_order
 
     def init(self, terms, t0, t1, y0, args):
-        system, user_args = _system_and_args(args)
-        lagrangian_view(system)  # refuse non-Lagrangian systems at trace time
-        return system.rates(_physical_time(terms, t0), y0, user_args)
+        system = check_lagrangian(system_of(terms))  # refuse other systems at trace time
+        return system.rates(physical_time(terms, t0), y0, args)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
-        system, user_args = _system_and_args(args)
-        view = lagrangian_view(system)
+        system = check_lagrangian(system_of(terms))
         q0 = y0[0]
-        tol = self.root_find_tol or _default_tolerance(q0.dtype)
+        tol = self.root_find_tol or newton_tolerance(q0.dtype)
+        start = jnp.asarray(physical_time(terms, t0), dtype=q0.dtype)
         rates0 = solver_state
         if made_jump is not False:
-            rates0 = lax.cond(
-                made_jump,
-                lambda: system.rates(_physical_time(terms, t0), y0, user_args),
-                lambda: solver_state,
-            )
+            rates0 = lax.cond(made_jump, lambda: system.rates(start, y0, args),
+                              lambda: solver_state)
         # diffrax integrates backwards in a reversed time with wrapped terms: the step in
         # physical time is the term's control (and the Hermite data below is in it too).
         h = jnp.asarray(terms.contr(t0, t1), dtype=q0.dtype)
@@ -152,12 +125,11 @@ class Variational(AbstractSolver):
             t, y, rates, result = carry
             dt = gamma * h_safe
             y1, rates1, result1 = substep(
-                view, t, dt, y[0], y[1], rates, user_args, tol, self.root_find_max_steps
+                system, t, dt, y[0], y[1], rates, args, tol, self.root_find_max_steps
             )
             result = RESULTS.where(result == RESULTS.successful, result1, result)
             return (t + dt, y1, rates1, result), None
 
-        start = jnp.asarray(_physical_time(terms, t0), dtype=q0.dtype)
         carry = (start, y0, rates0, RESULTS.successful)
         if len(self.gammas) == 1:
             carry, _ = one(carry, jnp.asarray(1.0, dtype=q0.dtype))

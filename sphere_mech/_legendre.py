@@ -1,0 +1,149 @@
+"""Changes of state variables and of forms: qdot <-> omega <-> mu <-> pi, `angular`
+(form 1 -> 2, form 3 -> 4) and `legendre` (form 1 -> 3, form 2 -> 4). The inverse
+Legendre map is each Lagrangian system's `velocity_from_momentum` (the constant-inertia
+fast path, one linear solve, or Newton)."""
+
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ._hamiltonian import AngularHamiltonian, Hamiltonian
+from ._lagrangian import AngularLagrangian
+from ._results import RESULTS
+from ._system import AbstractHamiltonianSystem, AbstractLagrangianSystem, AbstractSystem
+
+
+def omega_from_qdot(q, qdot):
+    """Angular velocities `omega_i = q_i x qdot_i` (tangent to the sphere)."""
+    return jnp.cross(q, qdot)
+
+
+def qdot_from_omega(q, omega):
+    """Velocities `qdot_i = omega_i x q_i`."""
+    return jnp.cross(omega, q)
+
+
+def pi_from_mu(q, mu):
+    """Angular momenta `pi_i = q_i x mu_i` (the same map as for velocities)."""
+    return jnp.cross(q, mu)
+
+
+def mu_from_pi(q, pi):
+    """Momenta `mu_i = pi_i x q_i`."""
+    return jnp.cross(pi, q)
+
+
+class _Reparametrized(eqx.Module):
+    """`fn(t, q, w x q, args)`: a function of `qdot` (or `mu`) read as a function of
+    `omega` (or `pi`). A Module, so the wrapped system's arrays stay pytree leaves."""
+
+    fn: Callable
+
+    def __call__(self, t, q, w, args):
+        return self.fn(t, q, jnp.cross(w, q), args)
+
+
+def angular(system: AbstractSystem) -> AbstractSystem:
+    """The same system in angular variables: a form-1 Lagrangian system becomes an
+    `AngularLagrangian` (`L~(q, omega) = L(q, omega x q)`), a `Hamiltonian` becomes an
+    `AngularHamiltonian` (`H~(q, pi) = H(q, pi x q)`). Forces are carried over."""
+    if system.angular:
+        raise TypeError(f"angular() takes a form-1 or form-3 system; {type(system).__name__} "
+                        "is in angular variables already.")
+    forces = _Reparametrized(system.generalized_force) if system.has_forces else None
+    if isinstance(system, AbstractLagrangianSystem):
+        return AngularLagrangian(_Reparametrized(system.lagrangian), forces,
+                                 system.quadratic_in_velocity)
+    if isinstance(system, AbstractHamiltonianSystem):
+        return AngularHamiltonian(_Reparametrized(system.H), forces)
+    raise TypeError(f"angular() takes a Lagrangian or Hamiltonian system, got {type(system)}.")
+
+
+def _velocity(system, t, q, p, args, quadratic):
+    v, result = system.velocity_from_momentum(t, q, p, args, quadratic=quadratic)
+    return eqx.error_if(v, result != RESULTS.successful, RESULTS[RESULTS.legendre_failed])
+
+
+def _materialize(primal, tangent):
+    if tangent is None and eqx.is_inexact_array(primal):
+        return jnp.zeros_like(primal)
+    return tangent
+
+
+@eqx.filter_custom_jvp
+def _legendre_value(system, t, q, p, args, *, quadratic):
+    """`H(t, q, p) = p . v - L(t, q, v)` with `v` the inverse Legendre map of `p`."""
+    v = _velocity(system, t, q, p, args, quadratic)
+    return jnp.sum(p * v) - system.lagrangian(t, q, v, args)
+
+
+@_legendre_value.def_jvp
+def _legendre_jvp(primals, tangents, *, quadratic):
+    """Envelope theorem: no derivative of the inverse Legendre map is needed.
+
+    With `r = p - dL/dv` normal to the spheres at the solution (`r_i = rho_i q_i`) and
+    `v` tangent for every `q` (so `q_i . dv_i = -v_i . dq_i`),
+    `dH = v . dp - dL|_(v fixed) - sum_i rho_i v_i . dq_i`, where `dL|_(v fixed)` also
+    carries the derivatives with respect to `t`, `args` and the system's own arrays.
+    Higher derivatives still work: this rule is itself differentiable."""
+    system, t, q, p, args = primals
+    tangents = jax.tree.map(_materialize, primals, tangents)
+    t_system, t_t, t_q, t_p, t_args = tangents
+    v = _velocity(system, t, q, p, args, quadratic)
+
+    def L_fixed_v(system_, t_, q_, args_):
+        return system_.lagrangian(t_, q_, v, args_)
+
+    L, dL = eqx.filter_jvp(L_fixed_v, (system, t, q, args), (t_system, t_t, t_q, t_args))
+    r = p - jax.grad(lambda v_: system.lagrangian(t, q, v_, args))(v)
+    rho = jnp.sum(q * r, axis=-1) / jnp.sum(q * q, axis=-1)
+    dH = -dL
+    if t_p is not None:
+        dH = dH + jnp.sum(v * t_p)
+    if t_q is not None:
+        dH = dH - jnp.sum(rho * jnp.sum(v * t_q, axis=-1))
+    return jnp.sum(p * v) - L, dH
+
+
+class _LegendreH(eqx.Module):
+    """`H(t, q, p) = p . v - L(t, q, v)` with `v` the inverse Legendre map of `p`,
+    differentiated by the envelope theorem (`_legendre_jvp`), not through the solve."""
+
+    system: AbstractLagrangianSystem
+    quadratic: bool | None = eqx.field(static=True)
+
+    def velocity(self, t, q, p, args):
+        return _velocity(self.system, t, q, p, args, self.quadratic)
+
+    def __call__(self, t, q, p, args):
+        return _legendre_value(self.system, t, q, p, args, quadratic=self.quadratic)
+
+
+class _LegendreForces(eqx.Module):
+    """A Lagrangian system's forces `f(t, q, v)` read as a function of the momentum."""
+
+    H: _LegendreH
+
+    def __call__(self, t, q, p, args):
+        system = self.H.system
+        return system.generalized_force(t, q, self.H.velocity(t, q, p, args), args)
+
+
+def legendre(system: AbstractSystem, *, quadratic: bool | None = None) -> AbstractSystem:
+    """The Hamiltonian counterpart of a Lagrangian system, computed numerically.
+
+    A form-1 system (`Lagrangian`, `ConstantInertiaLagrangian`, a `Scene`, ...) gives a
+    `Hamiltonian` in `(q, mu)`; an `AngularLagrangian` gives an `AngularHamiltonian` in
+    `(q, pi)`. The velocity is recovered from the momentum by the system's
+    `velocity_from_momentum`: O(n) and exact for constant-inertia systems (chains,
+    scenes), one linear solve when `L` is quadratic in the velocity (`quadratic=True`,
+    the default for `Lagrangian(..., quadratic_in_velocity=True)`), otherwise Newton's
+    method. `quadratic` overrides the system's declaration for the general path.
+    """
+    if not isinstance(system, AbstractLagrangianSystem):
+        raise TypeError(f"legendre() takes a Lagrangian system, got {type(system)}.")
+    H = _LegendreH(system, quadratic)
+    forces = _LegendreForces(H) if system.has_forces else None
+    return (AngularHamiltonian if system.angular else Hamiltonian)(H, forces)

@@ -1,0 +1,79 @@
+"""`RESULTS`: diffrax's result codes extended with sphere_mech's failure kinds, and the
+one way every entry point turns a failed run into an error."""
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
+    """diffrax's (and optimistix's) result codes plus sphere_mech's. Compare codes
+    (`sol.result == sm.RESULTS.nonfinite`); `sm.RESULTS[code]` is the message."""
+
+    nonfinite_initial = (
+        "The equations of motion are not finite at the initial state: singular reduced "
+        "mass matrix (degenerate Lagrangian, e.g. a zero mass or length) or NaN parameters."
+    )
+    legendre_failed = (
+        "The Legendre transform is not invertible at this state: the reduced mass matrix "
+        "T^T (d^2 L / d v^2) T is singular or not finite (degenerate Lagrangian, e.g. a "
+        "zero mass or length, or a sphere without kinetic energy), or Newton's method did "
+        "not find the velocity of the given momentum."
+    )
+
+
+_NEWTON = (
+    " The Newton iterations of an implicit step did not converge (or met a singular "
+    "Jacobian): use a smaller dt0, an adaptive step-size controller (it retries a failed "
+    "step with a smaller one), or a root finder with more iterations."
+)
+_HINTS = (
+    (RESULTS.max_steps_reached, " If most steps were rejected (sol.stats with throw=False) "
+     "the step size collapsed, which happens when the vector field is NaN or singular near "
+     "the state reached; otherwise loosen rtol/atol."),
+    (RESULTS.nonfinite, " The state became NaN (the step diverged or the vector field is "
+     "not defined there: a singular mass matrix, NaN parameters or forces): use a smaller "
+     "dt0 or an adaptive step-size controller."),
+    (RESULTS.nonlinear_max_steps_reached, _NEWTON),
+    (RESULTS.nonlinear_divergence, _NEWTON),
+    (RESULTS.singular, _NEWTON),
+)
+
+
+def code(result) -> jax.Array:
+    """The integer value(s) of a result code (an array under `vmap`)."""
+    return jax.tree.leaves(result)[0]
+
+
+def _messages(max_steps) -> list[str]:
+    """The error message of every code, indexed by its value."""
+    hints = {int(code(item)): hint for item, hint in _HINTS}
+    items = [jax.tree.unflatten(jax.tree.structure(RESULTS.successful), [np.asarray(i, dtype=np.int32)])
+             for i in range(len(RESULTS))]
+    return [f"{RESULTS[item]}{hints.get(i, '')} (max_steps={max_steps}; with throw=False "
+            "nothing is raised and sol.result holds the code)" for i, item in enumerate(items)]
+
+
+def raise_on_failure(sol: diffrax.Solution, max_steps, what: str) -> diffrax.Solution:
+    """Raise if any trajectory of `sol` failed (its result codes may have batch axes):
+    a `RuntimeError` naming how many, which and why when called eagerly, an
+    `eqx.branched_error_if` check with the same message when traced."""
+    values = jnp.ravel(code(sol.result))
+    messages = _messages(max_steps)
+    if isinstance(values, jax.core.Tracer):
+        first = values[jnp.argmax(values != 0)]
+        prefixed = [f"{what}: {m}" for m in messages]
+        ys = eqx.branched_error_if(sol.ys, jnp.any(values != 0), first, prefixed)
+        return eqx.tree_at(lambda s: s.ys, sol, ys, is_leaf=lambda x: x is None)
+    values = np.asarray(values)
+    failed = np.flatnonzero(values)
+    if failed.size == 0:
+        return sol
+    where = ""
+    if values.size > 1:
+        shown = ", ".join(map(str, failed[:10])) + (", ..." if failed.size > 10 else "")
+        where = (f" {failed.size} of {values.size} trajectories failed (indices {shown}); "
+                 f"trajectory {failed[0]}:")
+    raise RuntimeError(f"{what}:{where} {messages[values[failed[0]]]}")

@@ -1,0 +1,151 @@
+"""The one solve core: `simulate` and `simulate_batch` both run `solve`, with the same
+options, the same result codes and the same errors."""
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._checks import check_shapes, check_state
+from ._geometry import retract
+from ._results import RESULTS
+from ._solvers.projected import Projected
+from ._system import AbstractSystem
+from ._term import MechanicsTerm
+
+DEFAULT_MAX_STEPS = 100_000
+DEFAULT_TOLERANCES = {np.dtype("float64"): (1e-8, 1e-10), np.dtype("float32"): (1e-5, 1e-6)}
+"""Default `(rtol, atol)` of the adaptive step-size controller, by dtype of `q`."""
+
+
+def default_solver() -> diffrax.AbstractSolver:
+    """The solver `simulate` uses when none is given: `Projected(diffrax.Tsit5())`."""
+    return Projected(diffrax.Tsit5())
+
+
+class Options(eqx.Module):
+    """How a run integrates: everything but the system, state, times and `args`."""
+
+    solver: diffrax.AbstractSolver
+    controller: diffrax.AbstractStepSizeController
+    saveat: diffrax.SaveAt
+    adjoint: diffrax.AbstractAdjoint
+    meter: diffrax.AbstractProgressMeter
+    max_steps: int | None = eqx.field(static=True)
+
+
+def options(solver, dt0, rtol, atol, stepsize_controller, saveat, max_steps, adjoint,
+            progress, dtype) -> Options:
+    """Check and complete the options of `simulate`/`simulate_batch` (static errors)."""
+    solver = default_solver() if solver is None else solver
+    if stepsize_controller is not None:
+        if rtol is not None or atol is not None:
+            raise ValueError("Give rtol/atol either to simulate or to stepsize_controller, "
+                             "not both.")
+        controller = stepsize_controller
+    elif isinstance(solver, diffrax.AbstractAdaptiveSolver):
+        default_rtol, default_atol = DEFAULT_TOLERANCES.get(np.dtype(dtype), (1e-5, 1e-6))
+        controller = diffrax.PIDController(rtol=default_rtol if rtol is None else rtol,
+                                           atol=default_atol if atol is None else atol)
+    else:
+        if rtol is not None or atol is not None:
+            raise ValueError(
+                f"{type(solver).__name__} has no error estimate, so it takes fixed steps "
+                "(dt0) and rtol/atol would be ignored: drop them, or use an adaptive "
+                "solver such as Projected(diffrax.Tsit5()) or LieRK4()."
+            )
+        controller = diffrax.ConstantStepSize()
+    adaptive = isinstance(controller, diffrax.AbstractAdaptiveStepSizeController)
+    if adaptive and not isinstance(solver, diffrax.AbstractAdaptiveSolver):
+        raise ValueError(
+            f"{type(solver).__name__} has no error estimate and cannot be used with the "
+            f"adaptive {type(controller).__name__}: use diffrax.ConstantStepSize() with a "
+            "dt0, or an adaptive solver (Projected(diffrax.Tsit5()), LieRK4(), ...)."
+        )
+    if isinstance(controller, diffrax.ConstantStepSize) and dt0 is None:
+        raise ValueError(
+            f"{type(solver).__name__} with fixed steps needs a step size: pass dt0=..."
+        )
+    return Options(
+        solver, controller, diffrax.SaveAt(t1=True) if saveat is None else saveat,
+        diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint,
+        diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter(), max_steps,
+    )
+
+
+def as_arrays(tree):
+    """Python floats among the leaves of `tree` (a system and `args`) become arrays, so
+    a new value reuses the compiled program instead of compiling another. Ints and
+    bools stay static: they may describe structure."""
+    return jax.tree.map(lambda x: jnp.asarray(x) if isinstance(x, float | complex) else x,
+                        tree)
+
+
+def times(dtype, *ts):
+    """Times as arrays of the state's dtype (`None` stays `None`): new values of `t0`,
+    `t1` or `dt0` do not recompile, and float64 times do not promote a float32 state."""
+    return tuple(None if t is None else jnp.asarray(t, dtype=dtype) for t in ts)
+
+
+def initial_state(system: AbstractSystem, y0):
+    """Check an initial state `(q0, v0)` and put it exactly on the tangent bundle.
+
+    States within `unit_tolerance(dtype)` of the spheres (and of tangency) are accepted
+    and corrected (`q_i / |q_i|`, normal part of `v_i` removed); farther ones raise."""
+    if not (isinstance(y0, tuple | list) and len(y0) == 2):
+        raise ValueError("y0 must be a pair (q0, v0) of (n, 3) arrays.")
+    q0, v0 = (jnp.asarray(x) for x in y0)
+    check_shapes(q0, v0, system.state_name)
+    dtype = jnp.result_type(q0, v0)  # one floating dtype for the whole state
+    return retract(*check_state(q0.astype(dtype), v0.astype(dtype), system.state_name))
+
+
+def _all_finite(tree) -> jax.Array:
+    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree)]))
+
+
+def solve(system, y0, t0, t1, dt0, args, opts: Options) -> diffrax.Solution:
+    """One trajectory, never raising for a run-time failure: `sol.result` is a
+    `RESULTS` code. Non-finite rates at the initial state give
+    `RESULTS.nonfinite_initial`; a trajectory that stepped into NaN without any solver
+    noticing (fixed steps of a solver that does not check), `RESULTS.nonfinite`."""
+    initial_ok = _all_finite(system.rates(t0, y0, args))
+    sol = diffrax.diffeqsolve(
+        MechanicsTerm(system), opts.solver, t0, t1, dt0, y0, args=args, saveat=opts.saveat,
+        stepsize_controller=opts.controller, max_steps=opts.max_steps,
+        progress_meter=opts.meter, adjoint=opts.adjoint, throw=False,
+    )
+    # Unreached save times are `inf` in diffrax, never NaN: only NaN is looked for.
+    has_nan = jnp.any(jnp.stack([jnp.any(jnp.isnan(y)) for y in jax.tree.leaves(sol.ys)]))
+    result = RESULTS.promote(sol.result)
+    result = RESULTS.where((result == RESULTS.successful) & has_nan, RESULTS.nonfinite, result)
+    result = RESULTS.where(initial_ok, result, RESULTS.nonfinite_initial)
+    ys = _retract_saved(opts.saveat, sol.ys)
+    return eqx.tree_at(lambda s: (s.result, s.ys), sol, (result, ys),
+                       is_leaf=lambda x: x is None)
+
+
+_DEFAULT_SAVE_FN = diffrax.SubSaveAt(t1=True).fn
+
+
+def _retract_saved(saveat: diffrax.SaveAt, ys):
+    """Dense output between steps (`SaveAt(ts=...)`) is a polynomial that leaves the
+    spheres by the local error: put saved states back on the tangent bundle. Only
+    states saved by diffrax's default `fn` are touched, and only finite entries (diffrax
+    pads unreached save times with `inf`)."""
+    subs = saveat.subs
+    if isinstance(subs, diffrax.SubSaveAt):
+        return _retract_if_state(subs, ys)
+    if isinstance(subs, list | tuple) and isinstance(ys, list | tuple):
+        return type(ys)(_retract_if_state(s, y) for s, y in zip(subs, ys, strict=True))
+    return ys
+
+
+def _retract_if_state(sub, ys):
+    if not (isinstance(sub, diffrax.SubSaveAt) and sub.fn is _DEFAULT_SAVE_FN):
+        return ys
+    q, v = ys
+    q_r, v_r = retract(q, v)
+    finite = jnp.all(jnp.isfinite(q), axis=-1, keepdims=True)
+    return jnp.where(finite, q_r, q), jnp.where(finite, v_r, v)

@@ -1,0 +1,48 @@
+"""`MechanicsTerm`: the diffrax term that carries a mechanical system."""
+
+import diffrax
+import jax
+
+from ._system import AbstractSystem
+
+
+class MechanicsTerm(diffrax.AbstractTerm):
+    """The vector field of a sphere_mech system as a diffrax term:
+    `diffrax.diffeqsolve(MechanicsTerm(system), solver, t0, t1, dt0, (q0, v0), args=args)`
+    integrates `d(q, v)/dt = system.rates(t, (q, v), args)` with the user's own `args`.
+    Solvers that need more than the vector field (the variational integrator needs the
+    Lagrangian) take the system from this term."""
+
+    system: AbstractSystem
+
+    def vf(self, t, y, args):
+        return self.system.rates(t, y, args)
+
+    def contr(self, t0, t1, **kwargs):
+        return t1 - t0
+
+    def prod(self, vf, control):
+        return jax.tree.map(lambda v: control * v, vf)
+
+
+def _is_mechanics(x) -> bool:
+    return isinstance(x, MechanicsTerm)
+
+
+def system_of(terms) -> AbstractSystem:
+    """The system of the `MechanicsTerm` among `terms` (diffrax hands solvers its terms
+    wrapped, e.g. to integrate backwards in time)."""
+    found = [x for x in jax.tree.leaves(terms, is_leaf=_is_mechanics) if _is_mechanics(x)]
+    if len(found) != 1:
+        raise ValueError(
+            "This solver needs the mechanical system: integrate sphere_mech.MechanicsTerm("
+            "system) (as sphere_mech.simulate does), e.g. diffrax.diffeqsolve("
+            "sphere_mech.MechanicsTerm(system), solver, t0, t1, dt0, y0, args=args)."
+        )
+    return found[0].system
+
+
+def physical_time(terms, t):
+    """The physical time of diffrax's time `t`: diffrax integrates `t1 < t0` in the
+    reversed time `-t` through wrapped terms, whose `contr` maps intervals back."""
+    return terms.contr(0 * t, t)

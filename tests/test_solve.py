@@ -1,0 +1,81 @@
+"""The one solve core: `simulate` and `simulate_batch` give the same codes and raise the
+same messages; Python floats do not recompile; `MechanicsTerm` with diffrax directly."""
+
+import diffrax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import sphere_mech as sm
+
+Q0 = sm.normalize(jnp.array([[1.0, 0.0, -1.0], [0.0, 1.0, -0.5]]))
+V0 = sm.project(Q0, jnp.array([[0.0, 1.5, 0.0], [1.5, 0.0, 0.3]]))
+FIXED = dict(solver=sm.Projected(sm.RK4()), dt0=0.05)
+TRACES = {"count": 0}
+
+
+def pendulum(t, q, qdot, g):
+    """A double pendulum; `g` is the `args`. Counts its traces (once per compilation of
+    every function that evaluates it)."""
+    TRACES["count"] += 1
+    x1, x2 = q[0], q[0] + 0.8 * q[1]
+    v1, v2 = qdot[0], qdot[0] + 0.8 * qdot[1]
+    return 0.5 * (v1 @ v1 + v2 @ v2) - g * (x1[2] + x2[2])
+
+
+SYSTEM = sm.Lagrangian(pendulum)
+DEGENERATE = sm.Lagrangian(lambda t, q, qdot, g: 0.5 * jnp.sum(qdot[0] ** 2) - g * q[1, 2])
+
+
+def batch(y, size=2):
+    return tuple(jnp.broadcast_to(x, (size,) + x.shape) for x in y)
+
+
+@pytest.mark.parametrize(
+    "case, code",
+    [("max_steps", sm.RESULTS.max_steps_reached),
+     ("initial", sm.RESULTS.nonfinite_initial)],
+)
+def test_throw_means_the_same_in_both_entry_points(case, code):
+    system, kwargs = (SYSTEM, dict(max_steps=3)) if case == "max_steps" else (DEGENERATE, {})
+    kwargs.update(args=9.81, **FIXED)
+    one = sm.simulate(system, (Q0, V0), 1.0, throw=False, **kwargs)
+    many = sm.simulate_batch(system, batch((Q0, V0)), 1.0, throw=False, batch_args=False,
+                             **kwargs)
+    assert one.result == code
+    assert np.all(np.asarray(many.result == code))
+    with pytest.raises(RuntimeError) as single:
+        sm.simulate(system, (Q0, V0), 1.0, **kwargs)
+    with pytest.raises(RuntimeError) as batched:
+        sm.simulate_batch(system, batch((Q0, V0)), 1.0, batch_args=False, **kwargs)
+    message = str(single.value).removeprefix("simulate: ")
+    assert sm.RESULTS[code] in message
+    assert str(batched.value).startswith("simulate_batch: 2 of 2 trajectories failed")
+    assert str(batched.value).endswith(message)
+
+
+def test_new_float_args_compile_once():
+    sm.simulate(SYSTEM, (Q0, V0), 1.0, args=0.5)
+    before = TRACES["count"]
+    sol = sm.simulate(SYSTEM, (Q0, V0), 1.0, args=0.6)
+    assert TRACES["count"] == before  # no new trace: no new compilation
+    reference = sm.simulate(SYSTEM, (Q0, V0), 1.0, args=jnp.asarray(0.6))
+    np.testing.assert_array_equal(sol.ys[0], reference.ys[0])
+    system = sm.ConstantInertiaLagrangian(jnp.eye(2), lambda t, q, g: g * jnp.sum(q[:, 2]))
+    sm.simulate_batch(system, batch((Q0, V0)), 1.0, args=0.5, batch_args=False)
+    before = TRACES["count"], sm._batch._solve_batch._cached._cache_size()
+    sm.simulate_batch(system, batch((Q0, V0)), 1.0, args=0.7, batch_args=False)
+    assert (TRACES["count"], sm._batch._solve_batch._cached._cache_size()) == before
+
+
+@pytest.mark.parametrize("order", [2, 4])
+def test_variational_through_diffeqsolve_with_user_args(order):
+    solver = sm.Variational(order)
+    ours = sm.simulate(SYSTEM, (Q0, V0), 1.0, args=jnp.asarray(9.81), solver=solver, dt0=0.1)
+    theirs = diffrax.diffeqsolve(sm.MechanicsTerm(SYSTEM), solver, 0.0, 1.0, 0.1, (Q0, V0),
+                                 args=jnp.asarray(9.81))
+    for a, b in zip(ours.ys, theirs.ys, strict=True):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-14)
+    with pytest.raises(ValueError, match="MechanicsTerm"):
+        diffrax.diffeqsolve(diffrax.ODETerm(lambda t, y, a: SYSTEM.rates(t, y, a)), solver,
+                            0.0, 1.0, 0.1, (Q0, V0), args=jnp.asarray(9.81))
