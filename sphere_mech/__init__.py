@@ -3,8 +3,10 @@ autodiff from a user's L or H and integrated with diffrax on the spheres."""
 
 from ._batch import simulate_batch as simulate_batch
 from ._chain import ChainPendulum as ChainPendulum
-from ._chain import chain_pendulum as chain_pendulum
 from ._checks import unit_tolerance as unit_tolerance
+from ._cli.report import SceneResult as SceneResult
+from ._cli.report import run_scene as run_scene
+from ._cli.report import work_energy_balance as work_energy_balance
 from ._convert import (
     angular as angular,
 )
@@ -76,6 +78,9 @@ from ._lagrangian import (
     Lagrangian as Lagrangian,
 )
 from ._scene.base import (
+    AbstractDrive as AbstractDrive,
+)
+from ._scene.base import (
     AbstractEffect as AbstractEffect,
 )
 from ._scene.base import (
@@ -86,15 +91,6 @@ from ._scene.base import (
 )
 from ._scene.base import (
     AbstractPotential as AbstractPotential,
-)
-from ._scene.files import (
-    SceneFileError as SceneFileError,
-)
-from ._scene.files import (
-    SceneSpec as SceneSpec,
-)
-from ._scene.files import (
-    load_scene as load_scene,
 )
 from ._scene.forces import (
     BaseTorque as BaseTorque,
@@ -132,16 +128,11 @@ from ._scene.potentials import (
 from ._scene.potentials import (
     Spring as Spring,
 )
-from ._scene.report import (
-    SceneResult as SceneResult,
-)
-from ._scene.report import (
-    run_scene as run_scene,
-)
-from ._scene.report import (
-    work_energy_balance as work_energy_balance,
-)
 from ._scene.scene import Scene as Scene
+from ._scene.scene import chain_pendulum as chain_pendulum
+from ._scene_files import SceneFileError as SceneFileError
+from ._scene_files import SceneSpec as SceneSpec
+from ._scene_files import load_scene as load_scene
 from ._simulate import (
     DEFAULT_MAX_STEPS as DEFAULT_MAX_STEPS,
 )
