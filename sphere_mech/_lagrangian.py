@@ -15,7 +15,6 @@ from ._linalg import from_tangent, reduced_matrix, to_tangent
 from ._system import SINGULAR_MESSAGE, AbstractLagrangianSystem, as_time
 
 
-
 def _lagrangian_terms(L, t, q, v, args, direction):
     """For `L(t, q, v)`: `dL/dv`, `dL/dq`, the mixed derivative
     `d/deps dL/dv (t + eps, q + eps * direction, v)`, and a linear map applying

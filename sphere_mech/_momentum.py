@@ -5,12 +5,12 @@ import jax
 import jax.numpy as jnp
 import lineax as lx
 import optimistix as optx
+from diffrax import RESULTS
 from jax import lax
 
 from ._checks import check_scalar
 from ._geometry import tangent_basis
 from ._linalg import from_tangent, reduced_matrix, to_tangent
-from diffrax import RESULTS
 
 
 def newton_tolerance(dtype) -> float:

@@ -50,8 +50,8 @@ def code(result) -> jax.Array:
 def _messages(max_steps) -> list[str]:
     """The error message of every code, indexed by its value."""
     hints = {int(code(item)): hint for item, hint in _HINTS}
-    items = [jax.tree.unflatten(jax.tree.structure(RESULTS.successful), [np.asarray(i, dtype=np.int32)])
-             for i in range(len(RESULTS))]
+    item = jax.tree.structure(RESULTS.successful)
+    items = [jax.tree.unflatten(item, [np.asarray(i, np.int32)]) for i in range(len(RESULTS))]
     return [f"{RESULTS[item]}{hints.get(i, '')} (max_steps={max_steps}; with throw=False "
             "nothing is raised and sol.result holds the code)" for i, item in enumerate(items)]
 

@@ -25,10 +25,9 @@ type = "gravity"
 [initial]
 polar_deg = [90.0, 120.0]
 azimuth_deg = [0.0, 90.0]
-[integrator]
-method = "tsit5"
-[time]
-duration = 0.5
+[simulate]
+solver = "Projected(Tsit5)"
+t1 = 0.5
 """
 
 
@@ -59,7 +58,7 @@ def test_default_run_writes_three_sane_files(default_run):
     np.testing.assert_allclose(x[:, 1], q[:, 0] + q[:, 1], atol=1e-13)  # unit lengths
     summary = json.loads((out / "summary.json").read_text())
     assert summary["scene"] == "double spherical pendulum" and summary["t1"] == 20.0
-    assert summary["solver"] == "tsit5" and summary["steps"] > 100
+    assert summary["solver"] == "Projected(Tsit5)" and summary["steps"] > 100
     assert summary["wall_time_s"] > 0
     assert summary["max_constraint_error"] < 1e-13
     assert 0 < summary["max_relative_energy_error"] < 1e-5
@@ -85,13 +84,23 @@ ERRORS = {
                       "missing"),
     "wrong type": (GOOD.replace("masses = [1.0, 1.0]", 'masses = "heavy"'),
                    "effects[0].masses", "array of numbers"),
+    "wrong integer": (GOOD.replace("masses = [1.0, 1.0]", "masses = 1.0\nlinks = 2.5"),
+                      "effects[0].links", "an integer"),
+    "old table": (GOOD.replace("[simulate]", "[integrator]"), "integrator", "no such field"),
+    "old key": (GOOD.replace("t1 = 0.5", "duration = 0.5"), "simulate.duration",
+                "no such field"),
+    "bad solver": (GOOD.replace("Projected(Tsit5)", "rk4"), "simulate.solver",
+                   "spelled as in Python"),
+    "syntax": (GOOD.replace("t1 = 0.5", "t1 = "), "(syntax)", "valid TOML"),
+    "link out of range": (GOOD + '[[effects]]\ntype = "base_torque"\ntorque = [0.0, 0.0, 1.0]\n'
+                          "link = 7\n", "effects[2].link", "got 7"),
     "wrong unit": (GOOD.replace("polar_deg = [90.0, 120.0]", "polar_deg = [90.0, 240.0]"),
                    "initial.polar_deg", "degrees"),
     "non-unit direction": (GOOD.replace("polar_deg = [90.0, 120.0]\nazimuth_deg = [0.0, 90.0]",
                                         "q = [[1.0, 0.0, 0.0], [1.0, 1.0, 0.0]]"),
                            "initial.q", "unit vectors"),
     "negative mass": (GOOD.replace("masses = [1.0, 1.0]", "masses = [1.0, -1.0]"),
-                      "effects[0].masses", "> 0"),
+                      "effects[0].masses", "masses must be > 0 (kg), got [1.0, -1.0]"),
     "negative length": (GOOD.replace("lengths = [1.0, 1.0]", "lengths = [-1.0, 1.0]"),
                         "effects[0].lengths", "> 0"),
 }
@@ -123,7 +132,7 @@ def test_error_from_the_installed_command(tmp_path):
 @pytest.mark.parametrize("example", EXAMPLES, ids=lambda p: p.stem)
 def test_every_example_runs(example, tmp_path, capsys):
     out = tmp_path / "out"
-    assert main(["run", str(example), "--out", str(out), "--duration", "0.1",
+    assert main(["run", str(example), "--out", str(out), "--t1", "0.1",
                  "--no-progress"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["t1"] == 0.1 and summary["max_constraint_error"] < 1e-12
@@ -142,7 +151,7 @@ def test_failing_runs_keep_previous_outputs(tmp_path, capsys):
     bad = _bad(tmp_path, GOOD.replace("masses = [1.0, 1.0]", "masses = [1.0, -1.0]"))
     assert main(["run", str(bad), "--out", str(out)]) == 2
     few = tmp_path / "few.toml"
-    few.write_text(GOOD.replace('method = "tsit5"', 'method = "tsit5"\nmax_steps = 3'))
+    few.write_text(GOOD.replace("t1 = 0.5", "t1 = 0.5\nmax_steps = 3"))
     assert main(["run", str(few), "--out", str(out), "--no-progress"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and "simulation failed" in err[-1]

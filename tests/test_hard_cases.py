@@ -64,7 +64,7 @@ def vertical_angular_momentum(chain, q, v):
     """`sum_i m_i (x_i x xdot_i) . e3`, conserved by gravity-only chains."""
     def lz(q_, v_):
         x, xdot = jax.jvp(chain.positions, (q_,), (v_,))
-        return jnp.sum(chain.masses * jnp.cross(x, xdot)[:, 2])
+        return jnp.sum(chain.masses() * jnp.cross(x, xdot)[:, 2])
 
     return np.asarray(jax.vmap(lz)(q, v))
 
@@ -277,12 +277,12 @@ def test_initial_state_far_off_sphere_is_an_error():
 
 def test_zero_mass_is_a_clear_error():
     q, v = chain_state([[1, 0, -1], [0, 1, -1]], [[0, 1, 0], [1, 0, 0]])
-    chain = sm.chain_pendulum(jnp.array([1.0, 0.0]), jnp.ones(2))
-    with pytest.raises(Exception, match="equations of motion are not finite"):
-        sm.simulate(chain, (q, v), 0.1, saveat=ENDS)
+    with pytest.raises(ValueError, match=r"masses must be > 0 \(kg\), got \[1.0, 0.0\]"):
+        sm.chain_pendulum(jnp.array([1.0, 0.0]), jnp.ones(2))
+    chain = sm.chain_pendulum(jnp.array([1.0, 1.0]), jnp.ones(2))
 
-    def L(t, q, qdot, args):  # the same chain written as a general Lagrangian
-        return chain.lagrangian(t, q, qdot, args)
+    def L(t, q, qdot, args):  # the chain with a massless tip, as a general Lagrangian
+        return chain.lagrangian(t, q, qdot.at[1].set(0.0), args)
 
     general = sm.Lagrangian(L)
     with pytest.raises(Exception, match="reduced mass matrix"):

@@ -171,7 +171,7 @@ def test_spherical_pendulum_matches_angle_equations():
 @eqx.filter_jit
 def linearized_accelerations(chain):
     """d(horizontal accelerations)/d(horizontal displacements) at the hanging state."""
-    n = chain.masses.shape[0]
+    n = chain.n
 
     def acc(a):
         a = a.reshape(n, 2)
@@ -205,7 +205,7 @@ def test_small_oscillation_frequencies(n):
 @eqx.filter_jit
 def equilibrium(system):
     """The equilibrium reached by Newton from the hanging state (links along -e3)."""
-    n = system.masses.shape[0]
+    n = system.n
     q0 = jnp.tile(jnp.array([0.0, 0.0, -1.0]), (n, 1))
     T0 = sm.tangent_basis(q0)
     config = lambda a: sm.normalize(q0 + jnp.einsum("ica,ia->ic", T0, a.reshape(n, 2)))

@@ -30,17 +30,59 @@ def unit(x):
 # ---- kinetic terms ---------------------------------------------------------------------
 
 def test_chain_matches_chain_pendulum(getkey):
-    """Scene(Chain, Gravity, BaseTorque, TipForce) == the independent ChainPendulum."""
-    m, lengths = jnp.array([1.0, 2.0, 0.5]), jnp.array([1.0, 0.7, 1.3])
+    """`chain_pendulum` (a Scene of Chain, Gravity, BaseTorque, TipForce) against the
+    generic autodiff `Lagrangian` of the chain's L written out here, with the generalized
+    forces derived by hand from virtual work: the base torque acts on link 1 only,
+    `f_1 = tau x q_1`, and the tip force `d` at `x_n = sum_j l_j q_j` gives `f_j = l_j d`."""
+    m, ell, g = jnp.array([1.0, 2.0, 0.5]), jnp.array([1.0, 0.7, 1.3]), 9.81
     tau, d = jnp.array([0.1, 0.2, -0.4]), jnp.array([0.3, -0.2, 0.1])
     q, qdot = sm.random_state(getkey(), 3)
-    scene = sm.Scene(sm.Chain(m, lengths), sm.Gravity(9.81), sm.BaseTorque(tau),
-                     sm.TipForce(d))
-    chain = sm.chain_pendulum(m, lengths, 9.81, torque=tau, tip_force=d)
+
+    def L(t, q, qdot, args):
+        x, xdot = (jnp.cumsum(ell[:, None] * a, axis=0) for a in (q, qdot))
+        return 0.5 * jnp.sum(m * jnp.sum(xdot**2, axis=-1)) - g * jnp.sum(m * x[:, 2])
+
+    def forces(t, q, qdot, args):
+        return (ell[:, None] * d).at[0].add(jnp.cross(tau, q[0]))
+
+    reference = sm.Lagrangian(L, forces=forces)
+    chain = sm.chain_pendulum(m, ell, g, torque=tau, tip_force=d)
+    assert isinstance(chain, sm.Scene)
     accel = eqx.filter_jit(lambda system: system.acceleration(0.0, q, qdot))
-    np.testing.assert_allclose(accel(scene), accel(chain), rtol=0, atol=1e-12)
-    np.testing.assert_allclose(scene.energy(0.0, q, qdot), chain.energy(0.0, q, qdot), rtol=1e-14)
-    np.testing.assert_allclose(scene.positions(q), chain.positions(q), atol=1e-15)
+    np.testing.assert_allclose(accel(chain), accel(reference), rtol=0, atol=1e-11)
+    np.testing.assert_allclose(chain.energy(0.0, q, qdot), reference.energy(0.0, q, qdot),
+                               rtol=1e-14)
+    np.testing.assert_allclose(chain.generalized_force(0.0, q, qdot),
+                               forces(0.0, q, qdot, None), atol=1e-15)
+    np.testing.assert_allclose(chain.positions(q), jnp.cumsum(ell[:, None] * q, axis=0),
+                               atol=1e-15)
+    # callables for the torque and the tip force give the same forces
+    driven = sm.chain_pendulum(m, ell, g, torque=lambda t, q, v, a: tau,
+                               tip_force=lambda t, q, v, a: d)
+    np.testing.assert_allclose(accel(driven), accel(reference), rtol=0, atol=1e-11)
+
+
+def test_batched_and_differentiated_chains(getkey):
+    """Parameters are array leaves: `filter_vmap(chain_pendulum)` builds a batch of
+    chains (the checks skip traced values), and gradients w.r.t. the masses agree with
+    central differences."""
+    q, qdot = sm.random_state(getkey(), 2)
+    masses = jnp.array([[1.0, 2.0], [0.5, 1.5], [2.0, 0.3]])
+    lengths = jnp.array([[1.0, 0.7], [0.4, 1.1], [0.9, 0.9]])
+    chains = eqx.filter_vmap(sm.chain_pendulum)(masses, lengths)
+    batched = eqx.filter_vmap(lambda c: c.acceleration(0.0, q, qdot))(chains)
+    for k in range(3):
+        single = sm.chain_pendulum(masses[k], lengths[k]).acceleration(0.0, q, qdot)
+        np.testing.assert_allclose(batched[k], single, rtol=0, atol=1e-13)
+
+    def loss(m):
+        return jnp.sum(sm.chain_pendulum(m, lengths[0]).acceleration(0.0, q, qdot) ** 2)
+
+    grad = jax.grad(loss)(masses[0])
+    eps = 1e-6
+    fd = [(loss(masses[0].at[i].add(eps)) - loss(masses[0].at[i].add(-eps))) / (2 * eps)
+          for i in range(2)]
+    np.testing.assert_allclose(grad, fd, rtol=1e-6)
 
 
 @pytest.mark.parametrize("kind", ["chain", "particles", "shared"])
@@ -57,6 +99,9 @@ def test_kinetic_energy_identity(kind, getkey):
     _, xdot = jax.jvp(scene.positions, (q,), (qdot,))
     expected = 0.5 * jnp.sum(m * jnp.sum(xdot**2, axis=-1))
     np.testing.assert_allclose(scene.energy(0.0, q, qdot), expected, rtol=1e-13)
+    # the O(n) kinetic energy equals the one of the dense inertia matrix
+    dense = 0.5 * jnp.sum(scene.inertia() * (qdot @ qdot.T))
+    np.testing.assert_allclose(scene.kinetic_energy(q, qdot), dense, rtol=1e-13)
 
 
 def test_particle_on_sphere_is_a_pendulum_of_length_r():
@@ -282,7 +327,9 @@ def test_absent_effects_add_no_operation():
                                           for n in ("JointDamping", "BaseTorque"))]
     assert len(top_small) + len(tagged) <= len(top_large) <= len(top_small) + len(tagged) + 4
     assert not sm.Scene(chain, sm.Gravity()).has_forces
+    assert gravity_only.forces is None
     assert gravity_only.generalized_force(0.0, *_state(4)) is None
+    assert driven.has_forces and driven.forces(0.0, *_state(4), None).shape == (4, 3)
 
 
 def _state(n):
@@ -293,10 +340,68 @@ def _state(n):
 def test_scene_rejects_bad_structure():
     with pytest.raises(ValueError, match="kinetic term"):
         sm.Scene(sm.Gravity())
-    with pytest.raises(ValueError, match="masses and lengths"):
+    with pytest.raises(ValueError, match=r"lengths must be a scalar or 2 values, one per sphere"):
         sm.Chain([1.0, 2.0], [1.0])
+    with pytest.raises(ValueError, match=r"masses must be a scalar or 4 values"):
+        sm.Chain([1.0, 2.0], 1.0, links=4)
     with pytest.raises(ValueError, match="effects"):
         sm.Scene(sm.Chain([1.0], [1.0]), "gravity")
+
+
+TWO = sm.Chain([1.0, 1.0], [1.0, 1.0])
+TAU = jnp.array([0.0, 0.0, 1.0])
+
+
+@pytest.mark.parametrize("build, message", [
+    (lambda: sm.Chain([1.0, -1.0], [1.0, 1.0]), "masses must be > 0 (kg), got [1.0, -1.0]"),
+    (lambda: sm.Chain([1.0, 0.0], [1.0, 1.0]), "masses must be > 0 (kg), got [1.0, 0.0]"),
+    (lambda: sm.Chain([1.0, 1.0], [0.0, 1.0]), "lengths must be > 0 (m), got [0.0, 1.0]"),
+    (lambda: sm.Chain(1.0, -0.5, links=3), "lengths must be > 0 (m), got [-0.5, -0.5, -0.5]"),
+    (lambda: sm.chain_pendulum([1.0, -1.0], [1.0, 1.0]),
+     "masses must be > 0 (kg), got [1.0, -1.0]"),
+    (lambda: sm.chain_pendulum([1.0, 1.0], [1.0, 1.0], g=-9.81), "g must be >= 0 (m/s^2)"),
+    (lambda: sm.Particles([1.0], [0.0]), "radii must be > 0 (m), got [0.0]"),
+    (lambda: sm.SharedSphere(1.0, radius=-1.0, count=2), "radius must be > 0 (m), got -1.0"),
+    (lambda: sm.Gravity(9.81, [0.0, 0.0, -2.0]), "direction must be a unit vector"),
+    (lambda: sm.JointDamping(-0.1), "coefficient must be >= 0 (N m s), got -0.1"),
+    (lambda: sm.Spring(0, 1, -2.0), "stiffness must be >= 0 (N/m), got -2.0"),
+    (lambda: sm.PairInteraction(1.0, exponent=0.0), "exponent must be > 0, got 0.0"),
+    (lambda: sm.PDTorque(-1.0), "kp must be >= 0 (N m), got -1.0"),
+    (lambda: sm.Scene(TWO, sm.BaseTorque(TAU, link=7)),
+     "BaseTorque.link must be a sphere index in [-2, 2) (the scene has 2 spheres), got 7"),
+    (lambda: sm.Scene(TWO, sm.BaseTorque(TAU, link=-3)), "BaseTorque.link must be"),
+    (lambda: sm.Scene(TWO, sm.BaseTorque(sm.PDTorque(1.0, link=2))), "PDTorque.link must be"),
+    (lambda: sm.Scene(TWO, sm.TipForce(TAU, point=2)), "TipForce.point must be a sphere"),
+    (lambda: sm.Scene(TWO, sm.Spring(0, 5, 1.0)), "Spring.b must be a sphere index"),
+    (lambda: sm.Scene(TWO, sm.PairInteraction(1.0, masses=(0, 2))),
+     "PairInteraction.masses must be a sphere index"),
+    (lambda: sm.Scene(TWO, sm.PairInteraction(1.0, charges=[1.0, 2.0, 3.0])),
+     "charges must be one value per interacting mass (2)"),
+    (lambda: sm.Scene(sm.Chain([1.0], [1.0]), sm.Bending(1.0)),
+     "Bending needs a Chain with at least two links"),
+    (lambda: sm.Scene(TWO, sm.JointDamping([0.1, 0.2, 0.3])),
+     "coefficient must be a scalar or 2 values, one per sphere"),
+])
+def test_invalid_parameters_raise_at_construction(build, message):
+    with pytest.raises(ValueError) as info:
+        build()
+    assert message in str(info.value)
+
+
+def test_indices_count_from_the_end():
+    """Negative indices follow Python: -1 is the last sphere."""
+    scene = sm.Scene(TWO, sm.TipForce(TAU, point=-2), sm.BaseTorque(TAU, link=-1))
+    assert scene.has_forces
+
+
+def test_scalar_parameters_broadcast():
+    """A scalar where one value per sphere is expected applies to every sphere."""
+    same = lambda a, b: bool(eqx.tree_equal(a, b))
+    assert same(sm.Chain(0.5, 0.25, links=4), sm.Chain([0.5] * 4, [0.25] * 4))
+    assert same(sm.Chain([1.0, 2.0, 3.0], 0.25), sm.Chain([1.0, 2.0, 3.0], [0.25] * 3))
+    assert same(sm.Particles(2.0, [0.5, 1.0], centers=[1.0, 0.0, 0.0]),
+                sm.Particles([2.0, 2.0], [0.5, 1.0], centers=[[1.0, 0.0, 0.0]] * 2))
+    assert same(sm.SharedSphere(1.5, count=3), sm.SharedSphere([1.5] * 3))
 
 
 def test_fast_path_matches_autodiff_lagrangian(getkey):
@@ -319,3 +424,145 @@ def test_fast_path_matches_autodiff_lagrangian(getkey):
     d, e = scene.inverse_inertia_bands()
     Minv = jnp.diag(d) + jnp.diag(e, 1) + jnp.diag(e, -1)
     np.testing.assert_allclose(Minv @ scene.inertia(), jnp.eye(6), atol=1e-13)
+
+
+# ---- scene files: the same Modules, the same checks, the same words ----------------------
+
+TWO_LINKS = """
+[[effects]]
+type = "chain"
+masses = [1.0, 1.0]
+lengths = [1.0, 1.0]
+[[effects]]
+type = "gravity"
+{extra}
+[initial]
+polar_deg = 90.0
+azimuth_deg = [0.0, 90.0]
+[simulate]
+t1 = 1.0
+{simulate}
+"""
+
+
+def _file(tmp_path, extra="", simulate="", replace=None):
+    text = TWO_LINKS.format(extra=extra, simulate=simulate)
+    for old, new in (replace or {}).items():
+        assert old in text
+        text = text.replace(old, new)
+    path = tmp_path / "scene.toml"
+    path.write_text(text)
+    return path
+
+
+M2, L2 = "masses = [1.0, 1.0]", "lengths = [1.0, 1.0]"
+TAU_TOML = "[[effects]]\ntype = \"{}\"\n{}"
+CASES = {  # name: (Python, what the file changes, the field the file error names)
+    "negative mass": (lambda: sm.Chain([1.0, -1.0], [1.0, 1.0]),
+                      dict(replace={M2: "masses = [1.0, -1.0]"}), "effects[0].masses"),
+    "zero length": (lambda: sm.Chain([1.0, 1.0], [1.0, 0.0]),
+                    dict(replace={L2: "lengths = [1.0, 0.0]"}), "effects[0].lengths"),
+    "negative g": (lambda: sm.Gravity(-1.0), dict(extra="g = -1.0"), "effects[1].g"),
+    "link out of range": (
+        lambda: sm.Scene(TWO, sm.Gravity(), sm.BaseTorque(TAU, link=7)),
+        dict(extra=TAU_TOML.format("base_torque", "torque = [0.0, 0.0, 1.0]\nlink = 7")),
+        "effects[2].link"),
+    "point out of range": (
+        lambda: sm.Scene(TWO, sm.Gravity(), sm.TipForce(TAU, point=-3)),
+        dict(extra=TAU_TOML.format("tip_force", "force = [0.0, 0.0, 1.0]\npoint = -3")),
+        "effects[2].point"),
+    "spring end out of range": (
+        lambda: sm.Scene(TWO, sm.Gravity(), sm.Spring(0, 2, 1.0)),
+        dict(extra=TAU_TOML.format("spring", "a = 0\nb = 2\nstiffness = 1.0")),
+        "effects[2].b"),
+    "pd gain": (
+        lambda: sm.BaseTorque(sm.PDTorque(-1.0)),
+        dict(extra=TAU_TOML.format("base_torque", 'torque = { type = "pd_torque", kp = -1.0 }')),
+        "effects[2].torque.kp"),
+    "non-unit target": (
+        lambda: sm.PDTorque(1.0, target=[0.0, 0.0, 2.0]),
+        dict(extra=TAU_TOML.format("base_torque", 'torque = { type = "pd_torque", kp = 1.0, '
+                                   'target = [0.0, 0.0, 2.0] }')),
+        "effects[2].torque.target"),
+}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_python_and_files_reject_with_the_same_words(case, tmp_path):
+    build, change, field = CASES[case]
+    with pytest.raises(ValueError) as python:
+        build()
+    path = _file(tmp_path, **change)
+    with pytest.raises(sm.SceneFileError) as file:
+        sm.load_scene(path)
+    assert str(file.value) == f"{path}: {field}: {python.value}"
+
+
+def test_files_broadcast_scalars_like_python(tmp_path):
+    spec = sm.load_scene(_file(tmp_path, replace={M2: "masses = 0.5\nlinks = 2",
+                                                L2: "lengths = 0.25"}))
+    assert bool(eqx.tree_equal(spec.scene.kinetic[0], sm.Chain([0.5, 0.5], [0.25, 0.25])))
+    q, _ = spec.y0
+    np.testing.assert_allclose(q, [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], atol=1e-15)
+    with pytest.raises(sm.SceneFileError, match=r"effects\[0\]\.masses: masses must be a "
+                       r"scalar or 3 values"):
+        sm.load_scene(_file(tmp_path, replace={M2: "masses = [1.0, 1.0]\nlinks = 3",
+                                             L2: "lengths = 1.0"}))
+
+
+def test_file_pd_torque_builds_the_python_controller(tmp_path):
+    extra = TAU_TOML.format("base_torque", 'torque = { type = "pd_torque", kp = 2.0, kd = 0.5,'
+                            ' target = [1.0, 0.0, 0.0] }\nlink = 1')
+    spec = sm.load_scene(_file(tmp_path, extra=extra))
+    expected = sm.BaseTorque(sm.PDTorque(2.0, 0.5, [1.0, 0.0, 0.0]), link=1)
+    assert bool(eqx.tree_equal(spec.scene.force_effects[0], expected))
+
+
+SOLVERS = {
+    "Projected(Tsit5)": sm.Projected(diffrax.Tsit5()),
+    "Projected(Kvaerno5)": sm.Projected(diffrax.Kvaerno5()),
+    "Projected(RK4)": sm.Projected(sm.RK4()),
+    "Projected(Projected(Dopri5))": sm.Projected(sm.Projected(diffrax.Dopri5())),
+    "Tsit5": diffrax.Tsit5(),
+    "RK4": sm.RK4(),
+    "LieRK4": sm.LieRK4(),
+    "Variational": sm.Variational(),
+    "Variational(order=4)": sm.Variational(order=4),
+    " Variational( order = 2 ) ": sm.Variational(order=2),
+}
+
+
+@pytest.mark.parametrize("spelling", list(SOLVERS))
+def test_solver_spellings_build_the_python_solver(spelling, tmp_path):
+    fixed = not isinstance(SOLVERS[spelling], diffrax.AbstractAdaptiveSolver)
+    extra = "dt0 = 0.01" if fixed else "rtol = 1e-6"
+    spec = sm.load_scene(_file(tmp_path, simulate=f'solver = "{spelling}"\n{extra}'))
+    assert type(spec.solver) is type(SOLVERS[spelling])
+    assert bool(eqx.tree_equal(spec.solver, SOLVERS[spelling]))
+
+
+@pytest.mark.parametrize("spelling", ["tsit5", "rk4", "Projected()", "Projected(Tsit5",
+                                      "Variational(order=3)", "KenCarp3", "RK4(1)",
+                                      "__import__('os')", "Projected(Tsit5) + 1"])
+def test_bad_solver_spellings_are_rejected(spelling, tmp_path):
+    with pytest.raises(sm.SceneFileError, match=r"simulate\.solver: "):
+        sm.load_scene(_file(tmp_path, simulate=f'solver = "{spelling}"'))
+
+
+def test_fixed_step_solvers_need_dt0_only(tmp_path):
+    with pytest.raises(sm.SceneFileError, match=r"simulate\.dt0: missing; expected a step "
+                       r"size in s for the fixed-step solver Projected\(RK4\)"):
+        sm.load_scene(_file(tmp_path, simulate='solver = "Projected(RK4)"'))
+    with pytest.raises(sm.SceneFileError, match=r"simulate\.rtol: not used by the fixed-step "
+                       r"solver Variational \(give dt0 only\)"):
+        sm.load_scene(_file(tmp_path, simulate='solver = "Variational"\ndt0 = 0.01\nrtol = 1e-6'))
+
+
+def test_simulate_keys_are_the_python_names(tmp_path):
+    spec = sm.load_scene(_file(tmp_path, simulate='t0 = 0.5\ndt0 = 1e-3\nmax_steps = 7'))
+    assert (spec.t0, spec.t1, spec.dt0, spec.max_steps) == (0.5, 1.0, 1e-3, 7)
+    assert spec.solver_name == "Projected(Tsit5)" and spec.rtol is None
+    assert spec.save_dt == pytest.approx(0.5 / 1000)
+    for old in ('method = "tsit5"', "dt = 0.1", "duration = 1.0"):
+        with pytest.raises(sm.SceneFileError, match=r"simulate\.\w+: no such field"):
+            sm.load_scene(_file(tmp_path, simulate=old))

@@ -1,10 +1,14 @@
-"""The three kinds of effect a scene is assembled from."""
+"""The kinds of effect a scene is assembled from, and the checks their parameters share."""
 
 import abc
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
+
+UNIT_TOLERANCE = 1e-6
+"""How far from unit length a `direction` or `target` may be."""
 
 
 def as_float(x) -> jax.Array:
@@ -13,9 +17,74 @@ def as_float(x) -> jax.Array:
     return x if jnp.issubdtype(x.dtype, jnp.floating) else x.astype(jnp.result_type(float))
 
 
+class ParameterError(ValueError):
+    """A `ValueError` naming its field (and, from a scene's checks, the effect)."""
+
+    def __init__(self, field: str, message: str):
+        super().__init__(message)
+        self.field, self.effect = field, None
+
+
+def _concrete(x) -> bool:
+    return not isinstance(x, jax.core.Tracer)
+
+
+def _show(x) -> str:
+    return str(np.asarray(x).tolist())
+
+
+def check_shape(name: str, x, shape: tuple, what: str) -> None:
+    if jnp.shape(x) != shape:
+        raise ParameterError(name, f"{name} must be {what}, got shape {jnp.shape(x)}")
+
+
+def check_vector(name: str, x, unit: bool = False) -> None:
+    check_shape(name, x, (3,), "a (3,) vector")
+    if unit and _concrete(x) and not abs(np.linalg.norm(x) - 1.0) <= UNIT_TOLERANCE:
+        raise ParameterError(name, f"{name} must be a unit vector (length 1 within "
+                             f"{UNIT_TOLERANCE:g}), got {_show(x)}")
+
+
+def check_sign(name: str, x, unit: str = "", *, strict: bool = True, scalar=False) -> None:
+    """`x > 0` (`>= 0` if not strict) elementwise, unless traced; a scalar if `scalar`."""
+    if scalar:
+        check_shape(name, x, (), "a scalar")
+    if _concrete(x) and not np.all(np.asarray(x) > 0 if strict else np.asarray(x) >= 0):
+        raise ParameterError(name, f"{name} must be {'>' if strict else '>='} 0{unit}, "
+                             f"got {_show(x)}")
+
+
+def check_index(owner, name: str, i: int, n: int) -> None:
+    """Python's convention: `-n <= i < n`."""
+    if not -n <= i < n:
+        raise ParameterError(name, f"{type(owner).__name__}.{name} must be a sphere index "
+                             f"in [-{n}, {n}) (the scene has {n} spheres), got {i}")
+
+
+def per_item(count: int | None, **arrays) -> list[jax.Array]:
+    """Arrays of one value per item: a scalar broadcasts to `count` entries (`count`
+    defaults to the length of the 1-D arrays given); all must have the same length."""
+    arrays = {k: as_float(v) for k, v in arrays.items()}
+    if count is None:
+        count = max((jnp.shape(v)[0] for v in arrays.values() if jnp.ndim(v) == 1), default=1)
+    if count < 1:
+        raise ParameterError(next(iter(arrays)), f"{', '.join(arrays)}: need at least one "
+                             f"value, got {count}")
+    out = []
+    for name, x in arrays.items():
+        x = jnp.broadcast_to(x, (count,)) if jnp.ndim(x) == 0 else x
+        check_shape(name, x, (count,), f"a scalar or {count} values, one per sphere")
+        out.append(x)
+    return out
+
+
 class AbstractEffect(eqx.Module):
     """Anything a scene can list. Parameters are array leaves; counts and indices are
-    static."""
+    static. Each effect checks its own parameters in `__check_init__` and its indices
+    against the scene in `check`."""
+
+    def check(self, scene) -> None:
+        """Raise `ValueError` if this effect does not fit `scene` (indices, counts)."""
 
 
 class AbstractKinetic(AbstractEffect):
@@ -23,10 +92,12 @@ class AbstractKinetic(AbstractEffect):
 
     Its kinetic energy is `1/2 sum_jk M_jk qdot_j . qdot_k` on its own spheres."""
 
+    masses: eqx.AbstractVar[jax.Array]
+
     @property
-    @abc.abstractmethod
     def n(self) -> int:
         """Number of spheres (= number of masses), static."""
+        return self.masses.shape[0]
 
     @abc.abstractmethod
     def inertia(self) -> jax.Array:
@@ -38,16 +109,11 @@ class AbstractKinetic(AbstractEffect):
         off-diagonal `(n - 1,)` (used by the O(n) fast path)."""
 
     @abc.abstractmethod
-    def point_masses(self) -> jax.Array:
-        """The `(n,)` masses."""
-
-    @abc.abstractmethod
     def positions(self, q: jax.Array) -> jax.Array:
         """Positions of the masses in the support frame, `(n, 3)`, from this block's `q`."""
 
     def parents(self) -> tuple[int, ...]:
-        """For each sphere, the local index of the sphere it is jointed to (-1: the
-        support). Used by joint damping and joint torques."""
+        """For each sphere, the local index of its parent in its joint (-1: the support)."""
         return (-1,) * self.n
 
     def bends(self) -> tuple[tuple[int, int], ...]:
@@ -68,15 +134,17 @@ class AbstractForce(AbstractEffect):
     `sum_i f_i . delta q_i`."""
 
     @abc.abstractmethod
-    def force(self, t, q, qdot, scene, args) -> jax.Array:
+    def generalized_force(self, t, q, qdot, scene, args) -> jax.Array:
         """The `(n, 3)` generalized force."""
 
 
-def check_vector(name: str, x) -> None:
-    if jnp.shape(x) != (3,):
-        raise ValueError(f"{name} must be a (3,) vector, got shape {jnp.shape(x)}.")
+class AbstractDrive(eqx.Module):
+    """A controller for a torque or force: `drive(t, q, qdot, args) -> (3,)` (scene files
+    write it as an inline table)."""
 
+    @abc.abstractmethod
+    def __call__(self, t, q, qdot, args) -> jax.Array:
+        """The `(3,)` torque or force."""
 
-def check_scalar_param(name: str, x) -> None:
-    if jnp.shape(x) != ():
-        raise ValueError(f"{name} must be a scalar, got shape {jnp.shape(x)}.")
+    def check(self, scene) -> None:
+        """Raise `ValueError` if this drive does not fit `scene`."""

@@ -7,7 +7,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .base import AbstractForce, as_float, check_scalar_param, check_vector
+from . import base
+from .base import AbstractDrive, AbstractForce
 
 
 def _relative_omega(q, qdot, scene):
@@ -17,9 +18,12 @@ def _relative_omega(q, qdot, scene):
     return omega - padded[scene.parents() + 1]
 
 
-def _drive(value, t, q, qdot, args, dtype):
-    out = value(t, q, qdot, args) if callable(value) else value
-    out = jnp.asarray(out, dtype=dtype)
+def _drive_value(x):
+    return x if callable(x) else base.as_float(x)
+
+
+def _evaluate(drive, t, q, qdot, args):
+    out = jnp.asarray(drive(t, q, qdot, args) if callable(drive) else drive, dtype=q.dtype)
     if out.shape != (3,):
         raise ValueError(f"a torque or force function must return a (3,) vector, got "
                          f"shape {out.shape}.")
@@ -27,41 +31,50 @@ def _drive(value, t, q, qdot, args, dtype):
 
 
 class JointDamping(AbstractForce):
-    """Viscous damping in every joint (between a link and its parent, or the support):
-    Rayleigh function `R = c/2 sum_i |omega_i - omega_parent(i)|^2`, `f = -dR/dqdot`.
-    Its power is `-2R <= 0`."""
+    """Viscous damping in every joint (between a link and its parent, or the support).
 
-    coefficient: jax.Array = eqx.field(converter=as_float)
+    Rayleigh function `R = c/2 sum_i |omega_i - omega_parent(i)|^2`, `f = -dR/dqdot`; its
+    power is `-2R <= 0`. `coefficient`: `c` (N m s), a scalar or one per sphere."""
+
+    coefficient: jax.Array = eqx.field(converter=base.as_float)
 
     def __check_init__(self):
-        if jnp.ndim(self.coefficient) > 1:
-            raise ValueError("coefficient must be a scalar or one value per sphere.")
+        base.check_sign("coefficient", self.coefficient, " (N m s)", strict=False)
 
-    def dissipation(self, q, qdot, scene):
-        w = _relative_omega(q, qdot, scene)
-        return 0.5 * jnp.sum(self.coefficient * jnp.sum(w * w, axis=-1))
+    def check(self, scene):
+        if jnp.ndim(self.coefficient):
+            base.check_shape("coefficient", self.coefficient, (scene.n,),
+                        f"a scalar or {scene.n} values, one per sphere")
 
-    def force(self, t, q, qdot, scene, args):
-        return -jax.grad(lambda v: self.dissipation(q, v, scene))(qdot)
+    def generalized_force(self, t, q, qdot, scene, args):
+        def dissipation(v):
+            w = _relative_omega(q, v, scene)
+            return 0.5 * jnp.sum(self.coefficient * jnp.sum(w * w, axis=-1))
+
+        return -jax.grad(dissipation)(qdot)
 
 
 class BaseTorque(AbstractForce):
-    """A torque `tau` applied in the joint of link `link` (default 0: the base joint of
-    the first link) by its parent (or the support) on it: `f_link = tau x q_link`, and
-    `-tau x q_parent` on the parent.
+    """A torque in the joint of link `link` (default 0: the base joint of the first link).
 
-    `torque`: a constant `(3,)` vector or a function `torque(t, q, qdot, args) -> (3,)`
-    (a controller; an equinox Module such as `PDTorque` keeps its gains as leaves)."""
+    Applied by the parent (or the support) on the link: `f_link = tau x q_link`, and
+    `-tau x q_parent` on the parent. `torque` (N m): a constant `(3,)` vector or a
+    function `torque(t, q, qdot, args) -> (3,)` (a controller such as `PDTorque`)."""
 
-    torque: jax.Array | Callable
+    torque: jax.Array | Callable = eqx.field(converter=_drive_value)
     link: int = eqx.field(default=0, static=True)
 
     def __check_init__(self):
         if not callable(self.torque):
-            check_vector("torque", self.torque)
+            base.check_vector("torque", self.torque)
 
-    def force(self, t, q, qdot, scene, args):
-        tau = _drive(self.torque, t, q, qdot, args, q.dtype)
+    def check(self, scene):
+        base.check_index(self, "link", self.link, scene.n)
+        if isinstance(self.torque, AbstractDrive):
+            self.torque.check(scene)
+
+    def generalized_force(self, t, q, qdot, scene, args):
+        tau = _evaluate(self.torque, t, q, qdot, args)
         link = self.link % q.shape[0]
         f = jnp.zeros_like(q).at[link].add(jnp.cross(tau, q[link]))
         parent = int(scene.parents()[link])
@@ -70,21 +83,25 @@ class BaseTorque(AbstractForce):
         return f
 
 
-class PDTorque(eqx.Module):
-    """A proportional-derivative controller for `BaseTorque`, steering link `link`
-    toward the unit vector `target`: `tau = kp q_link x target - kd omega_link`.
+class PDTorque(AbstractDrive):
+    """A proportional-derivative controller for `BaseTorque`.
 
-    Its generalized force is `kp P target - kd qdot_link` (P the tangent projection)."""
+    Steers link `link` toward the unit vector `target`: `tau = kp q_link x target -
+    kd omega_link`, gains `kp` (N m) and `kd` (N m s); its generalized force is
+    `kp P target - kd qdot_link` (P the tangent projection)."""
 
-    kp: jax.Array = eqx.field(converter=as_float)
-    kd: jax.Array = eqx.field(converter=as_float)
-    target: jax.Array = eqx.field(default=(0.0, 0.0, 1.0), converter=as_float)
+    kp: jax.Array = eqx.field(converter=base.as_float)
+    kd: jax.Array = eqx.field(default=0.0, converter=base.as_float)
+    target: jax.Array = eqx.field(default=(0.0, 0.0, 1.0), converter=base.as_float)
     link: int = eqx.field(default=0, static=True)
 
     def __check_init__(self):
-        check_scalar_param("kp", self.kp)
-        check_scalar_param("kd", self.kd)
-        check_vector("target", self.target)
+        base.check_sign("kp", self.kp, " (N m)", strict=False, scalar=True)
+        base.check_sign("kd", self.kd, " (N m s)", strict=False, scalar=True)
+        base.check_vector("target", self.target, unit=True)
+
+    def check(self, scene):
+        base.check_index(self, "link", self.link, scene.n)
 
     def __call__(self, t, q, qdot, args):
         x, v = q[self.link], qdot[self.link]
@@ -92,55 +109,53 @@ class PDTorque(eqx.Module):
 
 
 class TipForce(AbstractForce):
-    """A force `d` on one mass (default the last one: the tip of a chain):
-    `f = d/dq (d . x_point(q))` with `d` held fixed.
+    """A force on one mass (default the last one: the tip of a chain).
 
-    `force`: a constant `(3,)` vector or a function `force(t, q, qdot, args) -> (3,)`."""
+    `f = d/dq (d . x_point(q))` with `d` held fixed. `force` (N): a constant `(3,)`
+    vector or a function `force(t, q, qdot, args) -> (3,)`."""
 
-    force_value: jax.Array | Callable
+    force: jax.Array | Callable = eqx.field(converter=_drive_value)
     point: int = eqx.field(default=-1, static=True)
 
-    def __init__(self, force, point: int = -1):
-        self.force_value = force if callable(force) else as_float(force)
-        self.point = int(point)
-
     def __check_init__(self):
-        if not callable(self.force_value):
-            check_vector("force", self.force_value)
+        if not callable(self.force):
+            base.check_vector("force", self.force)
 
-    def force(self, t, q, qdot, scene, args):
-        d = _drive(self.force_value, t, q, qdot, args, q.dtype)
+    def check(self, scene):
+        base.check_index(self, "point", self.point, scene.n)
+
+    def generalized_force(self, t, q, qdot, scene, args):
+        d = _evaluate(self.force, t, q, qdot, args)
         return jax.grad(lambda q_: jnp.dot(d, scene.positions(q_)[self.point]))(q)
 
 
 class VibratingSupport(AbstractForce):
-    """A prescribed motion of the support (every chain base and sphere centre),
-    `s(t) = amplitude cos(angular_frequency t + phase) direction`; the Kapitza pendulum.
+    """A prescribed motion of the support (every chain base and sphere centre).
 
-    The equations are written in the support frame, where each mass feels the inertial
-    force `-m_i s''(t)`: `f = d/dq sum_i (-m_i s''(t)) . x_i(q)`. (Equivalently the
-    time-dependent potential `sum_i m_i s''(t) . x_i`; kept as a force so that the
-    energy `E` of the relative motion and the work-energy balance use `power`.)
+    `s(t) = amplitude cos(angular_frequency t + phase) direction` (m, rad/s, rad), felt in
+    the support frame as the inertial force `-m_i s''(t)` on each mass (a force, not a
+    potential, so that the work-energy balance uses `power`). The Kapitza pendulum: a
+    pendulum of length `l` is stable upright when `amplitude^2 angular_frequency^2 > 2 g
+    l` (vertical vibration)."""
 
-    For a single pendulum of length `l` the inverted position is stable when
-    `amplitude^2 angular_frequency^2 > 2 g l` (vertical vibration)."""
-
-    amplitude: jax.Array = eqx.field(converter=as_float)
-    angular_frequency: jax.Array = eqx.field(converter=as_float)
-    direction: jax.Array = eqx.field(default=(0.0, 0.0, 1.0), converter=as_float)
-    phase: jax.Array = eqx.field(default=0.0, converter=as_float)
+    amplitude: jax.Array = eqx.field(converter=base.as_float)
+    angular_frequency: jax.Array = eqx.field(converter=base.as_float)
+    direction: jax.Array = eqx.field(default=(0.0, 0.0, 1.0), converter=base.as_float)
+    phase: jax.Array = eqx.field(default=0.0, converter=base.as_float)
 
     def __check_init__(self):
-        for name in ("amplitude", "angular_frequency", "phase"):
-            check_scalar_param(name, getattr(self, name))
-        check_vector("direction", self.direction)
+        base.check_sign("amplitude", self.amplitude, " (m)", strict=False, scalar=True)
+        base.check_sign("angular_frequency", self.angular_frequency, " (rad/s)", strict=False,
+                   scalar=True)
+        base.check_shape("phase", self.phase, (), "a scalar")
+        base.check_vector("direction", self.direction, unit=True)
 
     def acceleration(self, t):
         """`s''(t)`, the acceleration of the support."""
         w = self.angular_frequency
         return -self.amplitude * w**2 * jnp.cos(w * t + self.phase) * self.direction
 
-    def force(self, t, q, qdot, scene, args):
+    def generalized_force(self, t, q, qdot, scene, args):
         a = self.acceleration(t).astype(q.dtype)
         m = scene.masses()
         return jax.grad(lambda q_: -jnp.sum(m * (scene.positions(q_) @ a)))(q)

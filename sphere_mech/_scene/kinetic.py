@@ -1,39 +1,32 @@
 """Kinetic terms: point masses on spheres, with constant scalar inertia (fast path)."""
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .base import AbstractKinetic, as_float, check_scalar_param, check_vector
-
-
-def _check_1d(**arrays):
-    shapes = {k: jnp.shape(v) for k, v in arrays.items()}
-    first = next(iter(shapes.values()))
-    if len(first) != 1 or first[0] == 0 or any(s != first for s in shapes.values()):
-        text = ", ".join(f"{k} {s}" for k, s in shapes.items())
-        raise ValueError(f"{' and '.join(shapes)} must be non-empty 1-D arrays of the same "
-                         f"length, got shapes {text}.")
+from .base import AbstractKinetic, as_float, check_shape, check_sign, check_vector, per_item
 
 
 class Chain(AbstractKinetic):
-    """The paper's chain: point masses `m_i` at the tips of massless links of lengths
-    `l_i`, hanging from a spherical joint at `base`. Link `i` points along `q_i` and the
-    masses sit at `x_i = base + sum_{j<=i} l_j q_j`.
+    """The paper's chain: point masses on massless links hanging from a spherical joint.
 
-    `M_ij = l_i l_j sum_{k>=max(i,j)} m_k` (constant: Corollary 1 applies)."""
+    Mass `m_i` sits at the tip of link `i` (length `l_i`, along `q_i`), at
+    `x_i = base + sum_{j<=i} l_j q_j`; `M_ij = l_i l_j sum_{k>=max(i,j)} m_k` (constant:
+    Corollary 1 applies). `masses` (kg) and `lengths` (m) give one value per link, or a
+    scalar for every link; `links` (optional) is the number of links."""
 
-    masses: jax.Array = eqx.field(converter=as_float)
-    lengths: jax.Array = eqx.field(converter=as_float)
-    base: jax.Array = eqx.field(default=(0.0, 0.0, 0.0), converter=as_float)
+    masses: jax.Array
+    lengths: jax.Array
+    base: jax.Array
+
+    def __init__(self, masses: jax.Array, lengths: jax.Array,
+                 base: jax.Array = (0.0, 0.0, 0.0), links: int | None = None):
+        self.masses, self.lengths = per_item(links, masses=masses, lengths=lengths)
+        self.base = as_float(base)
 
     def __check_init__(self):
-        _check_1d(masses=self.masses, lengths=self.lengths)
+        check_sign("masses", self.masses, " (kg)")
+        check_sign("lengths", self.lengths, " (m)")
         check_vector("base", self.base)
-
-    @property
-    def n(self) -> int:
-        return self.masses.shape[0]
 
     def inertia(self):
         tail = jnp.cumsum(self.masses[::-1])[::-1]
@@ -49,9 +42,6 @@ class Chain(AbstractKinetic):
         e = -inv_m[:-1] / (self.lengths[:-1] * self.lengths[1:])
         return d, e
 
-    def point_masses(self):
-        return self.masses
-
     def positions(self, q):
         return self.base + jnp.cumsum(self.lengths[:, None] * q, axis=0)
 
@@ -62,30 +52,23 @@ class Chain(AbstractKinetic):
         return tuple((i, i + 1) for i in range(self.n - 1))
 
 
-class Particles(AbstractKinetic):
-    """Free point masses, mass `m_i` on its own sphere of radius `r_i` centred at
-    `c_i`: `x_i = c_i + r_i q_i`, `M = diag(m_i r_i^2)`."""
+class AbstractSphereMasses(AbstractKinetic):
+    """Point masses `m_i` each on a sphere of radius `r_i` centred at `c_i`:
+    `x_i = c_i + r_i q_i`, `M = diag(m_i r_i^2)`."""
 
     masses: jax.Array
     radii: jax.Array
     centers: jax.Array
 
-    def __init__(self, masses, radii, centers=None):
-        self.masses = as_float(masses)
-        self.radii = as_float(radii)
-        shape = (jnp.shape(self.masses)[0] if jnp.ndim(self.masses) == 1 else 0, 3)
-        self.centers = jnp.zeros(shape, self.masses.dtype) if centers is None else as_float(
-            centers)
+    def __init__(self, masses, radii, centers, count):
+        self.masses, self.radii = per_item(count, masses=masses, radii=radii)
+        centers = as_float(centers)
+        self.centers = jnp.broadcast_to(centers, (self.n, 3)) if centers.ndim == 1 else centers
 
     def __check_init__(self):
-        _check_1d(masses=self.masses, radii=self.radii)
-        if jnp.shape(self.centers) != (self.n, 3):
-            raise ValueError(f"centers must have shape ({self.n}, 3), got "
-                             f"{jnp.shape(self.centers)}.")
-
-    @property
-    def n(self) -> int:
-        return self.masses.shape[0]
+        check_sign("masses", self.masses, " (kg)")
+        check_sign("radii", self.radii, " (m)")
+        check_shape("centers", self.centers, (self.n, 3), f"a (3,) or ({self.n}, 3) array")
 
     def inertia(self):
         return jnp.diag(self.masses * self.radii**2)
@@ -94,39 +77,30 @@ class Particles(AbstractKinetic):
         d = 1.0 / (self.masses * self.radii**2)
         return d, jnp.zeros_like(d[1:])
 
-    def point_masses(self):
-        return self.masses
-
     def positions(self, q):
         return self.centers + self.radii[:, None] * q
 
 
-class SharedSphere(AbstractKinetic):
-    """Several point masses `m_i` moving on one sphere of radius `radius` centred at
-    `center` (beads on a sphere): `x_i = center + radius q_i`."""
+class Particles(AbstractSphereMasses):
+    """Free point masses, each on its own sphere.
 
-    masses: jax.Array = eqx.field(converter=as_float)
-    radius: jax.Array = eqx.field(default=1.0, converter=as_float)
-    center: jax.Array = eqx.field(default=(0.0, 0.0, 0.0), converter=as_float)
+    Mass `m_i` (kg) moves on a sphere of radius `r_i` (m) centred at `c_i`:
+    `x_i = c_i + r_i q_i`. A scalar mass or radius applies to every particle, one `(3,)`
+    centre to all; `count` (optional) is the number of particles."""
 
-    def __check_init__(self):
-        _check_1d(masses=self.masses)
-        check_scalar_param("radius", self.radius)
-        check_vector("center", self.center)
+    def __init__(self, masses: jax.Array, radii: jax.Array,
+                 centers: jax.Array = (0.0, 0.0, 0.0), count: int | None = None):
+        super().__init__(masses, radii, centers, count)
 
-    @property
-    def n(self) -> int:
-        return self.masses.shape[0]
 
-    def inertia(self):
-        return jnp.diag(self.masses * self.radius**2)
+class SharedSphere(AbstractSphereMasses):
+    """Several point masses (beads) moving on one sphere.
 
-    def inverse_inertia_bands(self):
-        d = 1.0 / (self.masses * self.radius**2)
-        return d, jnp.zeros_like(d[1:])
+    Masses `m_i` (kg; a scalar for all `count` beads) on the sphere of radius `radius`
+    (m) centred at `center`: `x_i = center + radius q_i`."""
 
-    def point_masses(self):
-        return self.masses
-
-    def positions(self, q):
-        return self.center + self.radius * q
+    def __init__(self, masses: jax.Array, radius: jax.Array = 1.0,
+                 center: jax.Array = (0.0, 0.0, 0.0), count: int | None = None):
+        check_sign("radius", radius, " (m)", scalar=True)
+        check_vector("center", as_float(center))
+        super().__init__(masses, radius, center, count)

@@ -5,7 +5,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .base import AbstractPotential, as_float, check_scalar_param, check_vector
+from . import base
+from .base import AbstractPotential, ParameterError
 
 
 def safe_norm(x: jax.Array) -> jax.Array:
@@ -16,15 +17,17 @@ def safe_norm(x: jax.Array) -> jax.Array:
 
 
 class Gravity(AbstractPotential):
-    """Uniform gravity of strength `g` along the unit vector `direction` (default
-    `-e3`): `U = -g sum_i m_i direction . x_i`."""
+    """Uniform gravity.
 
-    g: jax.Array = eqx.field(default=9.81, converter=as_float)
-    direction: jax.Array = eqx.field(default=(0.0, 0.0, -1.0), converter=as_float)
+    Strength `g` (m/s^2) along the unit vector `direction`: `U = -g sum_i m_i
+    direction . x_i`."""
+
+    g: jax.Array = eqx.field(default=9.81, converter=base.as_float)
+    direction: jax.Array = eqx.field(default=(0.0, 0.0, -1.0), converter=base.as_float)
 
     def __check_init__(self):
-        check_scalar_param("g", self.g)
-        check_vector("direction", self.direction)
+        base.check_sign("g", self.g, " (m/s^2)", strict=False, scalar=True)
+        base.check_vector("direction", self.direction, unit=True)
 
     def potential(self, t, q, scene, args):
         x = scene.positions(q)
@@ -32,34 +35,35 @@ class Gravity(AbstractPotential):
 
 
 class Spring(AbstractPotential):
-    """A linear spring between two points of the scene, `U = 1/2 k (|x_a - x_b| - L0)^2`.
+    """A linear spring between two points of the scene.
 
-    Each end is either the index of a mass of the scene (an `int`, static) or a fixed
-    point in the support frame (a `(3,)` vector)."""
+    `U = 1/2 k (|x_a - x_b| - L0)^2`, stiffness `k` (N/m), rest length `L0` (m). Each end
+    `a`, `b` is the index of a mass of the scene (an `int`, static) or a fixed point in
+    the support frame (a `(3,)` vector)."""
 
-    stiffness: jax.Array = eqx.field(converter=as_float)
-    rest_length: jax.Array = eqx.field(converter=as_float)
+    stiffness: jax.Array = eqx.field(converter=base.as_float)
+    rest_length: jax.Array = eqx.field(converter=base.as_float)
     anchors: jax.Array
     ends: tuple = eqx.field(static=True)
 
-    def __init__(self, a, b, stiffness, rest_length=0.0):
-        ends, anchors = [], []
-        for end in (a, b):
-            if isinstance(end, int | np.integer):
-                ends.append(int(end))
-                anchors.append(jnp.zeros(3))
-            else:
-                check_vector("a spring end (a mass index or a point)", end)
-                ends.append(None)
-                anchors.append(as_float(end))
-        self.ends = tuple(ends)
-        self.anchors = jnp.stack(anchors)
-        self.stiffness = stiffness
-        self.rest_length = rest_length
+    def __init__(self, a: int | jax.Array, b: int | jax.Array, stiffness: jax.Array,
+                 rest_length: jax.Array = 0.0):
+        self.ends = tuple(int(e) if isinstance(e, int | np.integer) else None for e in (a, b))
+        for name, end, i in zip("ab", (a, b), self.ends, strict=True):
+            if i is None:
+                base.check_vector(name, end)
+        self.anchors = jnp.stack([base.as_float(jnp.zeros(3) if i is not None else end)
+                                  for end, i in zip((a, b), self.ends, strict=True)])
+        self.stiffness, self.rest_length = stiffness, rest_length
 
     def __check_init__(self):
-        check_scalar_param("stiffness", self.stiffness)
-        check_scalar_param("rest_length", self.rest_length)
+        base.check_sign("stiffness", self.stiffness, " (N/m)", strict=False, scalar=True)
+        base.check_sign("rest_length", self.rest_length, " (m)", strict=False, scalar=True)
+
+    def check(self, scene):
+        for name, i in zip("ab", self.ends, strict=True):
+            if i is not None:
+                base.check_index(self, name, i, scene.n)
 
     def _point(self, k, x):
         return self.anchors[k] if self.ends[k] is None else x[self.ends[k]]
@@ -71,50 +75,67 @@ class Spring(AbstractPotential):
 
 
 class Bending(AbstractPotential):
-    """Bending stiffness between consecutive links of every chain:
-    `U = k sum_joints (1 - q_i . q_{i+1})` (about `k theta^2 / 2` for small bend
-    angles; for a rod of bending stiffness `EI` cut into links of length `l`, `k = EI/l`)."""
+    """Bending stiffness between consecutive links of every chain.
 
-    stiffness: jax.Array = eqx.field(converter=as_float)
+    `U = k sum_joints (1 - q_i . q_{i+1})`, about `k theta^2 / 2` for small bend angles
+    (N m per rad^2; for a rod of bending stiffness `EI` cut into links of length `l`,
+    `k = EI/l`). `stiffness`: a scalar or one value per joint."""
+
+    stiffness: jax.Array = eqx.field(converter=base.as_float)
 
     def __check_init__(self):
-        if jnp.ndim(self.stiffness) > 1:
-            raise ValueError("stiffness must be a scalar or one value per joint.")
+        base.check_sign("stiffness", self.stiffness, " (N m per rad^2)", strict=False)
+
+    def check(self, scene):
+        joints = len(scene.bend_pairs()[0])
+        if joints == 0:
+            raise ParameterError("", "Bending needs a Chain with at least two links in the "
+                                 "scene")
+        if jnp.ndim(self.stiffness):
+            base.check_shape("stiffness", self.stiffness, (joints,),
+                        f"a scalar or {joints} values, one per joint")
 
     def potential(self, t, q, scene, args):
         i, j = scene.bend_pairs()
-        if len(i) == 0:
-            raise ValueError("Bending needs a Chain with at least two links in the scene.")
         return jnp.sum(self.stiffness * (1.0 - jnp.sum(q[i] * q[j], axis=-1)))
 
 
 class PairInteraction(AbstractPotential):
-    """A pairwise interaction between masses, `U = k sum_{i<j} c_i c_j / |x_i - x_j|^p`
-    (inverse-distance repulsion of charges `c_i` for `p = 1`, `k > 0`).
+    """A pairwise interaction between masses, `U = k sum_{i<j} c_i c_j / |x_i - x_j|^p`.
 
-    `masses`: the indices of the interacting masses (static; default all of the scene);
-    `charges`: one per interacting mass (default ones)."""
+    Inverse-distance repulsion of charges `c_i` for `p = 1`, `k > 0`. `strength`: `k`
+    (J m^p); `exponent`: `p > 0`; `masses`: the indices of the interacting masses
+    (static; default all of the scene); `charges`: one per interacting mass (default
+    ones)."""
 
-    strength: jax.Array = eqx.field(converter=as_float)
-    exponent: jax.Array = eqx.field(default=1.0, converter=as_float)
-    charges: jax.Array | None = None
+    strength: jax.Array = eqx.field(converter=base.as_float)
+    exponent: jax.Array = eqx.field(default=1.0, converter=base.as_float)
+    charges: jax.Array | None = eqx.field(
+        default=None, converter=lambda c: c if c is None else base.as_float(c))
     masses: tuple[int, ...] | None = eqx.field(default=None, static=True)
 
     def __check_init__(self):
-        check_scalar_param("strength", self.strength)
-        check_scalar_param("exponent", self.exponent)
-        if self.charges is not None and jnp.ndim(self.charges) != 1:
-            raise ValueError("charges must be a 1-D array (one per interacting mass).")
+        base.check_shape("strength", self.strength, (), "a scalar")
+        base.check_sign("exponent", self.exponent, "", scalar=True)
+
+    def _indices(self, n) -> np.ndarray:
+        return np.arange(n) if self.masses is None else np.asarray(self.masses, dtype=int)
+
+    def check(self, scene):
+        idx = self._indices(scene.n)
+        if len(idx) < 2:
+            raise ParameterError("masses", f"PairInteraction needs at least two masses, got "
+                                 f"{len(idx)}")
+        for i in idx:
+            base.check_index(self, "masses", int(i), scene.n)
+        if self.charges is not None:
+            base.check_shape("charges", self.charges, (len(idx),),
+                        f"one value per interacting mass ({len(idx)})")
 
     def potential(self, t, q, scene, args):
         x = scene.positions(q)
-        idx = np.arange(x.shape[0]) if self.masses is None else np.asarray(self.masses)
-        if len(idx) < 2:
-            raise ValueError("PairInteraction needs at least two masses.")
+        idx = self._indices(x.shape[0])
         c = jnp.ones(len(idx)) if self.charges is None else jnp.asarray(self.charges)
-        if c.shape != (len(idx),):
-            raise ValueError(f"charges must have one value per interacting mass "
-                             f"({len(idx)}), got shape {c.shape}.")
         i, j = np.triu_indices(len(idx), k=1)
         d = jnp.linalg.norm(x[idx[i]] - x[idx[j]], axis=-1)
         return self.strength * jnp.sum(c[i] * c[j] * d ** (-self.exponent))

@@ -1,46 +1,50 @@
 """`Scene`: the system assembled from exactly the effects it lists."""
 
+from collections.abc import Callable
+
 import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 import numpy as np
 
 from .._inertia import AbstractConstantInertiaLagrangian
-from .base import AbstractEffect, AbstractForce, AbstractKinetic, AbstractPotential
+from .base import AbstractEffect, AbstractForce, AbstractKinetic, AbstractPotential, ParameterError
+from .forces import BaseTorque, TipForce
+from .kinetic import Chain
+from .potentials import Gravity
 
 
 class Scene(AbstractConstantInertiaLagrangian):
-    """A system on `(S^2)^n` made of the listed effects, usable with `simulate`,
-    `legendre`, `angular` and every integrator.
+    """The system `L = sum kinetic - sum potentials`, `f = sum forces` of the listed
+    effects, on the Corollary-1 fast path (O(n)); state `(q, qdot)`.
 
-    `Scene(*effects)`: kinetic terms (`Chain`, `Particles`, `SharedSphere`) stack their
-    spheres in the order given; `L = sum kinetic - sum potentials` and
-    `f = sum forces`. Only the effects listed are traced: with no force effect,
-    `generalized_force` is `None` and no force operation is compiled. Every kinetic term
-    has a constant scalar inertia with a tridiagonal inverse, so the scene runs on the
-    Corollary-1 fast path with O(n) solves (no Hessian, no dense factorization). Each
-    effect's operations carry its class name in the jaxpr's name stack.
-
-    The state is `(q, qdot)`; `positions(q)` gives the masses in the support frame.
-    """
+    Kinetic terms stack their spheres in the order given. Only the listed effects are
+    traced, each under its class name (no force effect: `forces` is `None`). Each
+    effect is checked against the scene (indices, counts) at construction."""
 
     kinetic: tuple[AbstractKinetic, ...]
     potentials: tuple[AbstractPotential, ...]
-    forces: tuple[AbstractForce, ...]
+    force_effects: tuple[AbstractForce, ...]
 
     def __init__(self, *effects: AbstractEffect):
-        if len(effects) == 1 and isinstance(effects[0], list | tuple):
-            effects = tuple(effects[0])
         for e in effects:
             if not isinstance(e, AbstractKinetic | AbstractPotential | AbstractForce):
                 raise ValueError(f"Scene takes effects (kinetic terms, potentials, forces), "
                                  f"got {type(e).__name__}.")
         self.kinetic = tuple(e for e in effects if isinstance(e, AbstractKinetic))
         self.potentials = tuple(e for e in effects if isinstance(e, AbstractPotential))
-        self.forces = tuple(e for e in effects if isinstance(e, AbstractForce))
+        self.force_effects = tuple(e for e in effects if isinstance(e, AbstractForce))
         if not self.kinetic:
             raise ValueError("A scene needs at least one kinetic term (Chain, Particles "
                              "or SharedSphere).")
+
+    def __check_init__(self):
+        for e in self.effects:
+            try:
+                e.check(self)
+            except ParameterError as error:
+                error.effect = e
+                raise
 
     @property
     def n(self) -> int:
@@ -49,7 +53,7 @@ class Scene(AbstractConstantInertiaLagrangian):
 
     @property
     def effects(self) -> tuple[AbstractEffect, ...]:
-        return self.kinetic + self.potentials + self.forces
+        return self.kinetic + self.potentials + self.force_effects
 
     def _offsets(self) -> list[int]:
         return list(np.cumsum([0] + [k.n for k in self.kinetic]))
@@ -69,45 +73,65 @@ class Scene(AbstractConstantInertiaLagrangian):
 
     def masses(self) -> jax.Array:
         """The `(n,)` point masses."""
-        return jnp.concatenate([k.point_masses() for k in self.kinetic])
+        return jnp.concatenate([k.masses for k in self.kinetic])
 
     def positions(self, q: jax.Array) -> jax.Array:
         """Positions of the masses in the support frame, `(n, 3)`."""
         o = self._offsets()
         return jnp.concatenate(
             [k.positions(q[a:b]) for k, a, b in zip(self.kinetic, o[:-1], o[1:], strict=True)]
-        )
+        ).astype(q.dtype)
 
     def parents(self) -> np.ndarray:
         """Global index of each sphere's parent in its joint (-1: the support)."""
-        out = []
-        for k, a in zip(self.kinetic, self._offsets()[:-1], strict=True):
-            out += [p + a if p >= 0 else -1 for p in k.parents()]
-        return np.asarray(out, dtype=int)
+        blocks = zip(self.kinetic, self._offsets(), strict=False)
+        return np.asarray([p + a if p >= 0 else -1 for k, a in blocks for p in k.parents()],
+                          dtype=int)
 
     def bend_pairs(self) -> tuple[np.ndarray, np.ndarray]:
         """Global index arrays `(i, j)` of consecutive links."""
-        pairs = [(i + a, j + a) for k, a in zip(self.kinetic, self._offsets()[:-1], strict=True)
-                 for i, j in k.bends()]
-        i, j = (np.asarray(p, dtype=int) for p in zip(*pairs, strict=True)) if pairs else ([], [])
-        return np.asarray(i, dtype=int), np.asarray(j, dtype=int)
+        blocks = zip(self.kinetic, self._offsets(), strict=False)
+        pairs = [(i + a, j + a) for k, a in blocks for i, j in k.bends()]
+        return np.asarray(pairs, dtype=int).reshape(-1, 2).T
+
+    def kinetic_energy(self, q, qdot, args=None):
+        """`T = 1/2 sum_i m_i |xdot_i|^2`, O(n)."""
+        xdot = jax.jvp(self.positions, (q,), (qdot,))[1]
+        return (0.5 * jnp.sum(self.masses() * jnp.sum(xdot**2, axis=-1))).astype(q.dtype)
 
     def potential(self, t, q, args=None):
         U = jnp.zeros((), dtype=q.dtype)
         for p in self.potentials:
             with jax.named_scope(type(p).__name__):
-                U = U + p.potential(t, q, self, args)
+                U = U + p.potential(t, q, self, args).astype(q.dtype)
         return U
 
-    @property
-    def has_forces(self) -> bool:
-        return len(self.forces) > 0
-
-    def generalized_force(self, t, q, qdot, args=None):
-        if not self.forces:
-            return None
+    def _force(self, t, q, qdot, args):
         f = jnp.zeros_like(q)
-        for e in self.forces:
+        for e in self.force_effects:
             with jax.named_scope(type(e).__name__):
-                f = f + e.force(t, q, qdot, self, args)
+                f = f + e.generalized_force(t, q, qdot, self, args).astype(q.dtype)
         return f
+
+    @property
+    def forces(self) -> Callable | None:
+        """`forces(t, q, qdot, args) -> (n, 3)`, the sum of the force effects, or `None`
+        when the scene lists none."""
+        return self._force if self.force_effects else None
+
+
+def chain_pendulum(masses, lengths, g=9.81, *, torque=None, tip_force=None) -> Scene:
+    """The chain pendulum of Lee, Leok & McClamroch, section V: `Scene(Chain(masses,
+    lengths), Gravity(g) [, BaseTorque(torque)] [, TipForce(tip_force)])`, with lengths
+    and `g` in the floating dtype of `masses` (kg; lengths in m, `g` in m/s^2).
+
+    `torque` (applied by the base on the first link, `f_1 = torque x q_1`) and
+    `tip_force` (on the last mass) are optional `(3,)` vectors or functions
+    `(t, q, qdot, args) -> (3,)`."""
+    masses = jnp.asarray(masses)
+    dtype = jnp.result_type(masses, float)
+    effects = [Chain(masses.astype(dtype), jnp.asarray(lengths, dtype)),
+               Gravity(jnp.asarray(g, dtype))]
+    effects += [] if torque is None else [BaseTorque(torque)]
+    effects += [] if tip_force is None else [TipForce(tip_force)]
+    return Scene(*effects)

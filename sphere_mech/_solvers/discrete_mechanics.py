@@ -21,7 +21,6 @@ momentum by the inverse Legendre map on the tangent planes.
 """
 
 import jax
-import jax.numpy as jnp
 import optimistix as optx
 from diffrax import RESULTS
 from jax import lax

@@ -1,13 +1,7 @@
-"""Running a scene and checking its energy bookkeeping.
-
-A conservative scene reports its energy error `E(t) - E(0)`. A scene with forces
-reports the work-energy balance `E(t) - E(0) - W(t)`, `W(t) = int_0^t power dt`, where
-`power = sum_i f_i . qdot_i` is `system.power`. `W` is integrated over the solver's own
-accepted steps (saved with `SaveAt(steps=True)`, so the quadrature resolves whatever the
-solver resolves) by the corrected trapezoidal rule
-`W_{k+1} = W_k + h/2 (P_k + P_{k+1}) + h^2/12 (P'_k - P'_{k+1})`, fourth order in the
-step `h`, with `P' = dP/dt` along the flow computed exactly by `jax.jvp`.
-"""
+"""Running a scene and checking its energy bookkeeping: the energy error `E(t) - E(0)`,
+or with forces the work-energy balance `E(t) - E(0) - W(t)`, `W = int power dt` over the
+solver's own steps by the corrected trapezoidal rule `h/2 (P_k + P_{k+1}) + h^2/12 (P'_k -
+P'_{k+1})` (fourth order; `P' = dP/dt` along the flow by `jax.jvp`)."""
 
 import dataclasses
 import time
@@ -19,13 +13,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._geometry import retract
+from .._simulate import simulate
 
 
 def power_and_rate(system, t, q, v, args):
     """`P = system.power` and its time derivative along the flow, `dP/dt`."""
-    def p(s, y):
-        return system.power(s, y[0], y[1], args)
-
+    p = lambda s, y: system.power(s, y[0], y[1], args)
     tangent = (jnp.ones_like(t), system.rates(t, (q, v), args))
     return jax.jvp(p, (t, (q, v)), tangent)
 
@@ -76,22 +69,21 @@ def _split(sol, forced):
     return ts, retract(*ys), np.asarray(ts_s)[keep], ys_s
 
 
-def run_scene(spec, *, duration=None, progress=False) -> SceneResult:
-    """Simulate a `SceneSpec` (from `load_scene`) and report its energy bookkeeping."""
-    from .._simulate import simulate
-
+def run_scene(spec, *, t1=None, progress=False) -> SceneResult:
+    """Simulate a `SceneSpec` (from `load_scene`), optionally up to another end time
+    `t1`, and report its energy bookkeeping."""
     scene, args = spec.scene, None
-    t1 = float(spec.duration if duration is None else duration)
-    n_out = max(2, int(round(t1 / spec.output_dt)) + 1)
-    ts = jnp.linspace(0.0, t1, n_out)
+    t1 = float(spec.t1 if t1 is None else t1)
+    n_out = max(2, int(round((t1 - spec.t0) / spec.save_dt)) + 1)
+    ts = jnp.linspace(spec.t0, t1, n_out)
     forced = scene.has_forces
     saveat = diffrax.SaveAt(ts=ts)
     if forced:
         saveat = diffrax.SaveAt(subs=[diffrax.SubSaveAt(ts=ts),
                                       diffrax.SubSaveAt(t0=True, steps=True)])
     start = time.perf_counter()
-    sol = simulate(scene, spec.y0, t1, solver=spec.solver, dt0=spec.dt, rtol=spec.rtol,
-                   atol=spec.atol, saveat=saveat, max_steps=spec.max_steps,
+    sol = simulate(scene, spec.y0, t1, t0=spec.t0, solver=spec.solver, dt0=spec.dt0,
+                   rtol=spec.rtol, atol=spec.atol, saveat=saveat, max_steps=spec.max_steps,
                    progress=progress)
     jax.block_until_ready(sol.ys)
     wall = time.perf_counter() - start
@@ -113,10 +105,11 @@ def run_scene(spec, *, duration=None, progress=False) -> SceneResult:
     x = np.asarray(jax.vmap(scene.positions)(jnp.asarray(q)))
     summary = {
         "scene": spec.name, "file": str(spec.path), "solver": spec.solver_name,
-        **({"dt": spec.dt} if spec.fixed_step else {"rtol": spec.rtol, "atol": spec.atol}),
+        **({"rtol": spec.rtol, "atol": spec.atol}
+           if isinstance(spec.solver, diffrax.AbstractAdaptiveSolver) else {"dt0": spec.dt0}),
         "n_spheres": scene.n, "effects": [type(e).__name__ for e in scene.effects],
-        "t1": t1, "steps": int(sol.stats["num_steps"]),
-        "rejected_steps": int(sol.stats.get("num_rejected_steps", 0)),
+        "t0": spec.t0, "t1": t1, "steps": int(sol.stats["num_steps"]),
+        "rejected_steps": int(sol.stats["num_rejected_steps"]),
         "wall_time_s": wall, "max_constraint_error": float(constraint.max()), **report,
     }
     return SceneResult(np.asarray(ts), q, v, x, energy, np.asarray(error_t), np.asarray(error),

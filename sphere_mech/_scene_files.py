@@ -1,0 +1,326 @@
+"""Scene files: TOML data (never code): effects, initial state, arguments of `simulate`.
+
+The schema is the effect Modules': `type` is the class name in snake_case, fields and
+defaults are the constructor's arguments, kinds its annotations, and the Module checks
+the values, so files and Python reject the same input with the same words. Every
+problem raises `SceneFileError(file, field, expected)`."""
+
+import dataclasses
+import inspect
+import math
+import re
+import tomllib
+import types
+import typing
+from collections.abc import Callable
+from pathlib import Path
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._scene.base import UNIT_TOLERANCE, ParameterError
+from ._scene.forces import BaseTorque, JointDamping, PDTorque, TipForce, VibratingSupport
+from ._scene.kinetic import Chain, Particles, SharedSphere
+from ._scene.potentials import Bending, Gravity, PairInteraction, Spring
+from ._scene.scene import Scene
+from ._simulate import simulate
+from ._solvers.liegroup import LieRK4
+from ._solvers.projected import Projected
+from ._solvers.rk4 import RK4
+from ._solvers.variational import Variational
+
+
+class SceneFileError(ValueError):
+    """A problem in a scene file, reported as `<file>: <field>: <what was expected>`."""
+
+    def __init__(self, path, field: str, expected: str):
+        self.path, self.field, self.expected = str(path), field, expected
+        super().__init__(f"{self.path}: {field}: {expected}")
+
+
+def _snake(name: str) -> str:
+    return re.sub(r"(?<=[a-z0-9])(?=[A-Z])|(?<=[A-Z])(?=[A-Z][a-z])", "_", name).lower()
+
+
+EFFECTS = {_snake(c.__name__): c for c in (
+    Chain, Particles, SharedSphere, Gravity, Spring, Bending, PairInteraction, JointDamping,
+    BaseTorque, TipForce, VibratingSupport)}
+DRIVES = {_snake(c.__name__): c for c in (PDTorque,)}
+"""Controllers, written as inline tables where Python takes a function."""
+
+
+def _show(x) -> str:
+    text = repr(x)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _numbers(x) -> bool:
+    """A finite number or a rectangular, non-empty (nested) array of them."""
+    if isinstance(x, int | float) and not isinstance(x, bool):
+        return math.isfinite(x)
+    return (isinstance(x, list) and len(x) > 0 and all(_numbers(a) for a in x)
+            and len({np.shape(a) for a in x}) == 1)
+
+
+def _number(x) -> bool:
+    return _numbers(x) and np.ndim(x) == 0
+
+
+def _integer(x) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool)
+
+
+KINDS = {
+    int: ("an integer", lambda x: x if _integer(x) else None),
+    jax.Array: ("a number or an array of numbers",
+                lambda x: np.asarray(x, dtype=float) if _numbers(x) else None),
+    tuple[int, ...]: ("an array of integers",
+                      lambda x: tuple(x) if isinstance(x, list) and all(map(_integer, x))
+                      else None),
+    Callable: (f"an inline table {{ type = ... }} ({', '.join(DRIVES)})", lambda x: None),
+}
+"""Annotation -> (what a file must give, the TOML value converted or `None`)."""
+
+
+def schema(cls) -> dict[str, tuple[tuple, object]]:
+    """`{field: (kinds, default)}` of a Module, from its constructor's signature and
+    annotations (`inspect.Parameter.empty`: required)."""
+    fields = {f.name: f.type for f in dataclasses.fields(cls)}
+    out = {}
+    for name, p in inspect.signature(cls).parameters.items():
+        kind = fields[name] if p.annotation in (p.empty, typing.Any) else p.annotation
+        kinds = typing.get_args(kind) if isinstance(kind, types.UnionType) else (kind,)
+        out[name] = (tuple(k for k in kinds if k is not types.NoneType), p.default)
+    return out
+
+
+def _no_unknown(path, where: str, table: dict, allowed, expected: str = "") -> None:
+    extra = [k for k in table if k not in allowed]
+    if extra:
+        raise SceneFileError(path, f"{where}.{extra[0]}" if where else extra[0], "no such "
+                             f"field (expected {expected or 'one of ' + ', '.join(allowed)})")
+
+
+def _module(path, where: str, table, registry: dict, what: str):
+    """Build the Module a table describes; its own checks speak for it."""
+    kind = table.get("type") if isinstance(table, dict) else table
+    if kind not in registry:
+        raise SceneFileError(path, f"{where}.type", f"{what}, one of {', '.join(registry)}; "
+                             f"got {_show(kind)}")
+    cls, values = registry[kind], {}
+    fields = schema(cls)
+    summary = " ".join(cls.__doc__.split()).split(". ")[0]  # the docstring's first sentence
+    _no_unknown(path, where, table, ["type", *fields],
+                f"one of {', '.join(fields)}; {kind}: {summary}")
+    for key, (kinds, default) in fields.items():
+        expected, x = " or ".join(KINDS[k][0] for k in kinds), table.get(key)
+        if key not in table and default is inspect.Parameter.empty:
+            raise SceneFileError(path, f"{where}.{key}", f"missing; expected {expected}")
+        if Callable in kinds and isinstance(x, dict):
+            values[key] = _module(path, f"{where}.{key}", x, DRIVES, "a controller type")
+        elif key in table:
+            values[key] = next((v for k in kinds if (v := KINDS[k][1](x)) is not None), None)
+            if values[key] is None:
+                raise SceneFileError(path, f"{where}.{key}", f"expected {expected}, got "
+                                     f"{_show(x)}")
+    try:
+        return cls(**values)
+    except ParameterError as e:
+        raise SceneFileError(path, f"{where}.{e.field}" if e.field else where, str(e)) from None
+    except ValueError as e:
+        raise SceneFileError(path, where, str(e)) from None
+
+
+def _scene(path, tables) -> Scene:
+    if not isinstance(tables, list) or not tables:
+        raise SceneFileError(path, "effects", "an array of effect tables ([[effects]] with "
+                             "a type field)")
+    effects = [_module(path, f"effects[{k}]", t, EFFECTS, "an effect type")
+               for k, t in enumerate(tables)]
+    try:
+        return Scene(*effects)
+    except ParameterError as e:
+        k = next(k for k, effect in enumerate(effects) if effect is e.effect)
+        raise SceneFileError(path, f"effects[{k}]" + (f".{e.field}" if e.field else ""),
+                             str(e)) from None
+    except ValueError as e:
+        raise SceneFileError(path, "effects", str(e)) from None
+
+
+INITIAL = {
+    "q": ((3,), "unit vectors [x, y, z]", None),
+    "qdot": ((3,), "vectors [x, y, z] (1/s) tangent to the spheres", None),
+    "polar_deg": ((), "angles in degrees from +z within [0, 180]", (0, 180)),
+    "azimuth_deg": ((), "angles in degrees about z within [-360, 360]", (-360, 360)),
+    "polar_rate_deg": ((), "rates in deg/s", None),
+    "azimuth_rate_deg": ((), "rates in deg/s", None),
+}
+"""`[initial]` keys -> (shape of one entry (for every sphere), what is expected, range)."""
+
+
+def _per_sphere(path, table, key: str, n: int) -> np.ndarray:
+    item, expected, bounds = INITIAL[key]
+    x = table[key]
+    ok = _numbers(x) and np.shape(x) in (item, (n, *item))
+    if not (ok and (bounds is None or bounds[0] <= np.min(x) <= np.max(x) <= bounds[1])):
+        raise SceneFileError(path, f"initial.{key}", f"{expected}: one for all spheres or "
+                             f"an array of {n} (one per sphere), got {_show(x)}")
+    return np.broadcast_to(np.asarray(x, dtype=float), (n, *item))
+
+
+def _initial(path, table, n: int):
+    if not isinstance(table, dict):
+        raise SceneFileError(path, "initial", "a table with q or polar_deg and azimuth_deg, "
+                             f"got {_show(table)}")
+    _no_unknown(path, "initial", table, INITIAL, "q and qdot, or polar_deg and azimuth_deg "
+                "with optional rates")
+    if any(v in table and any(k.endswith(e) for k in table) for v, e in
+           (("q", "_deg"), ("qdot", "_rate_deg"))):
+        raise SceneFileError(path, "initial", "either q and qdot, or angles and rates")
+    if "q" in table:
+        q, qdot = _per_sphere(path, table, "q", n), np.zeros((n, 3))
+        norms = np.linalg.norm(q, axis=-1)
+        bad = int(np.argmax(np.abs(norms - 1.0)))
+        if abs(norms[bad] - 1.0) > UNIT_TOLERANCE:
+            raise SceneFileError(path, "initial.q", f"unit vectors (length 1 within "
+                                 f"{UNIT_TOLERANCE:g}), got length {norms[bad]:.6g} for "
+                                 f"q[{bad}]")
+    else:
+        for key in ("polar_deg", "azimuth_deg"):
+            if key not in table:
+                raise SceneFileError(path, f"initial.{key}", "missing; expected q (unit "
+                                     "vectors) or polar_deg and azimuth_deg")
+        th, ph, rate_th, rate_ph = (np.radians(_per_sphere(path, table, k, n)) if k in table
+                                    else np.zeros(n) for k in list(INITIAL)[2:])
+        st, ct, sp, cp = np.sin(th), np.cos(th), np.sin(ph), np.cos(ph)
+        q = np.stack([st * cp, st * sp, ct], axis=-1)
+        qdot = (rate_th[:, None] * np.stack([ct * cp, ct * sp, -st], axis=-1)
+                + rate_ph[:, None] * np.stack([-st * sp, st * cp, np.zeros(n)], axis=-1))
+    if "qdot" in table:
+        qdot = _per_sphere(path, table, "qdot", n)
+    if np.any(np.abs(np.sum(q * qdot, axis=-1))
+              > UNIT_TOLERANCE * (1.0 + np.linalg.norm(qdot, axis=-1))):
+        raise SceneFileError(path, "initial.qdot", "velocities tangent to the spheres "
+                             "(q_i . qdot_i = 0)")
+    return jnp.asarray(q / np.linalg.norm(q, axis=-1, keepdims=True)), jnp.asarray(qdot)
+
+
+DIFFRAX_SOLVERS = ("Euler", "Heun", "Midpoint", "Ralston", "Bosh3", "Tsit5", "Dopri5",
+                   "Dopri8", "ImplicitEuler", "Kvaerno3", "Kvaerno4", "Kvaerno5")
+"""diffrax's ODE solvers a file may name (bare: unprojected, as in Python)."""
+PLAIN_SOLVERS = {"RK4": RK4, "LieRK4": LieRK4} | {n: getattr(diffrax, n) for n in DIFFRAX_SOLVERS}
+
+
+def parse_solver(text: str) -> diffrax.AbstractSolver:
+    """A solver spelled as in Python, `"Projected(Tsit5)"` -> `Projected(diffrax.Tsit5())`,
+    parsed over a whitelist (never evaluated). Raises `ValueError` for anything else."""
+    match = re.fullmatch(r"\s*(\w+)\s*(?:\((.*)\))?\s*", text)
+    name, inner = match.groups("") if match else ("", "")
+    order = re.fullmatch(r"\s*(?:order\s*=\s*(\d+)\s*)?", inner)
+    if name == "Projected" and inner:
+        return Projected(parse_solver(inner))
+    if name == "Variational" and order:
+        return Variational(order=int(order[1] or 2))
+    if name in PLAIN_SOLVERS and not inner.strip():
+        return PLAIN_SOLVERS[name]()
+    raise ValueError(f"a solver spelled as in Python: Projected(<solver>), RK4, LieRK4, "
+                     f"Variational, Variational(order=4) or a diffrax ODE solver "
+                     f"({', '.join(DIFFRAX_SOLVERS)}); got {text!r}")
+
+
+SIMULATE = {"solver": "a solver name", "t0": "a time in s", "t1": "a time in s after t0",
+            "dt0": "a step > 0 (s)", "rtol": "a number > 0", "atol": "a number > 0",
+            "max_steps": "an integer >= 1"}
+"""The keys of `[simulate]`: keyword arguments of `sm.simulate` (defaults as there)."""
+
+
+@dataclasses.dataclass
+class SceneSpec:
+    """Everything a scene file says, checked and converted: the arguments of
+    `sm.simulate` (`solver_name` as the file spells the solver) and the spacing
+    `save_dt` of the saved trajectory."""
+
+    path: Path
+    name: str
+    scene: Scene
+    y0: tuple
+    solver: diffrax.AbstractSolver
+    solver_name: str
+    t0: float
+    t1: float
+    dt0: float | None
+    rtol: float | None
+    atol: float | None
+    max_steps: int
+    save_dt: float
+
+
+def _table(path, data, key: str, allowed) -> dict:
+    table = data.get(key, {})
+    if not isinstance(table, dict):
+        raise SceneFileError(path, key, "a table")
+    _no_unknown(path, key, table, allowed)
+    return table
+
+
+def _simulate_args(path, data) -> dict:
+    table = _table(path, data, "simulate", SIMULATE)
+    if "t1" not in table:
+        raise SceneFileError(path, "simulate.t1", "missing; expected the end time in s")
+    defaults = inspect.signature(simulate).parameters
+    out = {k: table.get(k, defaults[k].default) for k in SIMULATE if k != "t1"}
+    out |= {"t1": table["t1"], "solver_name": table.get("solver", "Projected(Tsit5)")}
+    positive = lambda x: x is None or (_number(x) and x > 0)
+    checks = {"t0": _number, "t1": lambda x: _number(x) and x > out["t0"], "dt0": positive,
+              "rtol": positive, "atol": positive, "max_steps": lambda x: _integer(x) and x >= 1,
+              "solver_name": lambda x: isinstance(x, str)}
+    for key, ok in checks.items():
+        if not ok(out[key]):
+            field = key.removesuffix("_name")
+            raise SceneFileError(path, f"simulate.{field}", f"expected {SIMULATE[field]}, got "
+                                 f"{_show(out[key])}")
+    try:
+        out["solver"] = parse_solver(out["solver_name"])
+    except ValueError as e:
+        raise SceneFileError(path, "simulate.solver", str(e)) from None
+    if not isinstance(out["solver"], diffrax.AbstractAdaptiveSolver):
+        if out["dt0"] is None:
+            raise SceneFileError(path, "simulate.dt0", f"missing; expected a step size in s "
+                                 f"for the fixed-step solver {out['solver_name']}")
+        for key in ("rtol", "atol"):
+            if out[key] is not None:
+                raise SceneFileError(path, f"simulate.{key}", f"not used by the fixed-step "
+                                     f"solver {out['solver_name']} (give dt0 only)")
+    return out
+
+
+def _read(path: Path) -> dict:
+    try:
+        with open(path, "rb") as f:
+            return tomllib.load(f)
+    except tomllib.TOMLDecodeError as e:
+        raise SceneFileError(path, "(syntax)", f"valid TOML ({e})") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise SceneFileError(path, "(file)", f"an existing, readable UTF-8 text file ({e})") \
+            from None
+
+
+def load_scene(path) -> SceneSpec:
+    """Read and check a scene file (TOML, data only). Raises `SceneFileError`."""
+    path = Path(path)
+    data = _read(path)
+    _no_unknown(path, "", data, ("name", "effects", "initial", "simulate", "output"))
+    name = data.get("name", path.stem)
+    if not isinstance(name, str):
+        raise SceneFileError(path, "name", f"a string, got {_show(name)}")
+    scene = _scene(path, data.get("effects"))
+    y0 = _initial(path, data.get("initial"), scene.n)
+    args = _simulate_args(path, data)
+    save_dt = _table(path, data, "output", ("save_dt",)).get(
+        "save_dt", (args["t1"] - args["t0"]) / 1000)
+    if not (_number(save_dt) and save_dt > 0):
+        raise SceneFileError(path, "output.save_dt", f"expected a step > 0 (s), got "
+                             f"{_show(save_dt)}")
+    return SceneSpec(path, name, scene, y0, save_dt=save_dt, **args)
