@@ -23,8 +23,8 @@ from ._convert import (
 from ._convert import (
     qdot_from_omega as qdot_from_omega,
 )
-from ._fit import FitResult as FitResult
-from ._fit import fit as fit
+from ._fit.fit import FitResult as FitResult
+from ._fit.fit import fit as fit
 from ._geometry import (
     constraint_error as constraint_error,
 )
