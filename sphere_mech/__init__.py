@@ -10,7 +10,7 @@ from ._cli.report import (
     run_scene as run_scene,
     work_energy_balance as work_energy_balance,
 )
-from ._fit import FitResult as FitResult, fit as fit
+from ._fit.fit import FitResult as FitResult, fit as fit
 from ._geometry import (
     constraint_error as constraint_error,
     hat as hat,

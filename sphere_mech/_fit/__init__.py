@@ -1,0 +1,2 @@
+"""`fit` (`fit.py`, on `optimistix.least_squares`) and the multiple-shooting residuals it
+minimizes (`shooting.py`)."""

@@ -1,0 +1,155 @@
+"""Multiple shooting for `fit`: the records cut into segments, the residual function, and
+a custom JVP that builds each segment's Jacobian once."""
+
+from collections.abc import Callable
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import numpy as np
+from jax.flatten_util import ravel_pytree
+from jaxtyping import Array, PyTree
+
+from .._geometry import retract
+from .._simulate import simulate
+from .._system import AbstractSystem
+
+
+def split_segments(ts: Array, observations: Array, segments: int) -> tuple[Array, ...]:
+    """`ts (B, T)` and `observations (B, T, ...)` cut into `segments = K` pieces:
+    `(ts, obs, t0, t1, mask)`, each with leading axes `(B, K)`. Segment `k` runs from
+    observation `bounds[k]` to `bounds[k + 1]` and owns the observations from
+    `bounds[k]` up to the next segment's first (the last one: to the end), padded by
+    repeating its last one with `mask` False there."""
+    num_records, num_times = ts.shape
+    if not isinstance(segments, int) or segments < 1:
+        raise ValueError(f"segments must be a positive integer, got {segments!r}.")
+    if segments > num_times - 1:
+        raise ValueError(
+            f"segments={segments} needs at least {segments + 1} observation times, got {num_times}."
+        )
+    bounds = np.round(np.linspace(0, num_times - 1, segments + 1)).astype(int)
+    ends = np.append(bounds[1:-1], num_times)
+    index = bounds[:-1, None] + np.arange(np.max(ends - bounds[:-1]))
+    mask = jnp.broadcast_to(index < ends[:, None], (num_records,) + index.shape)
+    index = np.minimum(index, ends[:, None] - 1)
+    return ts[:, index], observations[:, index], ts[:, bounds[:-1]], ts[:, bounds[1:]], mask
+
+
+def model_output(model: Callable, params: PyTree) -> tuple[AbstractSystem, PyTree]:
+    """`model(params)` as a pair `(system, args)`."""
+    out = model(params)
+    if isinstance(out, AbstractSystem):
+        return out, None
+    if isinstance(out, tuple) and len(out) == 2 and isinstance(out[0], AbstractSystem):
+        return out
+    raise ValueError(
+        "model(params) must return a sphere_mech system or a pair (system, args), got "
+        f"{type(out).__name__}."
+    )
+
+
+def map_flagged(fn: Callable, tree: PyTree, flags: tuple[bool, ...]) -> PyTree:
+    """`fn` applied to the leaves of `tree` whose flag is True."""
+    leaves, treedef = jtu.tree_flatten(tree)
+    return jtu.tree_unflatten(
+        treedef, [fn(x) if f else x for x, f in zip(leaves, flags, strict=True)]
+    )
+
+
+class Residuals(eqx.Module):
+    """The least-squares residuals `(unknowns, (segment data, y0)) -> (observation
+    residuals (B, K, W, ...), continuity jumps ((B, K - 1, n, 3), (B, K - 1, n, 3)))`.
+
+    The unknowns are `(u, z)`: `u` the fitted parameters (leaves flagged `positive` as
+    their logarithm), `z` the ambient pairs `(a, b)` retracted to the starts of the
+    segments after the first (of all segments with `fit_initial_state`), or `None`."""
+
+    model: Callable
+    observe: Callable
+    positive: tuple[bool, ...] = eqx.field(static=True)
+    static_params: PyTree
+    fit_initial_state: bool = eqx.field(static=True)
+    continuity: Array
+    sim: dict
+    jac: str = eqx.field(static=True)
+
+    def params(self, u):
+        return eqx.combine(map_flagged(jnp.exp, u, self.positive), self.static_params)
+
+    def states(self, z, y0):
+        """Initial states of all segments, `(B, K, n, 3)` each, on the tangent bundle."""
+        if self.fit_initial_state:
+            return retract(*z)
+        q0, v0 = (y[:, None] for y in y0)
+        if z is None:
+            return q0, v0
+        q, v = retract(*z)
+        return jnp.concatenate([q0, q], 1), jnp.concatenate([v0, v], 1)
+
+    def segment(self, u, state, ts, obs, t0, t1, mask):
+        """Masked observation residuals of one segment and its state at `t1`."""
+        system, args = model_output(self.model, self.params(u))
+        saveat = diffrax.SaveAt(ts=jnp.append(ts, t1))
+        q, v = simulate(
+            system, state, t1, t0=t0, args=args, saveat=saveat, throw=False, **self.sim
+        ).ys
+        pred = jax.vmap(self.observe, in_axes=(None, 0, 0, 0))(system, ts, q[:-1], v[:-1])
+        mask = mask.reshape(mask.shape + (1,) * (pred.ndim - 1))
+        return jnp.where(mask, pred - obs, 0.0), (q[-1], v[-1])
+
+    def __call__(self, unknowns, data):
+        segment_data, y0 = data
+        u, z = unknowns
+        qs, vs = self.states(z, y0)
+        res, (q_end, v_end) = _segments(u, (qs, vs), problem=self, data=segment_data)
+        w = jnp.sqrt(self.continuity).astype(res.dtype)
+        return res, (w * (q_end[:, :-1] - qs[:, 1:]), w * (v_end[:, :-1] - vs[:, 1:]))
+
+
+def _over_segments(fn, states, data):
+    """`fn(state, ts, obs, t0, t1, mask)` over all records and segments."""
+    return jax.vmap(jax.vmap(fn))(states, *data)
+
+
+@eqx.filter_custom_jvp
+def _segments(u, states, *, problem, data):
+    return _over_segments(lambda s, *d: problem.segment(u, s, *d), states, data)
+
+
+@_segments.def_jvp
+def _segments_jvp(primals, tangents, *, problem, data):
+    """Segment `k` depends only on the parameters and its own initial state: build each
+    segment's Jacobian (`dim(u) + 6n` columns, forward mode; or its rows, reverse mode)
+    once, from the primals only, then apply it to any tangent. Under the `vmap` over
+    basis tangents that materializes the least-squares Jacobian, its cost is thus
+    independent of the number of segments."""
+    u, states = primals
+    du, dstates = (_fill_zeros(t, p) for t, p in zip(tangents, primals, strict=True))
+    u_flat, unravel_u = ravel_pytree(u)
+    s_flat, unravel_s = _ravel_segments(states)
+
+    def flat(u_, s_, *d):
+        out = problem.segment(unravel_u(u_), unravel_s(s_), *d)
+        return ravel_pytree(out)[0], out
+
+    jacobian = jax.jacfwd if problem.jac == "fwd" else jax.jacrev
+    block = jacobian(flat, argnums=(0, 1), has_aux=True)
+    (J_u, J_s), out = _over_segments(lambda s, *d: block(u_flat, s, *d), s_flat, data)
+    ds_flat = _ravel_segments(dstates)[0]
+    t_out = J_u @ ravel_pytree(du)[0] + jnp.einsum("bkrs,bks->bkr", J_s, ds_flat)
+    return out, jax.vmap(jax.vmap(_ravel_segments(out)[1]))(t_out)
+
+
+def _ravel_segments(tree):
+    """A pytree of `(B, K, ...)` arrays as `(B, K, m)`, and the unravel of one segment."""
+    flat = jax.vmap(jax.vmap(lambda x: ravel_pytree(x)[0]))(tree)
+    return flat, ravel_pytree(jtu.tree_map(lambda x: x[0, 0], tree))[1]
+
+
+def _fill_zeros(tangents, primals):
+    """Symbolic zero tangents (`None`) of array primals as arrays of zeros."""
+    fill = lambda t, p: jnp.zeros_like(p) if t is None and p is not None else t
+    return jtu.tree_map(fill, tangents, primals, is_leaf=lambda x: x is None)
