@@ -8,7 +8,9 @@ base torque, in float64, for n = 1, 2, 4, 8, 16, 32 links. Each is `jax.jit`-com
 (compile time reported separately), `jax.vmap`-ed over a batch of states, and timed as the
 median over repeats of the wall time per batch divided by the batch size. The two paths
 are first checked to agree. The baseline is the general path measured in the same run.
-Prints a markdown table; writes benchmarks/results/fast_path.{png,md}.
+A third column times Hamilton's equations of `sm.legendre(chain)` (the inverse Legendre
+map by the same O(n) fast path, gradients by the envelope theorem) against the chain's
+own accelerations. Prints a markdown table; writes benchmarks/results/fast_path.{png,md}.
 
     python benchmarks/fast_path.py [--quick]
 """
@@ -46,13 +48,13 @@ def make_systems(n):
     return chain, general
 
 
-def batched_accelerations(system):
-    """jit(vmap(accelerations)) with a guard against recompilation."""
+def batched_rates(system):
+    """jit(vmap(rates)) with a guard against recompilation."""
 
     @jax.jit
     @eqx.debug.assert_max_traces(max_traces=1)
-    def run(q, qdot):
-        return jax.vmap(lambda q_, v_: system.rates(0.0, (q_, v_), None)[1])(q, qdot)
+    def run(q, v):
+        return jax.vmap(lambda q_, v_: system.rates(0.0, (q_, v_), None))(q, v)
 
     return run
 
@@ -75,33 +77,42 @@ def main():
     parser.add_argument("--quick", action="store_true", help="n <= 8, fewer repeats")
     parser.add_argument("--batch", type=int, default=256)
     opts = parser.parse_args()
-    ns = [1, 2, 4, 8] if opts.quick else [1, 2, 4, 8, 16, 32]
+    ns = [1, 2, 4, 8] if opts.quick else [1, 2, 4, 8, 16, 32, 64]
     repeats = 5 if opts.quick else 20
     rows = []
     for n in ns:
         chain, general = make_systems(n)
         keys = jax.random.split(jax.random.PRNGKey(n), opts.batch)
         q, qdot = jax.vmap(lambda k, n=n: sm.random_state(k, n))(keys)
-        fast_fn, general_fn = batched_accelerations(chain), batched_accelerations(general)
+        fast_fn, general_fn = batched_rates(chain), batched_rates(general)
+        hamilton_fn = batched_rates(sm.legendre(chain))
+        mu = jax.vmap(lambda q_, v_: chain.momentum(0.0, q_, v_, None))(q, qdot)
         fast, fast_compile = time_per_evaluation(fast_fn, q, qdot, repeats)
         slow, slow_compile = time_per_evaluation(general_fn, q, qdot, repeats)
-        reference = general_fn(q, qdot)
-        error = float(jnp.max(jnp.abs(fast_fn(q, qdot) - reference)))
+        ham, _ = time_per_evaluation(hamilton_fn, q, mu, repeats)
+        reference = general_fn(q, qdot)[1]
+        error = float(jnp.max(jnp.abs(fast_fn(q, qdot)[1] - reference)))
         scale = float(jnp.max(jnp.abs(reference)))
         assert error < 1e-10 * scale, f"paths disagree at n={n}: {error}"
-        rows.append((n, fast, slow, slow / fast, fast_compile, slow_compile, error / scale))
-        print(f"n={n}: fast {fast * 1e6:.2f} us, general {slow * 1e6:.2f} us", flush=True)
+        legendre_error = float(jnp.max(jnp.abs(hamilton_fn(q, mu)[0] - qdot)))
+        assert legendre_error < 1e-10 * float(jnp.max(jnp.abs(qdot))), legendre_error
+        rows.append((n, fast, slow, slow / fast, fast_compile, slow_compile, error / scale,
+                     ham, ham / fast))
+        print(f"n={n}: fast {fast * 1e6:.2f} us, general {slow * 1e6:.2f} us, "
+              f"legendre {ham * 1e6:.2f} us", flush=True)
 
     header = (
         f"Acceleration evaluations, float64, jit(vmap) over a batch of {opts.batch} states, "
         f"median of {repeats} repeats, {jax.device_count()} device(s).\n\n"
         "| n | fast path (us/eval) | general path (us/eval) | speed-up | compile fast (s) "
-        "| compile general (s) | max rel. difference |\n"
-        "|---:|---:|---:|---:|---:|---:|---:|\n"
+        "| compile general (s) | max rel. difference | legendre(chain) (us/eval) "
+        "| legendre / fast |\n"
+        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n"
     )
     table = header + "".join(
-        f"| {n} | {f * 1e6:.3f} | {s * 1e6:.3f} | {r:.1f}x | {cf:.2f} | {cs:.2f} | {e:.1e} |\n"
-        for n, f, s, r, cf, cs, e in rows
+        f"| {n} | {f * 1e6:.3f} | {s * 1e6:.3f} | {r:.1f}x | {cf:.2f} | {cs:.2f} | {e:.1e} "
+        f"| {h * 1e6:.3f} | {hr:.2f} |\n"
+        for n, f, s, r, cf, cs, e, h, hr in rows
     )
     print()
     print(table)
@@ -112,6 +123,7 @@ def main():
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
     ax1.loglog(n_arr, [r[1] * 1e6 for r in rows], "o-", label="fast path (constant inertia)")
     ax1.loglog(n_arr, [r[2] * 1e6 for r in rows], "s-", label="general path (autodiff Hessian)")
+    ax1.loglog(n_arr, [r[7] * 1e6 for r in rows], "^-", label="legendre(chain): Hamilton")
     ax1.set_xlabel("links n")
     ax1.set_ylabel("time per acceleration evaluation (us)")
     ax1.set_xscale("log", base=2)

@@ -26,6 +26,7 @@ from ._scene.kinetic import Chain, Particles, SharedSphere
 from ._scene.potentials import Bending, Gravity, PairInteraction, Spring
 from ._scene.scene import Scene
 from ._simulate import simulate
+from ._solve import options
 from ._solvers.liegroup import LieRK4
 from ._solvers.projected import Projected
 from ._solvers.rk4 import RK4
@@ -285,14 +286,11 @@ def _simulate_args(path, data) -> dict:
         out["solver"] = parse_solver(out["solver_name"])
     except ValueError as e:
         raise SceneFileError(path, "simulate.solver", str(e)) from None
-    if not isinstance(out["solver"], diffrax.AbstractAdaptiveSolver):
-        if out["dt0"] is None:
-            raise SceneFileError(path, "simulate.dt0", f"missing; expected a step size in s "
-                                 f"for the fixed-step solver {out['solver_name']}")
-        for key in ("rtol", "atol"):
-            if out[key] is not None:
-                raise SceneFileError(path, f"simulate.{key}", f"not used by the fixed-step "
-                                     f"solver {out['solver_name']} (give dt0 only)")
+    try:  # the options simulate would refuse, with its words
+        options(out["solver"], out["dt0"], out["rtol"], out["atol"], None, None,
+                out["max_steps"], None, False, np.float64)
+    except ValueError as e:
+        raise SceneFileError(path, "simulate", str(e)) from None
     return out
 
 

@@ -110,20 +110,30 @@ def solve(system, y0, t0, t1, dt0, args, opts: Options) -> diffrax.Solution:
     `RESULTS` code. Non-finite rates at the initial state give
     `RESULTS.nonfinite_initial`; a trajectory that stepped into NaN without any solver
     noticing (fixed steps of a solver that does not check), `RESULTS.nonfinite`."""
-    initial_ok = _all_finite(system.rates(t0, y0, args))
+    ok = _all_finite(system.rates(t0, y0, args))
+    # Not finite at the start: integrate over [t0, t0] (no step, nothing saved) instead
+    # of letting an adaptive controller reject NaN steps until max_steps.
+    saveat = eqx.tree_at(_save_times, opts.saveat, replace_fn=lambda ts: jnp.where(ok, ts, t0))
     sol = diffrax.diffeqsolve(
-        MechanicsTerm(system), opts.solver, t0, t1, dt0, y0, args=args, saveat=opts.saveat,
-        stepsize_controller=opts.controller, max_steps=opts.max_steps,
+        MechanicsTerm(system), opts.solver, t0, jnp.where(ok, t1, t0), dt0, y0, args=args,
+        saveat=saveat, stepsize_controller=opts.controller, max_steps=opts.max_steps,
         progress_meter=opts.meter, adjoint=opts.adjoint, throw=False,
     )
     # Unreached save times are `inf` in diffrax, never NaN: only NaN is looked for.
     has_nan = jnp.any(jnp.stack([jnp.any(jnp.isnan(y)) for y in jax.tree.leaves(sol.ys)]))
     result = RESULTS.promote(sol.result)
     result = RESULTS.where((result == RESULTS.successful) & has_nan, RESULTS.nonfinite, result)
-    result = RESULTS.where(initial_ok, result, RESULTS.nonfinite_initial)
-    ys = _retract_saved(opts.saveat, sol.ys)
-    return eqx.tree_at(lambda s: (s.result, s.ys), sol, (result, ys),
+    result = RESULTS.where(ok, result, RESULTS.nonfinite_initial)
+    ts, ys = jax.tree.map(lambda x: jnp.where(ok, x, jnp.inf),
+                          (sol.ts, _retract_saved(opts.saveat, sol.ys)))
+    return eqx.tree_at(lambda s: (s.result, s.ts, s.ys), sol, (result, ts, ys),
                        is_leaf=lambda x: x is None)
+
+
+def _save_times(saveat: diffrax.SaveAt) -> list:
+    is_sub = lambda x: isinstance(x, diffrax.SubSaveAt)
+    subs = jax.tree.leaves(saveat.subs, is_leaf=is_sub)
+    return [sub.ts for sub in subs if is_sub(sub) and sub.ts is not None]
 
 
 _DEFAULT_SAVE_FN = diffrax.SubSaveAt(t1=True).fn

@@ -549,13 +549,19 @@ def test_bad_solver_spellings_are_rejected(spelling, tmp_path):
         sm.load_scene(_file(tmp_path, simulate=f'solver = "{spelling}"'))
 
 
-def test_fixed_step_solvers_need_dt0_only(tmp_path):
-    with pytest.raises(sm.SceneFileError, match=r"simulate\.dt0: missing; expected a step "
-                       r"size in s for the fixed-step solver Projected\(RK4\)"):
-        sm.load_scene(_file(tmp_path, simulate='solver = "Projected(RK4)"'))
-    with pytest.raises(sm.SceneFileError, match=r"simulate\.rtol: not used by the fixed-step "
-                       r"solver Variational \(give dt0 only\)"):
-        sm.load_scene(_file(tmp_path, simulate='solver = "Variational"\ndt0 = 0.01\nrtol = 1e-6'))
+def test_fixed_step_solvers_need_dt0_only(tmp_path, getkey):
+    """The scene file refuses what `simulate` refuses, with simulate's words."""
+    chain, y0 = sm.chain_pendulum([1.0], [1.0]), sm.random_state(getkey(), 1)
+    cases = [('solver = "Projected(RK4)"', dict(solver=sm.Projected(sm.RK4()))),
+             ('solver = "Variational"\ndt0 = 0.01\nrtol = 1e-6',
+              dict(solver=sm.Variational(), dt0=0.01, rtol=1e-6))]
+    for text, kwargs in cases:
+        with pytest.raises(ValueError) as python:
+            sm.simulate(chain, y0, 1.0, **kwargs)
+        assert "fixed steps" in str(python.value)
+        with pytest.raises(sm.SceneFileError) as file:
+            sm.load_scene(_file(tmp_path, simulate=text))
+        assert str(file.value).endswith(f"simulate: {python.value}")
 
 
 def test_simulate_keys_are_the_python_names(tmp_path):
