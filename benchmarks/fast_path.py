@@ -86,7 +86,7 @@ def main():
         q, qdot = jax.vmap(lambda k, n=n: sm.random_state(k, n))(keys)
         fast_fn, general_fn = batched_rates(chain), batched_rates(general)
         hamilton_fn = batched_rates(sm.legendre(chain))
-        mu = jax.vmap(lambda q_, v_: chain.momentum(0.0, q_, v_, None))(q, qdot)
+        mu = jax.vmap(lambda q_, v_, c=chain: c.momentum(0.0, q_, v_, None))(q, qdot)
         fast, fast_compile = time_per_evaluation(fast_fn, q, qdot, repeats)
         slow, slow_compile = time_per_evaluation(general_fn, q, qdot, repeats)
         ham, _ = time_per_evaluation(hamilton_fn, q, mu, repeats)
