@@ -63,7 +63,8 @@ def angular(system: AbstractSystem) -> AbstractSystem:
 
 def _velocity(system, t, q, p, args, quadratic):
     v, result = system.velocity_from_momentum(t, q, p, args, quadratic=quadratic)
-    return eqx.error_if(v, result != RESULTS.successful, RESULTS[RESULTS.legendre_failed])
+    failed = RESULTS.promote(result) != RESULTS.successful
+    return eqx.error_if(v, failed, RESULTS[RESULTS.legendre_failed])
 
 
 def _materialize(primal, tangent):
