@@ -145,22 +145,20 @@ def test_nan_hamiltonian(state):
     [([1.0, 0.0], [1.0, 1.0]), ([0.0, 1.0], [1.0, 1.0]), ([1.0, 1.0], [1.0, 0.0])],
 )
 def test_degenerate_chain(masses, lengths, state):
-    """Refused at construction; the same chain as a constant-inertia system or a general
-    Lagrangian is singular at run time, with a message that says so."""
+    """Refused at construction; the same chain as a constant-inertia system is singular
+    at run time, with a message that says so."""
     q, v = state
     with pytest.raises(ValueError, match=r"(masses|lengths) must be > 0"):
         sm.chain_pendulum(jnp.array(masses), jnp.array(lengths))
     m, lengths = jnp.array(masses), jnp.array(lengths)
     M = jnp.outer(lengths, lengths) * jnp.cumsum(m[::-1])[::-1][jnp.maximum(*jnp.indices((2, 2)))]
     fast = sm.ConstantInertiaLagrangian(M, lambda t, q, args: -9.81 * q[0, 2])
-    general = sm.Lagrangian(fast.lagrangian)
-    for system in (fast, general):
-        with pytest.raises(eqx.EquinoxRuntimeError, match=SINGULAR):
-            system.acceleration(0.0, q, v)
+    with pytest.raises(eqx.EquinoxRuntimeError, match=SINGULAR):
+        fast.acceleration(0.0, q, v)
 
 
 def test_chain_constructor():
-    with pytest.raises(ValueError, match="lengths must be a scalar or 2 values, one per sphere"):
+    with pytest.raises(ValueError, match="must be a scalar or 3 values, one per sphere"):
         sm.chain_pendulum(jnp.ones(2), jnp.ones(3))
     with pytest.raises(ValueError, match="g must be a scalar"):
         sm.chain_pendulum(jnp.ones(2), jnp.ones(2), g=jnp.ones(3))
