@@ -101,6 +101,7 @@ def simulate_batch(
     max_steps: int | None = DEFAULT_MAX_STEPS,
     progress: bool = False,
     adjoint: diffrax.AbstractAdjoint | None = None,
+    event: diffrax.Event | None = None,
     throw: bool = True,
     chunk_size: int | None = None,
     devices=None,
@@ -148,7 +149,7 @@ def simulate_batch(
         _leading(eqx.filter(system, eqx.is_array), size, "system")
     system, args = as_arrays((system, args))
     opts = options(solver, dt0, rtol, atol, stepsize_controller, saveat, max_steps, adjoint,
-                   progress, q0.dtype)
+                   progress, event, q0.dtype)
     t0, t1, dt0 = times(q0.dtype, t0, t1, dt0)  # values, not structure
     dynamic, static = eqx.partition((system, args, t0, t1, dt0, opts), eqx.is_array)
     mask = jax.tree.map(lambda _: False, dynamic)

@@ -125,6 +125,10 @@ class ConstantInertiaLagrangian(AbstractConstantInertiaLagrangian):
             if len(shape) != 2 or shape[0] != shape[1]:
                 raise ValueError(f"inertia must be a square (n, n) matrix, got shape {shape}.")
 
+    @property
+    def n(self) -> int | None:
+        return None if callable(self.inertia_matrix) else self.inertia_matrix.shape[0]
+
     def inertia(self, args):
         M = self.inertia_matrix
         return M(args) if callable(M) else M

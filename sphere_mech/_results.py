@@ -47,6 +47,12 @@ def code(result) -> jax.Array:
     return jax.tree.leaves(result)[0]
 
 
+def failed(values) -> jax.Array:
+    """Which code values are failures: neither success nor a terminating event."""
+    ok = [code(RESULTS.successful), code(RESULTS.event_occurred)]
+    return (values != ok[0]) & (values != ok[1])
+
+
 def _messages(max_steps) -> list[str]:
     """The error message of every code, indexed by its value."""
     hints = {int(code(item)): hint for item, hint in _HINTS}
@@ -57,23 +63,24 @@ def _messages(max_steps) -> list[str]:
 
 
 def raise_on_failure(sol: diffrax.Solution, max_steps, what: str) -> diffrax.Solution:
-    """Raise if any trajectory of `sol` failed (its result codes may have batch axes):
+    """Raise if any trajectory of `sol` failed (its result codes may have batch axes; a
+    terminating event is no failure):
     a `RuntimeError` naming how many, which and why when called eagerly, an
     `eqx.branched_error_if` check with the same message when traced."""
     values = jnp.ravel(code(sol.result))
     messages = _messages(max_steps)
     if isinstance(values, jax.core.Tracer):
-        first = values[jnp.argmax(values != 0)]
+        first = values[jnp.argmax(failed(values))]
         prefixed = [f"{what}: {m}" for m in messages]
-        ys = eqx.branched_error_if(sol.ys, jnp.any(values != 0), first, prefixed)
+        ys = eqx.branched_error_if(sol.ys, jnp.any(failed(values)), first, prefixed)
         return eqx.tree_at(lambda s: s.ys, sol, ys, is_leaf=lambda x: x is None)
     values = np.asarray(values)
-    failed = np.flatnonzero(values)
-    if failed.size == 0:
+    bad = np.flatnonzero(failed(values))
+    if bad.size == 0:
         return sol
     where = ""
     if values.size > 1:
-        shown = ", ".join(map(str, failed[:10])) + (", ..." if failed.size > 10 else "")
-        where = (f" {failed.size} of {values.size} trajectories failed (indices {shown}); "
-                 f"trajectory {failed[0]}:")
-    raise RuntimeError(f"{what}:{where} {messages[values[failed[0]]]}")
+        shown = ", ".join(map(str, bad[:10])) + (", ..." if bad.size > 10 else "")
+        where = (f" {bad.size} of {values.size} trajectories failed (indices {shown}); "
+                 f"trajectory {bad[0]}:")
+    raise RuntimeError(f"{what}:{where} {messages[values[bad[0]]]}")

@@ -288,7 +288,7 @@ def _simulate_args(path, data) -> dict:
         raise SceneFileError(path, "simulate.solver", str(e)) from None
     try:  # the options simulate would refuse, with its words
         options(out["solver"], out["dt0"], out["rtol"], out["atol"], None, None,
-                out["max_steps"], None, False, np.float64)
+                out["max_steps"], None, False, None, np.float64)
     except ValueError as e:
         raise SceneFileError(path, "simulate", str(e)) from None
     return out

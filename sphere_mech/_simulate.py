@@ -26,6 +26,7 @@ def simulate(
     max_steps: int | None = DEFAULT_MAX_STEPS,
     progress: bool = False,
     adjoint: diffrax.AbstractAdjoint | None = None,
+    event: diffrax.Event | None = None,
     throw: bool = True,
 ) -> diffrax.Solution:
     """Integrate `system` from `y0 = (q0, v0)` at `t0` to `t1`.
@@ -55,6 +56,13 @@ def simulate(
     - `max_steps`: maximum number of steps (default 100 000).
     - `progress`: show a tqdm progress bar (diffrax's `TqdmProgressMeter`).
     - `adjoint`: a diffrax adjoint for gradients (default: checkpointed reverse mode).
+    - `event`: a `diffrax.Event` that stops the run, e.g. `diffrax.Event(lambda t, y,
+      args, **kw: y[0][0, 1], root_finder=optimistix.Newton(1e-12, 1e-12))` stops where
+      the first point crosses the plane `y = 0` (located to the root finder's tolerance
+      on the dense output; without a root finder, at the end of the step). Then
+      `sol.result` is `RESULTS.event_occurred` (no failure: nothing raises),
+      `sol.ts[-1]`/`sol.ys` hold the event time and state with `SaveAt(t1=True)`, and
+      `sol.event_mask` says which event fired.
     - `throw`: what to do when the run fails (`max_steps` reached, Newton iterations of
       an implicit solver not converging, a state that became NaN, equations of motion
       not finite at the initial state). `True` (default): raise a `RuntimeError` whose
@@ -70,7 +78,7 @@ def simulate(
     system, args = as_arrays((system, args))
     y0 = initial_state(system, y0)
     opts = options(solver, dt0, rtol, atol, stepsize_controller, saveat, max_steps, adjoint,
-                   progress, y0[0].dtype)
+                   progress, event, y0[0].dtype)
     t0, t1, dt0 = times(y0[0].dtype, t0, t1, dt0)
     sol = _solve(system, y0, t0, t1, dt0, args, opts)
     return raise_on_failure(sol, max_steps, "simulate") if throw else sol

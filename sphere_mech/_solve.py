@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._checks import check_shapes, check_state
+from ._checks import check_shapes
 from ._geometry import retract
 from ._results import RESULTS
 from ._solvers.projected import Projected
@@ -32,11 +32,12 @@ class Options(eqx.Module):
     saveat: diffrax.SaveAt
     adjoint: diffrax.AbstractAdjoint
     meter: diffrax.AbstractProgressMeter
+    event: diffrax.Event | None
     max_steps: int | None = eqx.field(static=True)
 
 
 def options(solver, dt0, rtol, atol, stepsize_controller, saveat, max_steps, adjoint,
-            progress, dtype) -> Options:
+            progress, event, dtype) -> Options:
     """Check and complete the options of `simulate`/`simulate_batch` (static errors)."""
     solver = default_solver() if solver is None else solver
     if stepsize_controller is not None:
@@ -70,7 +71,8 @@ def options(solver, dt0, rtol, atol, stepsize_controller, saveat, max_steps, adj
     return Options(
         solver, controller, diffrax.SaveAt(t1=True) if saveat is None else saveat,
         diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint,
-        diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter(), max_steps,
+        diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter(), event,
+        max_steps,
     )
 
 
@@ -98,7 +100,7 @@ def initial_state(system: AbstractSystem, y0):
     q0, v0 = (jnp.asarray(x) for x in y0)
     check_shapes(q0, v0, system.state_name)
     dtype = jnp.result_type(q0, v0)  # one floating dtype for the whole state
-    return retract(*check_state(q0.astype(dtype), v0.astype(dtype), system.state_name))
+    return retract(*system.check_state(q0.astype(dtype), v0.astype(dtype)))
 
 
 def _all_finite(tree) -> jax.Array:
@@ -117,7 +119,7 @@ def solve(system, y0, t0, t1, dt0, args, opts: Options) -> diffrax.Solution:
     sol = diffrax.diffeqsolve(
         MechanicsTerm(system), opts.solver, t0, jnp.where(ok, t1, t0), dt0, y0, args=args,
         saveat=saveat, stepsize_controller=opts.controller, max_steps=opts.max_steps,
-        progress_meter=opts.meter, adjoint=opts.adjoint, throw=False,
+        progress_meter=opts.meter, adjoint=opts.adjoint, event=opts.event, throw=False,
     )
     # Unreached save times are `inf` in diffrax, never NaN: only NaN is looked for.
     has_nan = jnp.any(jnp.stack([jnp.any(jnp.isnan(y)) for y in jax.tree.leaves(sol.ys)]))

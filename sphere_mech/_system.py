@@ -73,9 +73,18 @@ class AbstractSystem(eqx.Module):
             return jnp.zeros((), dtype=jnp.result_type(q))
         return jnp.sum(f * self.velocity(t, q, v, args))
 
+    @property
+    def n(self) -> int | None:
+        """The number of spheres when the system fixes it (scenes, constant-inertia
+        systems with an inertia matrix), else `None` (any `n`: `L` decides)."""
+        return None
+
     def check_state(self, q: Points, v: Tangents) -> State:
-        """Raise a clear error if `(q, v)` is not a valid state (shape, unit length,
-        tangency); returns the unchanged state."""
+        """Raise a clear error if `(q, v)` is not a valid state (shape, number of spheres,
+        unit length, tangency); returns the unchanged state."""
+        if self.n is not None and jnp.ndim(q) == 2 and jnp.shape(q)[0] != self.n:
+            raise ValueError(f"the state has {jnp.shape(q)[0]} spheres but the system has "
+                             f"{self.n}: q must have shape ({self.n}, 3), got {jnp.shape(q)}.")
         return check_state(q, v, self.state_name)
 
     def to_linear(self, q: Points, v: Tangents) -> Tangents:

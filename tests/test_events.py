@@ -1,0 +1,88 @@
+"""Events: `simulate` and `simulate_batch` stop where a `diffrax.Event` fires; periods of a
+spherical pendulum located by events against their closed forms."""
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+import pytest
+from scipy.special import ellipk
+
+import sphere_mech as sm
+
+G, LENGTH = 9.81, 0.7
+PENDULUM = sm.chain_pendulum([1.0], [LENGTH], G)
+TOL = dict(rtol=1e-12, atol=1e-12)
+NEWTON = optx.Newton(rtol=1e-13, atol=1e-13)
+
+
+def crossing(axis):
+    """An event: the mass crosses the plane `x_axis = 0` downward."""
+    return diffrax.Event(lambda t, y, args, **kw: y[0][0, axis], root_finder=NEWTON,
+                         direction=False)
+
+
+def planar(theta0):
+    q = jnp.array([[jnp.sin(theta0), 0.0, -jnp.cos(theta0)]])
+    return q, jnp.zeros_like(q)
+
+
+def quarter_period(theta0):
+    """Released at rest at angle `theta0`: a quarter period, `sqrt(l/g) K(sin^2(theta0/2))`."""
+    return np.sqrt(LENGTH / G) * ellipk(np.sin(theta0 / 2) ** 2)
+
+
+@pytest.mark.parametrize("theta0", [0.05, 1.0])
+def test_planar_period(theta0):
+    sol = sm.simulate(PENDULUM, planar(theta0), 10.0, event=crossing(0), **TOL)
+    assert sol.result == sm.RESULTS.event_occurred
+    t = float(sol.ts[-1])
+    assert abs(t / quarter_period(theta0) - 1) < 1e-9
+    if theta0 < 0.1:  # small oscillations: 2 pi sqrt(l/g) (1 + theta0^2/16 + ...)
+        assert abs(4 * t / (2 * np.pi * np.sqrt(LENGTH / G)) - 1) < theta0**2 / 16 * 1.01
+    np.testing.assert_allclose(sol.ys[0][-1, 0, 0], 0.0, atol=1e-12)  # on the plane
+
+
+def test_conical_orbit_period():
+    """At polar angle `alpha` from the downward vertical with rate `Omega`,
+    `Omega^2 = g / (l cos alpha)`: the mass comes back to the plane y = 0 after pi / Omega."""
+    alpha = 0.6
+    omega = np.sqrt(G / (LENGTH * np.cos(alpha)))
+    q = jnp.array([[np.sin(alpha), 0.0, -np.cos(alpha)]])
+    qdot = omega * jnp.cross(jnp.array([0.0, 0.0, 1.0]), q)
+    sol = sm.simulate(PENDULUM, (q, qdot), 10.0, event=crossing(1), **TOL)
+    assert abs(float(sol.ts[-1]) * omega / np.pi - 1) < 1e-9
+    np.testing.assert_allclose(sol.ys[0][-1, 0, 2], -np.cos(alpha), atol=1e-10)  # stays
+
+
+def test_batch_of_periods_and_saved_states():
+    """Every trajectory stops at its own event; saves past it are `inf`; no error."""
+    thetas = jnp.linspace(0.2, 2.0, 4)
+    y0 = jax.vmap(planar)(thetas)
+    ts = jnp.linspace(0.0, 2.0, 41)
+    sol = sm.simulate_batch(PENDULUM, y0, 2.0, event=crossing(0), batch_args=False,
+                            saveat=diffrax.SaveAt(ts=ts, t1=True), **TOL)
+    assert np.all(np.asarray(sol.result == sm.RESULTS.event_occurred))
+    expected = np.array([quarter_period(float(th)) for th in thetas])
+    t_event = np.asarray(sol.ts)[:, -1]
+    np.testing.assert_allclose(t_event, expected, rtol=1e-9)
+    q = np.asarray(sol.ys[0])[:, :-1]
+    for k, t in enumerate(t_event):
+        assert np.all(np.isfinite(q[k][np.asarray(ts) < t]))
+        assert np.all(np.isinf(q[k][np.asarray(ts) > t]))
+
+
+def test_wrong_number_of_spheres_names_both_sizes(getkey):
+    chain = sm.chain_pendulum([1.0, 1.0], [1.0, 1.0])
+    q, v = sm.random_state(getkey(), 3)
+    message = r"the state has 3 spheres but the system has 2: q must have shape \(2, 3\)"
+    with pytest.raises(ValueError, match=message):
+        sm.simulate(chain, (q, v), 1.0)
+    with pytest.raises(ValueError, match=message):
+        chain.acceleration(0.0, q, v)
+    with pytest.raises(ValueError, match=message):
+        sm.simulate_batch(chain, (q[None], v[None]), 1.0, batch_args=False)
+    fast = sm.ConstantInertiaLagrangian(jnp.eye(2), lambda t, q, args: jnp.sum(q[:, 2]))
+    with pytest.raises(ValueError, match=message):
+        sm.simulate(fast, (q, v), 1.0)
