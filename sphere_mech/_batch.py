@@ -55,10 +55,10 @@ def _local_solve(static, chunk, shared, batched, y0):
 
 
 @eqx.filter_jit
-def _initial_states(system, y0):
+def _initial_states(state_name, y0):
     """Validate and retract the initial states, outside the sharded program (its checks
     are host callbacks, which should not run inside `shard_map`)."""
-    return jax.vmap(lambda y: initial_state(system, y))(y0)
+    return jax.vmap(lambda y: initial_state(state_name, y))(y0)
 
 
 @eqx.filter_jit
@@ -160,6 +160,8 @@ def simulate_batch(
     per_device = -(-size // len(devices))
     chunk = _chunk_size(chunk_size, n, per_device, devices[0].platform)
     padded = -(-size // (chunk * len(devices))) * chunk * len(devices)
-    y0 = _initial_states(eqx.filter(system, lambda x: not eqx.is_array(x)), (q0, v0))
+    one = jax.tree.map(lambda x: x[0] if eqx.is_array(x) else x, system) if batch_system else system
+    one.check_size(q0[0])
+    y0 = _initial_states(system.state_name, (q0, v0))
     sol = _solve_batch(static, chunk, mesh, shared, batched, y0, size, padded)
     return raise_on_failure(sol, max_steps, "simulate_batch") if throw else sol

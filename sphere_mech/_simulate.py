@@ -2,6 +2,7 @@
 
 import diffrax
 import equinox as eqx
+import jax.numpy as jnp
 
 from ._results import raise_on_failure
 from ._solve import DEFAULT_MAX_STEPS, as_arrays, initial_state, options, solve, times
@@ -76,7 +77,8 @@ def simulate(
     and whose `result` is an `sm.RESULTS` code.
     """
     system, args = as_arrays((system, args))
-    y0 = initial_state(system, y0)
+    system.check_size(jnp.asarray(y0[0]))
+    y0 = initial_state(system.state_name, y0)
     opts = options(solver, dt0, rtol, atol, stepsize_controller, saveat, max_steps, adjoint,
                    progress, event, y0[0].dtype)
     t0, t1, dt0 = times(y0[0].dtype, t0, t1, dt0)

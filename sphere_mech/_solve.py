@@ -7,11 +7,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._checks import check_shapes
+from ._checks import check_shapes, check_state
 from ._geometry import retract
 from ._results import RESULTS
 from ._solvers.projected import Projected
-from ._system import AbstractSystem
 from ._term import MechanicsTerm
 
 DEFAULT_MAX_STEPS = 100_000
@@ -90,17 +89,18 @@ def times(dtype, *ts):
     return tuple(None if t is None else jnp.asarray(t, dtype=dtype) for t in ts)
 
 
-def initial_state(system: AbstractSystem, y0):
-    """Check an initial state `(q0, v0)` and put it exactly on the tangent bundle.
+def initial_state(state_name: str, y0):
+    """Check an initial state `(q0, v0)` (`v0` named `state_name`) and put it exactly on
+    the tangent bundle.
 
     States within `unit_tolerance(dtype)` of the spheres (and of tangency) are accepted
     and corrected (`q_i / |q_i|`, normal part of `v_i` removed); farther ones raise."""
     if not (isinstance(y0, tuple | list) and len(y0) == 2):
         raise ValueError("y0 must be a pair (q0, v0) of (n, 3) arrays.")
     q0, v0 = (jnp.asarray(x) for x in y0)
-    check_shapes(q0, v0, system.state_name)
+    check_shapes(q0, v0, state_name)
     dtype = jnp.result_type(q0, v0)  # one floating dtype for the whole state
-    return retract(*system.check_state(q0.astype(dtype), v0.astype(dtype)))
+    return retract(*check_state(q0.astype(dtype), v0.astype(dtype), state_name))
 
 
 def _all_finite(tree) -> jax.Array:

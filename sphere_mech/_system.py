@@ -79,12 +79,16 @@ class AbstractSystem(eqx.Module):
         systems with an inertia matrix), else `None` (any `n`: `L` decides)."""
         return None
 
-    def check_state(self, q: Points, v: Tangents) -> State:
-        """Raise a clear error if `(q, v)` is not a valid state (shape, number of spheres,
-        unit length, tangency); returns the unchanged state."""
+    def check_size(self, q: Points) -> None:
+        """Raise `ValueError` if `q` does not have the system's number of spheres."""
         if self.n is not None and jnp.ndim(q) == 2 and jnp.shape(q)[0] != self.n:
             raise ValueError(f"the state has {jnp.shape(q)[0]} spheres but the system has "
                              f"{self.n}: q must have shape ({self.n}, 3), got {jnp.shape(q)}.")
+
+    def check_state(self, q: Points, v: Tangents) -> State:
+        """Raise a clear error if `(q, v)` is not a valid state (shape, number of spheres,
+        unit length, tangency); returns the unchanged state."""
+        self.check_size(q)
         return check_state(q, v, self.state_name)
 
     def to_linear(self, q: Points, v: Tangents) -> Tangents:

@@ -61,13 +61,14 @@ def test_batch_of_periods_and_saved_states():
     thetas = jnp.linspace(0.2, 2.0, 4)
     y0 = jax.vmap(planar)(thetas)
     ts = jnp.linspace(0.0, 2.0, 41)
+    saveat = diffrax.SaveAt(subs=[diffrax.SubSaveAt(ts=ts), diffrax.SubSaveAt(t1=True)])
     sol = sm.simulate_batch(PENDULUM, y0, 2.0, event=crossing(0), batch_args=False,
-                            saveat=diffrax.SaveAt(ts=ts, t1=True), **TOL)
+                            saveat=saveat, **TOL)
     assert np.all(np.asarray(sol.result == sm.RESULTS.event_occurred))
     expected = np.array([quarter_period(float(th)) for th in thetas])
-    t_event = np.asarray(sol.ts)[:, -1]
+    t_event = np.asarray(sol.ts[1])[:, 0]
     np.testing.assert_allclose(t_event, expected, rtol=1e-9)
-    q = np.asarray(sol.ys[0])[:, :-1]
+    q = np.asarray(sol.ys[0][0])
     for k, t in enumerate(t_event):
         assert np.all(np.isfinite(q[k][np.asarray(ts) < t]))
         assert np.all(np.isinf(q[k][np.asarray(ts) > t]))
