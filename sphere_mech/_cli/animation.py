@@ -13,12 +13,14 @@ import json
 import string
 import uuid
 
+import diffrax
 import numpy as np
 
+from .._system import AbstractSystem
 from .skeleton import Skeleton, draw_static, equal_axes, positions, skeleton
 
 MAX_FRAMES = 150
-TRAIL = 25  # frames of each tip's recent path
+TRAIL = 1 / 6  # each tip's recent path: this fraction of the frames
 
 
 def frame_indices(t: np.ndarray, frames: int) -> np.ndarray:
@@ -35,7 +37,7 @@ def _png(rgba: np.ndarray) -> str:
     import matplotlib.image
 
     buf = io.BytesIO()
-    matplotlib.image.imsave(buf, rgba, format="png", pil_kwargs={"compress_level": 3})
+    matplotlib.image.imsave(buf, rgba, format="png", pil_kwargs={"compress_level": 6})
     return base64.b64encode(buf.getvalue()).decode("ascii")
 
 
@@ -71,14 +73,14 @@ def render(skel: Skeleton, t: np.ndarray, x: np.ndarray, *, title: str = "",
     still = canvas.copy_from_bbox(fig.bbox)
     base = np.array(canvas.buffer_rgba())
     pixels = lambda: np.asarray(canvas.buffer_rgba()).view(np.uint32)[..., 0]  # RGBA as one
-    overlays = []
+    overlays, trail = [], max(2, round(TRAIL * len(idx)))
     for f in range(len(idx)):
         canvas.restore_region(still)
         for line, link in zip(links, skel.links, strict=True):
             line.set_data_3d(*pts[f, link].T)
         tips.set_data_3d(*pts[f, skel.tips].T)
         for line, i in zip(trails, skel.tips, strict=False):
-            line.set_data_3d(*pts[max(0, f - TRAIL):f + 1, i].T)
+            line.set_data_3d(*pts[max(0, f - trail):f + 1, i].T)
         for artist in [*trails, *links, tips]:
             ax.draw_artist(artist)
         frame = np.where(pixels() == base.view(np.uint32)[..., 0], 0, pixels())
@@ -213,7 +215,8 @@ def _trajectory(sol) -> tuple[np.ndarray, np.ndarray]:
     return t[keep], q[keep]
 
 
-def animate(system_or_scene, sol, *, frames: int = MAX_FRAMES) -> Animation:
+def animate(system_or_scene: AbstractSystem, sol: diffrax.Solution, *,
+            frames: int = MAX_FRAMES) -> Animation:
     """An animation of a solution of `sm.simulate` saved at several times (e.g.
     `saveat=diffrax.SaveAt(ts=...)`): an HTML player with play, pause, step and a time
     slider, at most `frames` frames, that a notebook displays.

@@ -63,7 +63,7 @@ def _energy(ax, result) -> None:
         ax.plot(result.error_t, result.step_energy - result.work, lw=1.4, ls="--",
                 color="tab:green", label="E - W (W: work of the forces)")
     ax.set_ylabel("energy [J]", fontsize=8)
-    ax.legend(fontsize=7, ncol=2)
+    ax.legend(fontsize=7, ncol=4, loc="lower center", bbox_to_anchor=(0.5, 1.0), frameon=False)
 
 
 def _semilogy(ax, t, values, title) -> None:
