@@ -5,6 +5,7 @@ import importlib.metadata
 
 from ._batch import simulate_batch as simulate_batch
 from ._checks import unit_tolerance as unit_tolerance
+from ._cli.animation import animate as animate
 from ._cli.report import (
     SceneResult as SceneResult,
     run_scene as run_scene,

@@ -1,5 +1,6 @@
 """`sphere-mech run`: the default scene, scene-file errors (one line, exit status 2),
-every example, and that a failing run keeps earlier outputs."""
+every example, the figure and the animation, and that a failing run keeps earlier
+outputs."""
 
 import json
 import subprocess
@@ -10,9 +11,12 @@ import numpy as np
 import pytest
 
 from sphere_mech._cli import main
+from sphere_mech._cli.figures import figure
+from sphere_mech._cli.report import run_scene
+from sphere_mech._scene_files import load_scene
 
 EXAMPLES = sorted((Path(__file__).resolve().parents[1] / "examples").glob("*.toml"))
-FILES = ("trajectory.npz", "summary.json", "plot.png")
+FILES = ("trajectory.npz", "summary.json", "plot.png", "animation.html")
 
 GOOD = """
 name = "test pendulum"
@@ -46,7 +50,7 @@ def default_run(tmp_path_factory):
     return status, cwd / "sphere_mech_out"
 
 
-def test_default_run_writes_three_sane_files(default_run):
+def test_default_run_writes_four_sane_files(default_run):
     status, out = default_run
     assert status == 0
     assert sorted(p.name for p in out.iterdir()) == sorted(FILES)  # no temporary left
@@ -67,6 +71,13 @@ def test_default_run_writes_three_sane_files(default_run):
         summary["max_relative_energy_error"])
     png = (out / "plot.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 20_000
+    page = (out / "animation.html").read_text()
+    assert page.startswith("<!DOCTYPE html>") and "<title>double spherical pendulum" in page
+    assert 'data-action="play"' in page and 'data-action="pause"' in page
+    assert 'type="range"' in page and "://" not in page  # self-contained
+    frames = json.loads(page.split("var frames = ", 1)[1].split(", times", 1)[0])
+    assert len(frames) == 150  # 2001 saved states, at most 150 frames
+    assert len(page) < 8e6
 
 
 def _bad(tmp_path, text):
@@ -157,3 +168,38 @@ def test_failing_runs_keep_previous_outputs(tmp_path, capsys):
     assert len(err) == 2 and "simulation failed" in err[-1]
     assert {f: (out / f).read_bytes() for f in FILES} == before
     assert sorted(p.name for p in out.iterdir()) == sorted(FILES)
+
+
+def test_no_animation(tmp_path, capsys):
+    out = tmp_path / "out"
+    good = _bad(tmp_path, GOOD)
+    assert main(["run", str(good), "--out", str(out), "--no-progress"]) == 0
+    assert (out / "animation.html").exists()
+    assert main(["run", str(good), "--out", str(out), "--no-progress", "--no-animation"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == sorted(FILES[:3])  # no stale animation
+    assert capsys.readouterr().out.splitlines()[-1].endswith("summary.json, plot.png")
+
+
+@pytest.fixture(scope="module")
+def pendulum_result(tmp_path_factory):
+    path = tmp_path_factory.mktemp("scene") / "pendulum.toml"
+    path.write_text(GOOD)
+    spec = load_scene(path)
+    return run_scene(spec), spec.scene
+
+
+def test_figure_is_equal_aspect_and_shows_the_constraint_only_above_rounding(
+        pendulum_result):
+    import dataclasses
+
+    result, scene = pendulum_result
+    fig = figure(result, scene)
+    ax3d, *panels = fig.axes
+    spans = [np.ptp(lim) for lim in (ax3d.get_xlim(), ax3d.get_ylim(), ax3d.get_zlim())]
+    np.testing.assert_allclose(spans, spans[0], rtol=1e-12)
+    assert len(panels) == 2  # energy, energy error: the constraint error is a text line
+    assert "constraint error" in " ".join(t.get_text() for t in fig.texts)
+    labels = panels[0].get_legend_handles_labels()[1]
+    assert labels == ["E = T + U", "kinetic T", "potential U"]
+    drifting = dataclasses.replace(result, constraint=np.linspace(0, 1e-9, len(result.t)))
+    assert len(figure(drifting, scene).axes) == 4  # now a panel

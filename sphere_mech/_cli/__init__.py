@@ -1,8 +1,9 @@
 """The command line: `sphere-mech run [SCENE.toml] [--out DIR]`.
 
 Runs a scene file (default: a double spherical pendulum, 20 s) and writes
-`trajectory.npz`, `summary.json` and `plot.png` (under temporary names, then renamed, so
-a failing run loses nothing). A problem in the scene file gives one line
+`trajectory.npz`, `summary.json`, `plot.png` and `animation.html` (a self-contained
+player; `--no-animation` skips it), under temporary names, then renamed, so a failing run
+loses nothing. A problem in the scene file gives one line
 `sphere-mech: error: <file>: <field>: <expected>` and exit status 2; a failed run, 1."""
 
 import argparse
@@ -16,43 +17,56 @@ import jax
 import numpy as np
 
 from .._scene_files import SceneFileError, load_scene
+from .animation import page, player
 from .figures import plot
 from .report import run_scene
+from .skeleton import skeleton
 
 PROG = "sphere-mech"
 DEFAULT_SCENE = Path(__file__).resolve().parents[1] / "scenes" / "default.toml"
 
 
-def write_outputs(out: Path, result) -> None:
-    """Write the three result files to `out`, each under a temporary name first."""
+def output_names(animation: bool = True) -> tuple[str, ...]:
+    """The files a run writes."""
+    return ("trajectory.npz", "summary.json", "plot.png") + (("animation.html",) * animation)
+
+
+def write_outputs(out: Path, result, scene, *, animation: bool = True) -> None:
+    """Write the result files to `out`, each under a temporary name first."""
     out.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=out, prefix=".sphere-mech-") as tmp:
         tmp = Path(tmp)
         np.savez(tmp / "trajectory.npz", t=result.t, q=result.q, v=result.v, x=result.x,
                  energy=result.energy, error_t=result.error_t, error=result.error)
         (tmp / "summary.json").write_text(json.dumps(result.summary, indent=2) + "\n")
-        plot(tmp / "plot.png", result)
-        for name in ("trajectory.npz", "summary.json", "plot.png"):
+        plot(tmp / "plot.png", result, scene)
+        if animation:
+            name = result.summary["scene"]
+            html = player(skeleton(scene, scene.n), result.t, result.x, title=name)
+            (tmp / "animation.html").write_text(page(html, name), encoding="utf-8")
+        for name in output_names(animation):
             os.replace(tmp / name, out / name)
+    if not animation:  # the folder describes one run
+        (out / "animation.html").unlink(missing_ok=True)
 
 
-def _print_summary(s: dict, out: Path) -> None:
+def _print_summary(s: dict, out: Path, animation: bool) -> None:
     energy = (f"max relative energy error {s['max_relative_energy_error']:.1e}"
               if "max_relative_energy_error" in s else
               f"max work-energy balance {s['max_relative_work_energy_balance']:.1e} (relative)")
     print(f"{s['scene']}: {s['t1']:g} s, {s['solver']}, {s['steps']} steps in "
           f"{s['wall_time_s']:.2f} s; max constraint error {s['max_constraint_error']:.1e}; "
           f"{energy}")
-    print(f"wrote {out}/trajectory.npz, summary.json, plot.png")
+    print(f"wrote {out}/" + ", ".join(output_names(animation)))
 
 
-def run(scene=None, out=Path("sphere_mech_out"), *, t1=None, progress=True):
+def run(scene=None, out=Path("sphere_mech_out"), *, t1=None, progress=True, animation=True):
     """Run a scene file (default: the packaged default scene), optionally up to another
     end time `t1`; returns the summary."""
     jax.config.update("jax_enable_x64", True)
     spec = load_scene(DEFAULT_SCENE if scene is None else scene)
     result = run_scene(spec, t1=t1, progress=progress)
-    write_outputs(Path(out), result)
+    write_outputs(Path(out), result, spec.scene, animation=animation)
     return result.summary
 
 
@@ -72,15 +86,18 @@ def main(argv=None) -> int:
     p_run.add_argument("--t1", type=float, default=None,
                        help="override the end time of [simulate] (s)")
     p_run.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    p_run.add_argument("--no-animation", action="store_true",
+                       help="skip animation.html (saves the time to draw its frames)")
     ns = parser.parse_args(argv)
     if ns.t1 is not None and not ns.t1 > 0:
         return _fail(f"--t1: expected a positive time in s, got {ns.t1}", 2)
     try:
-        summary = run(ns.scene, ns.out, t1=ns.t1, progress=not ns.no_progress)
+        summary = run(ns.scene, ns.out, t1=ns.t1, progress=not ns.no_progress,
+                      animation=not ns.no_animation)
     except SceneFileError as e:
         return _fail(str(e), 2)
     except Exception as e:  # the solver failed: one line, keep earlier outputs
         first = (str(e).strip().splitlines() or [type(e).__name__])[0]
         return _fail(f"{ns.scene or 'default scene'}: simulation failed: {first}", 1)
-    _print_summary(summary, ns.out)
+    _print_summary(summary, ns.out, not ns.no_animation)
     return 0

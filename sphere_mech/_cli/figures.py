@@ -1,41 +1,109 @@
-"""The figure of a scene run: paths of the masses, energy error, constraint error."""
+"""`plot.png` of a scene run: the motion in an equal-aspect 3-D view (pivot, links at the
+start and the end, paths of the masses or snapshots of a long chain, shared spheres), the
+energy against time (with forces, also energy minus the work done), its relative error,
+and the constraint error (a panel only when it is above rounding level)."""
 
 import numpy as np
 
+from .skeleton import Skeleton, draw_static, equal_axes, skeleton
 
-def plot(path, result) -> None:
-    """Write `plot.png` of a `SceneResult` to `path`."""
-    import matplotlib
+SNAPSHOTS = 8
+LONG_CHAIN = 4  # more masses on one link: snapshots instead of every path
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
-    x, s = result.x, result.summary
-    fig = plt.figure(figsize=(13, 4))
-    ax = fig.add_subplot(1, 3, 1, projection="3d")
-    for i in range(x.shape[1]):
-        label = f"mass {i}" if x.shape[1] <= 8 else None
-        ax.plot(x[:, i, 0], x[:, i, 1], x[:, i, 2], lw=0.6, label=label)
-    ax.set_title(f"{s['scene']}: paths of the masses", fontsize=9)
-    if x.shape[1] <= 8:
-        ax.legend(fontsize=7)
-    forced = "max_relative_work_energy_balance" in s
-    title = "|E - E(0) - W| / scale" if forced else "|E - E(0)| / |E(0)|"
+def _configuration(ax, skel, pts, style, label):
+    handles = []
+    for link in skel.links:
+        many = len(link) > LONG_CHAIN + 1
+        handles += ax.plot(*pts[link].T, lw=1.6, marker="" if many else "o", ms=4,
+                           markevery=slice(1, None), **style)  # no marker on the pivot
+        if many:  # the tip only
+            ax.plot(*pts[link[-1:]].T, "o", ms=4, **style)
+    if len(skel.free):
+        dots = {**style, "ls": ""}
+        handles += ax.plot(*pts[skel.free + len(skel.anchors)].T, marker="o", ms=6, **dots)
+    handles[0].set_label(label)
+    return handles[:1]
+
+
+def draw_motion(ax, skel: Skeleton, t: np.ndarray, x: np.ndarray) -> list:
+    """Links at start and end, paths (or snapshots of long chains); returns handles."""
+    from matplotlib import colormaps
+
+    equal_axes(ax, skel, x)
+    handles = list(draw_static(ax, skel))
+    pts = skel.points(x)
+    long = [link for link in skel.links if len(link) > LONG_CHAIN + 1]
+    paths = [i for link in skel.links if len(link) <= LONG_CHAIN + 1 for i in link[1:]]
+    paths += [link[-1] for link in long] + list(skel.free + len(skel.anchors))
+    for k, i in enumerate(paths):
+        label = f"path of mass {i - len(skel.anchors)}" if len(paths) <= 6 else None
+        color = "tab:red" if long else f"C{k % 10}"  # long: not a colour of the snapshots
+        handles += ax.plot(*pts[:, i].T, lw=0.6, alpha=0.8, color=color, label=label)
+    cmap = colormaps["viridis"]
+    for s in np.linspace(0, len(t) - 1, SNAPSHOTS + 2)[1:-1].round().astype(int) if long else []:
+        for link in long:
+            ax.plot(*pts[s, link].T, lw=0.8, color=cmap(t[s] / t[-1] if t[-1] else 0))
+    if long:
+        handles += ax.plot([], [], color=cmap(0.5), lw=0.8,
+                           label=f"snapshots (colour: t, {t[0]:g} to {t[-1]:g} s)")
+    handles += _configuration(ax, skel, pts[0], {"color": "0.55", "ls": "--", "mfc": "white"},
+                              f"start (t = {t[0]:g} s)")
+    handles += _configuration(ax, skel, pts[-1], {"color": "k"}, f"end (t = {t[-1]:g} s)")
+    return handles
+
+
+def _energy(ax, result) -> None:
+    t, E = result.t, result.energy
+    ax.plot(t, E, lw=1.6, color="k", label="E = T + U")
+    if result.potential is not None:  # on top of E: U is often close to it
+        ax.plot(t, E - result.potential, lw=0.7, color="tab:red", label="kinetic T")
+        ax.plot(t, result.potential, lw=0.7, color="tab:blue", label="potential U")
+    if result.work is not None:
+        ax.plot(result.error_t, result.step_energy - result.work, lw=1.4, ls="--",
+                color="tab:green", label="E - W (W: work of the forces)")
+    ax.set_ylabel("energy [J]", fontsize=8)
+    ax.legend(fontsize=7, ncol=4, loc="lower center", bbox_to_anchor=(0.5, 1.0), frameon=False)
+
+
+def _semilogy(ax, t, values, title) -> None:
     eps = np.finfo(np.float64).eps
-    for k, (t, values, name) in enumerate(
-        [(result.error_t, np.abs(result.error), title),
-         # running maximum: the constraint error sits at rounding level, often exactly 0
-         (result.t, np.maximum.accumulate(result.constraint),
-          "max_i | |q_i| - 1 | (running maximum)")]
-    ):
-        a = fig.add_subplot(1, 3, k + 2)
-        a.semilogy(t, np.maximum(values, eps / 100), lw=0.8)  # exact zeros drawn at eps/100
-        if k == 1:
-            a.axhline(eps, color="gray", lw=0.6, ls="--", label="float64 epsilon")
-            a.set_ylim(eps / 300, max(1e-12, a.get_ylim()[1]))
-            a.legend(fontsize=7)
-        a.set_xlabel("t [s]")
-        a.set_title(name, fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    ax.semilogy(t, np.maximum(np.abs(values), eps / 100), lw=0.8)  # zeros drawn at eps/100
+    ax.set_title(title, fontsize=9)
+
+
+def figure(result, scene):
+    """The figure (a matplotlib `Figure`, no pyplot) of a `SceneResult` of `scene`."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    s, skel = result.summary, skeleton(scene, result.x.shape[1])
+    eps = np.finfo(result.q.dtype).eps
+    worst = float(np.max(result.constraint))
+    drift = worst > 1000 * eps  # the constraint error says something: a panel
+    fig = Figure(figsize=(13, 6.2), dpi=100)
+    FigureCanvasAgg(fig)
+    grid = fig.add_gridspec(3 if drift else 2, 2, width_ratios=[1, 1.2], left=0.02,
+                            right=0.98, top=0.9, bottom=0.12, hspace=0.45, wspace=0.12)
+    ax = fig.add_subplot(grid[:, 0], projection="3d")
+    ax.legend(handles=draw_motion(ax, skel, result.t, result.x), fontsize=7, loc="upper left")
+    _energy(fig.add_subplot(grid[0, 1]), result)
+    forced = result.work is not None
+    _semilogy(fig.add_subplot(grid[1, 1]), result.error_t, result.error,
+              "work-energy balance |E - E(0) - W| / scale" if forced else
+              "relative energy error |E - E(0)| / |E(0)|")
+    if drift:
+        _semilogy(fig.add_subplot(grid[2, 1]), result.t, result.constraint,
+                  "constraint error max_i | |q_i| - 1 |")
+    for a in fig.axes[1:]:
+        a.set_xlabel("t [s]", fontsize=8)
+        a.tick_params(labelsize=7)
+    fig.suptitle(f"{s['scene']}: {s['t1']:g} s, {s['solver']}, {s['steps']} steps", fontsize=11)
+    fig.text(0.5, 0.02, f"constraint error max_i,t | |q_i| - 1 | = {worst:.1e} "
+             f"({worst / eps:.1f} x machine epsilon)", ha="center", fontsize=9)
+    return fig
+
+
+def plot(path, result, scene) -> None:
+    """Write `plot.png` of a `SceneResult` of `scene` to `path`."""
+    figure(result, scene).savefig(path, dpi=100)

@@ -58,6 +58,9 @@ class SceneResult:
     error: np.ndarray
     constraint: np.ndarray
     summary: dict
+    potential: np.ndarray | None = None  # U at `t` (kinetic energy: `energy - potential`)
+    work: np.ndarray | None = None  # with forces: W at `error_t` (the solver's steps)
+    step_energy: np.ndarray | None = None  # with forces: E at `error_t`
 
 
 def _split(sol, forced):
@@ -89,6 +92,8 @@ def run_scene(spec, *, t1=None, progress=False) -> SceneResult:
     wall = time.perf_counter() - start
     ts, (q, v), ts_s, ys_s = _split(sol, forced)
     energy = np.asarray(jax.vmap(scene.energy, (0, 0, 0, None))(ts, q, v, args))
+    potential = np.asarray(jax.vmap(scene.potential, (0, 0, None))(ts, q, args))
+    e_s = W = None
     if forced:
         e_s, W, balance = work_energy_balance(scene, ts_s, *ys_s, args)
         scale = max(np.max(np.abs(e_s)), np.max(np.abs(W)))
@@ -113,4 +118,4 @@ def run_scene(spec, *, t1=None, progress=False) -> SceneResult:
         "wall_time_s": wall, "max_constraint_error": float(constraint.max()), **report,
     }
     return SceneResult(np.asarray(ts), q, v, x, energy, np.asarray(error_t), np.asarray(error),
-                       constraint, summary)
+                       constraint, summary, potential, W, e_s)
