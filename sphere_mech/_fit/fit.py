@@ -12,8 +12,10 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
 import optimistix as optx
+from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, PyTree
 
+from .._geometry import retract, tangent_basis
 from .._simulate import simulate
 from .shooting import Residuals, map_flagged, model_output, split_segments
 
@@ -31,6 +33,37 @@ class FitResult(eqx.Module):
     - `segment_states`: the fitted initial states `(q, v)` of the shooting segments,
       `([B,] K, n, 3)` arrays (segment 0 is `y0` unless `fit_initial_state=True`).
     - `result`: the `optimistix.RESULTS` code of the least-squares solve.
+
+    Uncertainties, by linearizing the residuals at the solution (Gauss-Newton, as
+    `scipy.optimize.least_squares` and lmfit report them):
+    - `jacobian`: `(m_rows, p)`, the Jacobian of the residuals at the solution. Rows: the
+      raveled residuals (observation residuals `(B, K, W, ...)`, zero on the padding of
+      segments that own fewer than `W` observations, then the weighted continuity jumps
+      of `q` and of `v`, `(B, K - 1, n, 3)` each). Columns: the fitted parameters as
+      fitted (the floating-point leaves of `params`, raveled in `tree_leaves` order by
+      `jax.flatten_util.ravel_pytree`; `log(p)` for parameters flagged `positive`), then
+      the fitted segment states, `(B, K', n, 2, 2)` raveled: for each sphere the
+      coordinates of `dq` and of `dv` in the basis `sm.tangent_basis(q)` of its plane.
+    - `covariance`: `(p_params, p_params)`, the covariance of the fitted parameters (same
+      order and space as the first columns of `jacobian`): the parameter block of
+      `residual_variance * (J^T J)^{-1}`, i.e. with the segment states marginalized out.
+      NaN or huge where the parameters are not identifiable from the data.
+    - `stderr`: standard errors in the structure of `params` (`None` at leaves that are
+      not fitted), in the parameters' own units: for `positive` ones by the delta method,
+      `se(p) = p * se(log p)`.
+    - `residual_variance`: `s^2 = |r|^2 / dof`, the estimated noise variance.
+    - `dof`: the degrees of freedom `m - p`. `m` counts the observation residuals and,
+      per continuity junction, `4n` (to first order the jumps of `(q, v)` lie in the
+      `4n`-dimensional tangent space); `p` counts the fitted parameters and `4n` per fitted
+      segment state. So `dof` is the number of observed values minus the number of
+      parameters (minus `4n` per record with `fit_initial_state`), as for single shooting.
+
+    These assume independent Gaussian noise of one variance on every observed value and a
+    model that is close to linear in the unknowns over the size of the errors; the
+    continuity penalties count as residuals of the same variance (with a large
+    `continuity` weight this tends to the single-shooting covariance). Weight the
+    observations (e.g. divide by their noise level in `observe` and `observations`) if
+    their noise levels differ.
     """
 
     params: PyTree
@@ -40,6 +73,11 @@ class FitResult(eqx.Module):
     converged: Array
     segment_states: tuple[Array, Array]
     result: optx.RESULTS
+    jacobian: Array
+    covariance: Array
+    stderr: PyTree
+    residual_variance: Array
+    dof: int = eqx.field(static=True)
 
 
 def _as_arrays(params):
@@ -150,8 +188,68 @@ def _initial_unknown_states(guess, system, args, segment_t0, y0, fit_initial_sta
     return jnp.concatenate([q0, guess[0]], 1), jnp.concatenate([v0, guess[1]], 1)
 
 
+def _degrees_of_freedom(observations, unknowns0, segments):
+    """`m - p`: observed values (and `4n` per continuity junction) minus the parameters
+    (and `4n` per fitted segment state); see `FitResult`."""
+    u, z = unknowns0
+    num_params = ravel_pytree(u)[0].size
+    if z is None:
+        return observations.size - num_params
+    num_records, num_states, n = z[0].shape[:3]
+    junctions = num_records * (segments - 1)
+    return observations.size + 4 * n * (junctions - num_records * num_states) - num_params
+
+
+def _tangent_chart(z):
+    """The fitted segment states as a function of tangent coordinates `w` `(..., n, 2, 2)`
+    (`dq`, `dv` in `tangent_basis(q)`) around the retracted states, `w = 0` there."""
+    if z is None:
+        return jnp.zeros((0,)), lambda w: None
+    q, v = retract(*z)
+    basis = tangent_basis(q)
+    along = lambda w: jnp.einsum("...ij,...j->...i", basis, w)
+    chart = lambda w: (q + along(w[..., 0, :]), v + along(w[..., 1, :]))
+    return jnp.zeros(q.shape[:-1] + (2, 2), q.dtype), chart
+
+
+def _linearize(residuals, unknowns, data, loss, dof):
+    """The Jacobian of the residuals at `unknowns` (columns: the parameters as fitted, then
+    the tangent coordinates of the segment states), the parameters' covariance and `s^2`.
+
+    `jax.jacfwd` goes through the per-segment custom JVP of `Residuals`, so each segment's
+    Jacobian is built once."""
+    u, z = unknowns
+    u_flat, unravel_u = ravel_pytree(u)
+    w0, chart = _tangent_chart(z)
+    w_flat, unravel_w = ravel_pytree(w0)
+
+    def flat_residuals(x):
+        u_, w_ = unravel_u(x[: u_flat.size]), unravel_w(x[u_flat.size :])
+        return ravel_pytree(residuals((u_, chart(w_)), data))[0]
+
+    jacobian = jax.jacfwd(flat_residuals)(jnp.concatenate([u_flat, w_flat]))
+    # (J^T J)^{-1} = R^{-1} R^{-T} from J = QR, without squaring J's condition number
+    # (zero rows added if J is wide: R is then singular and the covariance not finite)
+    rows = max(jacobian.shape[1] - jacobian.shape[0], 0)
+    r = jnp.linalg.qr(jnp.pad(jacobian, ((0, rows), (0, 0))), mode="r")
+    r_inv = jax.scipy.linalg.solve_triangular(r, jnp.eye(r.shape[1], dtype=r.dtype), lower=False)
+    residual_variance = 2 * loss / dof if dof > 0 else jnp.full_like(loss, jnp.nan)
+    r_params = r_inv[: u_flat.size]
+    return jacobian, residual_variance * (r_params @ r_params.T), residual_variance
+
+
+def _stderr(covariance, u, positive):
+    """Standard errors in the structure of `u`, mapped from log space for `positive`."""
+    u_flat, unravel_u = ravel_pytree(u)
+    se = unravel_u(jnp.sqrt(jnp.diag(covariance)).astype(u_flat.dtype))
+    leaves, treedef = jtu.tree_flatten(se)
+    fitted = jtu.tree_leaves(u)
+    leaves = [jnp.exp(x) * s if f else s for s, x, f in zip(leaves, fitted, positive, strict=True)]
+    return jtu.tree_unflatten(treedef, leaves)
+
+
 @eqx.filter_jit
-def _solve(residuals, solver, unknowns0, data, max_steps):
+def _solve(residuals, solver, unknowns0, data, max_steps, dof):
     sol = optx.least_squares(
         residuals, solver, unknowns0, data, {"jac": "fwd"}, max_steps=max_steps, throw=False
     )
@@ -161,7 +259,8 @@ def _solve(residuals, solver, unknowns0, data, max_steps):
     loss, initial_loss = 0.5 * sum(
         jnp.sum(x**2, axis=tuple(range(1, x.ndim))) for x in jtu.tree_leaves(r)
     )
-    return sol.value, loss, initial_loss, sol.stats["num_steps"], sol.result
+    linear = _linearize(residuals, sol.value, data, loss, dof)
+    return sol.value, loss, initial_loss, sol.stats["num_steps"], sol.result, linear
 
 
 def fit(
@@ -225,8 +324,10 @@ def fit(
     - `simulate_options`: keyword arguments for `simulate` (`solver`, `rtol`, `atol`,
       `dt0`, `stepsize_controller`, `max_steps`).
 
-    **Returns:** a `FitResult`. Failures of the solve (e.g. `max_steps` reached) are
-    reported in `result` and `converged`, never raised.
+    **Returns:** a `FitResult`, with the uncertainties of the fit (the Jacobian at the
+    solution, the Gauss-Newton covariance and standard errors; see `FitResult` for what
+    they assume). Failures of the solve (e.g. `max_steps` reached) are reported in
+    `result` and `converged`, never raised.
     """
     if jac not in ("fwd", "bwd"):
         raise ValueError(f"jac must be 'fwd' or 'bwd', got {jac!r}.")
@@ -253,11 +354,15 @@ def fit(
     )
     solver = optx.LevenbergMarquardt(rtol=1e-6, atol=1e-9) if solver is None else solver
     unknowns0 = (map_flagged(jnp.log, dynamic, flags), z0)
-    (u, z), loss, initial_loss, num_steps, result = _solve(
-        residuals, solver, unknowns0, (segment_data, y0), max_steps
+    dof = _degrees_of_freedom(observations, unknowns0, segments)
+    (u, z), loss, initial_loss, num_steps, result, linear = _solve(
+        residuals, solver, unknowns0, (segment_data, y0), max_steps, dof
     )
+    jacobian, covariance, residual_variance = linear
     states = residuals.states(z, y0)
     if not batched:
         states = tuple(s[0] for s in states)
     converged = result == optx.RESULTS.successful
-    return FitResult(residuals.params(u), loss, initial_loss, num_steps, converged, states, result)
+    fitted = (residuals.params(u), loss, initial_loss, num_steps, converged, states, result)
+    stderr = _stderr(covariance, u, flags)
+    return FitResult(*fitted, jacobian, covariance, stderr, residual_variance, dof)
