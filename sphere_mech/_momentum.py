@@ -34,10 +34,14 @@ def invert_momentum(L, t, q, p, args, *, guess, quadratic: bool, tol, max_steps:
     """The tangent `v` with `P dL/dv(t, q, v) = p`, and a result code.
 
     One linear solve around `guess` (exact when `L` is quadratic in `v`), then, unless
-    `quadratic`, Newton's method (optimistix, implicit differentiation, failures
-    reported as diffrax's codes, never raised; `singular` for a singular linear solve).
-    Solved in a tangent basis, so `v` stays tangent as
-    `q` varies."""
+    `quadratic`, Newton's method (optimistix, implicit differentiation). Where Newton
+    fails, typically because `L` is defined on a bounded set of velocities only (a
+    relativistic particle: `|v| < 1`) and the linear guess lands outside it, the
+    solve is globalized: for strictly convex `L` the velocity minimizes
+    `L(t, q, v) - p . v`, which BFGS with a backtracking line search (it rejects steps
+    where `L` is not finite) approaches from `guess`, and Newton then finishes. Failures
+    are reported as diffrax's codes, never raised (`singular` for a singular linear
+    solve). Solved in a tangent basis, so `v` stays tangent as `q` varies."""
     T = tangent_basis(q)
 
     def dL_dv(v):
@@ -48,10 +52,26 @@ def invert_momentum(L, t, q, p, args, *, guess, quadratic: bool, tol, max_steps:
         reduced_matrix(hvp, T), to_tangent(T, p - p_guess)
     )
     finite = jnp.all(jnp.isfinite(a))
-    result = RESULTS.successful
-    if not quadratic:
-        scale = lax.stop_gradient(residual_scale(p_guess, p))
-        residual = lambda a_, _: to_tangent(T, dL_dv(from_tangent(T, a_)) - p) / scale
-        sol = optx.root_find(residual, newton(tol), a, max_steps=max_steps, throw=False)
-        a, result = sol.value, RESULTS.promote(sol.result)
-    return from_tangent(T, a), RESULTS.where(finite, result, RESULTS.singular)
+    if quadratic:
+        return from_tangent(T, a), RESULTS.where(finite, RESULTS.successful, RESULTS.singular)
+    scale = lax.stop_gradient(residual_scale(p_guess, p))
+    residual = lambda a_, _: to_tangent(T, dL_dv(from_tangent(T, a_)) - p) / scale
+
+    def polish(a0):
+        sol = optx.root_find(residual, newton(tol), a0, max_steps=max_steps, throw=False)
+        ok = (sol.result == optx.RESULTS.successful) & jnp.all(jnp.isfinite(sol.value))
+        return sol.value, ok
+
+    def globalized():
+        def objective(a_, _):
+            v = from_tangent(T, a_)
+            return (L(t, q, v, args) - jnp.sum(p * v)) / scale
+
+        start = to_tangent(T, guess)
+        bfgs = optx.BFGS(rtol=tol, atol=tol)
+        sol = optx.minimise(objective, bfgs, start, max_steps=8 * max_steps, throw=False)
+        return polish(sol.value)
+
+    a, ok = polish(jnp.where(finite, a, to_tangent(T, guess)))
+    a, ok = lax.cond(ok, lambda: (a, ok), globalized)
+    return from_tangent(T, a), RESULTS.where(ok, RESULTS.successful, RESULTS.singular)

@@ -13,14 +13,9 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
     (`sol.result == sm.RESULTS.nonfinite`); `sm.RESULTS[code]` is the message."""
 
     nonfinite_initial = (
-        "The equations of motion are not finite at the initial state: singular reduced "
-        "mass matrix (degenerate Lagrangian, e.g. a zero mass or length) or NaN parameters."
-    )
-    legendre_failed = (
-        "The Legendre transform is not invertible at this state: the reduced mass matrix "
-        "T^T (d^2 L / d v^2) T is singular or not finite (degenerate Lagrangian, e.g. a "
-        "zero mass or length, or a sphere without kinetic energy), or Newton's method did "
-        "not find the velocity of the given momentum."
+        "The equations of motion are not finite at the initial state: a singular reduced "
+        "mass matrix (degenerate Lagrangian, e.g. a zero mass or length), a Legendre "
+        "transform that is not invertible there (sm.legendre), or NaN parameters."
     )
 
 

@@ -192,6 +192,8 @@ class AbstractHamiltonianSystem(AbstractSystem):
         qdot, pdot = self.rates(t, (q, p), args)
         message = (
             "Hamilton's equations are not finite at this state: H or its gradient is NaN "
-            "or infinite (degenerate Hamiltonian, or NaN parameters)"
+            "or infinite (a degenerate Hamiltonian; for sm.legendre(system): the Legendre "
+            "transform is not invertible at this state, e.g. a zero mass or a sphere "
+            "without kinetic energy; or NaN parameters)"
         )
         return check_finite(qdot, message), check_finite(pdot, message)

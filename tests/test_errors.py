@@ -11,7 +11,7 @@ import sphere_mech as sm
 
 NOT_UNIT = "q is not on the spheres"
 SINGULAR = "reduced mass matrix .* is singular"
-LEGENDRE = "Legendre transform is not invertible"
+LEGENDRE = "the Legendre transform is not invertible at this state"
 
 
 def L(t, q, qdot, args):
@@ -131,6 +131,11 @@ def test_degenerate_lagrangian_hamiltonian_forms(quadratic, state):
     H = sm.legendre(sm.Lagrangian(L_first_sphere_only), quadratic=quadratic)
     with pytest.raises(eqx.EquinoxRuntimeError, match=LEGENDRE):
         H.vector_field(0.0, q, v, None)
+    if quadratic:  # in a run: a result code with throw=False, a message naming it
+        sol = sm.simulate(H, (q, v), 1.0, throw=False)
+        assert sol.result == sm.RESULTS.nonfinite_initial
+        with pytest.raises(RuntimeError, match="Legendre transform that is not invertible"):
+            sm.simulate(H, (q, v), 1.0)
 
 
 def test_nan_hamiltonian(state):
