@@ -62,16 +62,18 @@ def invert_momentum(L, t, q, p, args, *, guess, quadratic: bool, tol, max_steps:
         ok = (sol.result == optx.RESULTS.successful) & jnp.all(jnp.isfinite(sol.value))
         return sol.value, ok
 
-    def globalized():
+    def globalized(start):
         def objective(a_, _):
             v = from_tangent(T, a_)
             return (L(t, q, v, args) - jnp.sum(p * v)) / scale
 
-        start = to_tangent(T, guess)
         bfgs = optx.BFGS(rtol=tol, atol=tol)
         sol = optx.minimise(objective, bfgs, start, max_steps=8 * max_steps, throw=False)
         return polish(sol.value)
 
     a, ok = polish(jnp.where(finite, a, to_tangent(T, guess)))
-    a, ok = lax.cond(ok, lambda: (a, ok), globalized)
+    # Under `vmap` both branches run for every element: converged elements then start the
+    # fallback at their solution, so a batch with no failure leaves it after a step.
+    start = jnp.where(ok, a, to_tangent(T, guess))
+    a, ok = lax.cond(ok, lambda: (a, ok), lambda: globalized(start))
     return from_tangent(T, a), RESULTS.where(ok, RESULTS.successful, RESULTS.singular)
