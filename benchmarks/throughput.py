@@ -1,32 +1,63 @@
 """Throughput of batched chain-pendulum simulation: sphere_mech vs MuJoCo vs angles.
 
 Every method integrates the same chain pendulum (unit masses at the tips of unit massless
-links, gravity 9.81, float64) with the classic fourth-order Runge-Kutta method at a fixed
-step dt = 1e-3, so each does the same work per step (four force evaluations):
+links, gravity 9.81) with the classic fourth-order Runge-Kutta method at a fixed step
+dt = 1e-3, so each does the same work per step (four force evaluations):
 
-- sphere_mech: `sm.simulate_batch` with `sm.Projected(sm.RK4())`, sharded over the CPU
-  devices (this script asks XLA for one device per core);
-- MuJoCo: a chain of ball joints carrying point masses (tiny rotational inertia), its
-  RK4 integrator, stepped by `mujoco.rollout` on all cores;
-- angles: the same Lagrangian written in two spherical angles per link, accelerations
-  from autodiff Euler-Lagrange equations and a dense solve (as Lagrangian-neural-network
-  code does it), an RK4 loop, `jax.vmap` over the batch.
+- sphere_mech: `sm.simulate_batch` with `sm.Projected(sm.RK4())`, sharded over the
+  devices (on CPU this script asks XLA for one device per core);
+- bare scan: the same RK4 step and projection over the same `system.rates`, written as a
+  `lax.fori_loop` under `jax.vmap` with no diffrax loop: the floor for our own code, so the
+  ratio sphere_mech / bare scan is the cost of the diffrax loop and our wrapper;
+- MuJoCo (CPU): a chain of ball joints carrying point masses (tiny rotational inertia),
+  its RK4 integrator, stepped by `mujoco.rollout` on all cores;
+- MJX (GPU, or CPU with --mjx): the same MuJoCo model stepped by `mujoco.mjx.step` in a
+  `lax.fori_loop` under `jax.vmap`, when the `mujoco-mjx` package is installed;
+- angles (CPU): the same Lagrangian written in two spherical angles per link,
+  accelerations from autodiff Euler-Lagrange equations and a dense solve (as
+  Lagrangian-neural-network code does it), an RK4 loop, `jax.vmap` over the batch.
 
-First the three are checked to agree (mass positions to 1e-8 after 0.2 s). Then
-pendulum-steps per second (trajectories x steps / wall time, after compilation; median
-of 3 repeats, one for runs over 5 s) for n = 2, 8, 32 links and batch 1, 64, 1024,
-8192, with the ratio to MuJoCo measured in the same run; then the cost of one step of a
-single trajectory against n. Prints markdown tables, writes benchmarks/results/throughput.{png,md}.
+First the methods are checked to agree (mass positions after 0.2 s, to 1e-8 in float64).
+Then pendulum-steps per second (trajectories x steps / wall time, after compilation;
+median of 3 repeats, one for runs over 5 s) for n = 2, 8, 32 links and batch 1, 64, 1024,
+8192, with the ratio to the peer (MuJoCo on CPU, MJX on GPU) measured in the same run;
+then the cost of one step of a single trajectory against n. Prints markdown tables and
+writes benchmarks/results/throughput_<device>.{png,md,json}.
 
-    python benchmarks/throughput.py [--quick]
+    python benchmarks/throughput.py [--quick] [--device cpu|gpu] [--dtype float32|float64]
+
+`--device gpu` fails unless JAX sees a GPU; it defaults to float32 (CPU: float64).
 """
 
+import argparse  # noqa: E402 (the options decide the environment below)
 import os
 
-CORES = os.cpu_count() or 1
-os.environ.setdefault("XLA_FLAGS", f"--xla_force_host_platform_device_count={CORES}")
 
-import argparse  # noqa: E402
+def parse_options(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="fewer sizes and steps")
+    parser.add_argument("--device", choices=("cpu", "gpu"), default="cpu")
+    parser.add_argument("--dtype", choices=("float32", "float64"),
+                        help="default: float64 on cpu, float32 on gpu")
+    parser.add_argument("--mjx", action="store_true", help="also run MJX on the CPU")
+    parser.add_argument("--ns", type=int, nargs="*", help="links to measure (default 2 8 32)")
+    parser.add_argument("--batches", type=int, nargs="*", help="batch sizes")
+    parser.add_argument("--per-n", type=int, nargs="*", help="n for the single-trajectory cost")
+    parser.add_argument("--merge", action="store_true",
+                        help="add to the results of earlier runs in the results .json")
+    opts = parser.parse_args(argv)
+    if opts.mjx and opts.device == "gpu":
+        parser.error("--mjx is for the CPU (on a GPU, MJX runs whenever it is installed)")
+    opts.dtype = opts.dtype or ("float64" if opts.device == "cpu" else "float32")
+    return opts
+
+
+OPTS = parse_options()
+CORES = os.cpu_count() or 1
+if OPTS.device == "cpu":
+    os.environ.setdefault("XLA_FLAGS", f"--xla_force_host_platform_device_count={CORES}")
+    os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
 import json  # noqa: E402
 import pathlib  # noqa: E402
 import statistics  # noqa: E402
@@ -37,11 +68,18 @@ import jax.numpy as jnp  # noqa: E402
 import matplotlib  # noqa: E402
 import numpy as np  # noqa: E402
 
-jax.config.update("jax_enable_x64", True)
+jax.config.update("jax_enable_x64", OPTS.dtype == "float64")
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import mujoco  # noqa: E402
 from mujoco import rollout  # noqa: E402
+
+try:
+    from mujoco import mjx  # noqa: F401 (MJX is the peer on a GPU when installed)
+
+    HAVE_MJX = True
+except ImportError:
+    HAVE_MJX = False
 
 import sphere_mech as sm  # noqa: E402
 from sphere_mech._batch import _solve_batch  # noqa: E402
@@ -49,6 +87,13 @@ from sphere_mech._linalg import spd_solve  # noqa: E402
 
 DT, G = 1e-3, 9.81
 RESULTS = pathlib.Path(__file__).parent / "results"
+AGREEMENT = {"float64": 1e-8, "float32": 1e-3}[OPTS.dtype]
+"""Largest position difference accepted between methods after 0.2 s (float32: its
+rounding amplified over 200 steps)."""
+MJX_AGREEMENT = max(AGREEMENT, 1e-6)
+"""MJX is held to 1e-6: in float64 it differs by 1.2e-7 both from sphere_mech and from
+MuJoCo's C implementation of the same model (measured; the same for link inertias 1e-10
+to 1e-3), so that is MJX's own difference, not ours."""
 
 
 # ----------------------------------------------------------------------------- states
@@ -64,6 +109,26 @@ def random_states(n, batch, seed=0):
 
 
 # ------------------------------------------------------------------------ sphere_mech
+def rk4_step(f, y):
+    """One classic RK4 step of `y' = f(y)` with step DT."""
+    k1 = f(y)
+    k2 = f(jax.tree.map(lambda a, b: a + 0.5 * DT * b, y, k1))
+    k3 = f(jax.tree.map(lambda a, b: a + 0.5 * DT * b, y, k2))
+    k4 = f(jax.tree.map(lambda a, b: a + DT * b, y, k3))
+    return jax.tree.map(lambda a, b1, b2, b3, b4: a + DT / 6 * (b1 + 2 * b2 + 2 * b3 + b4),
+                        y, k1, k2, k3, k4)
+
+
+def fixed_step_loop(step):
+    """`solve(y, nsteps)`: `step` applied `nsteps` times to each element of a batch."""
+
+    @jax.jit
+    def solve(y, nsteps):
+        return jax.vmap(lambda y_: jax.lax.fori_loop(0, nsteps, lambda i, x: step(x), y_))(y)
+
+    return solve
+
+
 class SphereMech:
     name = "sphere_mech"
 
@@ -82,6 +147,29 @@ class SphereMech:
 
     def positions(self, sol):
         return np.asarray(jax.vmap(self.chain.positions)(sol.ys[0][:, -1]))
+
+
+class BareScan:
+    """`Projected(RK4())`'s arithmetic with no diffrax loop: RK4 over the same
+    `system.rates`, then the same retraction, in a `fori_loop` under `jax.vmap`."""
+
+    name = "bare scan"
+
+    def __init__(self, n):
+        self.chain = sm.chain_pendulum(jnp.ones(n), jnp.ones(n), G)
+        rates = lambda y: self.chain.rates(0.0, y, None)
+        self.solve = fixed_step_loop(lambda y: sm.retract(*rk4_step(rates, y)))
+
+    def prepare(self, q, v):
+        return q, v
+
+    def run(self, y, nsteps):
+        out = self.solve(y, nsteps)
+        jax.block_until_ready(out)
+        return out, nsteps
+
+    def positions(self, out):
+        return np.asarray(jax.vmap(self.chain.positions)(out[0]))
 
 
 # ------------------------------------------------------------------------------ angles
@@ -115,21 +203,7 @@ class Angles:
             mixed = jax.jacfwd(jax.grad(lagrangian, 1), 0)(th, thd)
             return spd_solve(H, dq - mixed @ thd)
 
-        def rk4(y, _):
-            f = lambda y_: (y_[1], accel(*y_))
-            k1 = f(y)
-            k2 = f(jax.tree.map(lambda a, b: a + 0.5 * DT * b, y, k1))
-            k3 = f(jax.tree.map(lambda a, b: a + 0.5 * DT * b, y, k2))
-            k4 = f(jax.tree.map(lambda a, b: a + DT * b, y, k3))
-            return jax.tree.map(lambda a, b1, b2, b3, b4: a + DT / 6 * (b1 + 2 * b2 + 2 * b3 + b4),
-                                y, k1, k2, k3, k4)
-
-        @jax.jit
-        def solve(th, thd, nsteps):
-            one = lambda y: jax.lax.fori_loop(0, nsteps, lambda i, y_: rk4(y_, i), y)
-            return jax.vmap(one)((th, thd))
-
-        self.solve = solve
+        self.solve = fixed_step_loop(lambda y: rk4_step(lambda y_: (y_[1], accel(*y_)), y))
 
     def prepare(self, q, v):
         q, v = np.asarray(q), np.asarray(v)
@@ -144,7 +218,7 @@ class Angles:
         return angles.reshape(batch, -1), jnp.asarray(angle_rates.reshape(batch, -1))
 
     def run(self, y, nsteps):
-        out = self.solve(*y, nsteps)
+        out = self.solve(y, nsteps)
         jax.block_until_ready(out)
         return out, nsteps
 
@@ -176,6 +250,37 @@ def rotation_to(q):
     return np.eye(3) + K + K @ K / (1.0 + c)
 
 
+def joint_state(q, v):
+    """Ball-joint coordinates `(qpos, qvel)` of a batch of chain states `(q, v)`: one
+    quaternion per joint (relative to its parent link) and the relative angular velocity
+    in the child's frame."""
+    q, v = np.asarray(q, dtype=float), np.asarray(v, dtype=float)
+    batch, n = q.shape[:2]
+    qpos, qvel = np.zeros((batch, 4 * n)), np.zeros((batch, 3 * n))
+    for b in range(batch):
+        R_prev, w_prev = np.eye(3), np.zeros(3)
+        for i in range(n):
+            R = rotation_to(q[b, i])
+            quat = np.zeros(4)
+            mujoco.mju_mat2Quat(quat, (R_prev.T @ R).reshape(-1))
+            w = np.cross(q[b, i], v[b, i])  # angular velocity of link i (no spin)
+            qpos[b, 4 * i : 4 * i + 4] = quat
+            qvel[b, 3 * i : 3 * i + 3] = R.T @ (w - w_prev)  # ball joint: child frame
+            R_prev, w_prev = R, w
+    return qpos, qvel
+
+
+def mass_positions(model, qpos):
+    """The point masses' positions `(batch, n, 3)` for a batch of joint positions."""
+    d = mujoco.MjData(model)
+    result = []
+    for row in np.asarray(qpos, dtype=float):
+        d.qpos[:] = row
+        mujoco.mj_kinematics(model, d)
+        result.append(d.xipos[1:].copy())
+    return np.array(result)
+
+
 class MuJoCo:
     name = "MuJoCo"
 
@@ -187,26 +292,14 @@ class MuJoCo:
         self.size = mujoco.mj_stateSize(self.model, self.spec)
 
     def prepare(self, q, v):
-        q, v = np.asarray(q), np.asarray(v)
-        batch, n = q.shape[:2]
         d = self.data[0]
         mujoco.mj_resetData(self.model, d)
         state = np.zeros(self.size)
         mujoco.mj_getState(self.model, d, state, self.spec)
-        states = np.tile(state, (batch, 1))
-        qpos, qvel = np.zeros((batch, 4 * n)), np.zeros((batch, 3 * n))
-        for b in range(batch):
-            R_prev, w_prev = np.eye(3), np.zeros(3)
-            for i in range(n):
-                R = rotation_to(q[b, i])
-                quat = np.zeros(4)
-                mujoco.mju_mat2Quat(quat, (R_prev.T @ R).reshape(-1))
-                w = np.cross(q[b, i], v[b, i])  # angular velocity of link i (no spin)
-                qpos[b, 4 * i : 4 * i + 4] = quat
-                qvel[b, 3 * i : 3 * i + 3] = R.T @ (w - w_prev)  # ball joint: child frame
-                R_prev, w_prev = R, w
-        states[:, 1 : 1 + 4 * n] = qpos
-        states[:, 1 + 4 * n : 1 + 7 * n] = qvel
+        qpos, qvel = joint_state(q, v)
+        states = np.tile(state, (len(qpos), 1))
+        states[:, 1 : 1 + 4 * self.n] = qpos
+        states[:, 1 + 4 * self.n : 1 + 7 * self.n] = qvel
         return states
 
     def run(self, states, nsteps):
@@ -215,13 +308,36 @@ class MuJoCo:
         return out, nsteps
 
     def positions(self, out):
-        d = mujoco.MjData(self.model)
-        result = []
-        for b in range(out.shape[0]):
-            d.qpos[:] = out[b, -1, 1 : 1 + 4 * self.n]
-            mujoco.mj_kinematics(self.model, d)
-            result.append(d.xipos[1:].copy())
-        return np.array(result)
+        return mass_positions(self.model, out[:, -1, 1 : 1 + 4 * self.n])
+
+
+class MJX:
+    """The MuJoCo model on `mujoco.mjx` (JAX): `mjx.step` (RK4) in a loop under vmap."""
+
+    name = "MJX"
+
+    def __init__(self, n):
+        self.model = mujoco.MjModel.from_xml_string(chain_xml(n))
+        mx = mjx.put_model(self.model)
+        data = mjx.make_data(mx)
+
+        def step(y):
+            d = mjx.step(mx, data.replace(qpos=y[0], qvel=y[1]))
+            return d.qpos, d.qvel
+
+        self.solve = fixed_step_loop(step)
+
+    def prepare(self, q, v):
+        dtype = jnp.zeros(()).dtype  # float32 unless x64 is on
+        return tuple(jnp.asarray(x, dtype) for x in joint_state(q, v))
+
+    def run(self, y, nsteps):
+        out = self.solve(y, nsteps)
+        jax.block_until_ready(out)
+        return out, nsteps
+
+    def positions(self, out):
+        return mass_positions(self.model, out[0])
 
 
 # --------------------------------------------------------------------------- measuring
@@ -244,17 +360,26 @@ def throughput(method, n, batch, budget, repeats):
     return batch * steps / median, max(first - median, 0.0), median / steps
 
 
+def methods():
+    """The methods this run compares; the first is the peer that ratios divide by."""
+    if OPTS.device == "gpu":
+        return [MJX, SphereMech, BareScan] if HAVE_MJX else [SphereMech, BareScan]
+    return [MuJoCo, SphereMech, BareScan, Angles] + ([MJX] if OPTS.mjx else [])
+
+
 def check_agreement(n=3, batch=4, nsteps=200):
     y = random_states(n, batch, seed=7)
-    methods = [SphereMech(n), MuJoCo(n), Angles(n)]
-    pos = [m.positions(m.run(m.prepare(*y), nsteps)[0]) for m in methods]
-    pairs = zip(methods[1:], pos[1:], strict=True)
-    errors = {m.name: float(np.max(np.abs(p - pos[0]))) for m, p in pairs}
+    others = [cls(n) for cls in methods() if cls is not SphereMech]
+    reference = SphereMech(n)
+    pos = [m.positions(m.run(m.prepare(*y), nsteps)[0]) for m in [reference, *others]]
+    errors = {m.name: float(np.max(np.abs(p - pos[0]))) for m, p in zip(others, pos[1:],
+                                                                        strict=True)}
     lines = [f"| {name} | {err:.1e} |" for name, err in errors.items()]
     print(f"\nAgreement with sphere_mech, max |x_i| difference after {nsteps * DT:g} s "
           f"(n = {n}, {batch} random states):\n\n| method | difference |\n|---|---|")
     print("\n".join(lines))
-    assert max(errors.values()) < 1e-8, errors
+    bound = {name: MJX_AGREEMENT if name == MJX.name else AGREEMENT for name in errors}
+    assert all(errors[name] < bound[name] for name in errors), errors
     return errors
 
 
@@ -266,7 +391,7 @@ compile and managed 19 pendulum-steps/s at batch 1 (dense 64 x 64 Hessians)."""
 def measure_batches(ns, batches, budget, records):
     for n in ns:
         for batch in batches:
-            for cls in (MuJoCo, SphereMech, Angles):
+            for cls in methods():
                 if cls is Angles and n > ANGLES_MAX_N:
                     continue
                 work = budget * 2 / n / (4 if cls is Angles and n >= 8 else 1)
@@ -276,22 +401,27 @@ def measure_batches(ns, batches, budget, records):
 
 
 def measure_cost(per_n, records):
+    single = {MuJoCo: {"nthread": 1}}
     for n in per_n:
-        for cls, kwargs in ((SphereMech, {}), (MuJoCo, {"nthread": 1})):
-            cost = throughput(cls(n, **kwargs), n, 1, 2000, repeats=3)[2]
+        for cls in methods():
+            if cls is Angles:
+                continue
+            cost = throughput(cls(n, **single.get(cls, {})), n, 1, 2000, repeats=3)[2]
             records["cost"][f"{cls.name}|{n}"] = cost
             print(f"{cls.name}, n={n}, one trajectory: {cost * 1e6:.2f} us/step", flush=True)
 
 
-def report(records, errors):
+def report(records, errors, stem, setting):
+    names = [cls.name for cls in methods()]
+    peer = names[0]
     rows = []
     for key, (rate, compile_s) in records["batch"].items():
         name, n, batch = key.split("|")
-        mj = records["batch"].get(f"MuJoCo|{n}|{batch}", (np.nan,))[0]
-        rows.append((int(n), int(batch), name, rate, rate / mj, compile_s))
-    order = {"MuJoCo": 0, "sphere_mech": 1}
-    rows.sort(key=lambda r: (r[0], r[1], order.get(r[2], 2)))
-    table = ("| method | n | batch | pendulum-steps/s | ratio to MuJoCo | compile (s) |\n"
+        base = records["batch"].get(f"{peer}|{n}|{batch}", (np.nan,))[0]
+        rows.append((int(n), int(batch), name, rate, rate / base, compile_s))
+    order = {name: i for i, name in enumerate(names)}
+    rows.sort(key=lambda r: (r[0], r[1], order.get(r[2], len(order))))
+    table = (f"| method | n | batch | pendulum-steps/s | ratio to {peer} | compile (s) |\n"
              "|---|---|---|---|---|---|\n" + "\n".join(
                  f"| {m} | {n} | {b} | {r:.3g} | {x:.2f} | {c:.1f} |"
                  for n, b, m, r, x, c in rows))
@@ -299,65 +429,69 @@ def report(records, errors):
     for key, value in records["cost"].items():
         name, n = key.split("|")
         cost.setdefault(int(n), {})[name] = value
-    cost_table = ("| n | sphere_mech (us/step) | MuJoCo (us/step) |\n|---|---|---|\n" + "\n".join(
-        f"| {n} | {c.get('sphere_mech', np.nan) * 1e6:.2f} | {c.get('MuJoCo', np.nan) * 1e6:.2f} |"
-        for n, c in sorted(cost.items())))
+    cost_names = [name for name in names if any(name in c for c in cost.values())]
+    cost_table = ("| n | " + " | ".join(f"{m} (us/step)" for m in cost_names) + " |\n|---|"
+                  + "---|" * len(cost_names) + "\n" + "\n".join(
+                      f"| {n} | " + " | ".join(f"{c.get(m, np.nan) * 1e6:.2f}"
+                                               for m in cost_names) + " |"
+                      for n, c in sorted(cost.items())))
     print("\n" + table + "\n\nOne trajectory, cost per RK4 step:\n\n" + cost_table)
 
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 4.2))
-    colors = {"sphere_mech": "C0", "MuJoCo": "C3", "angles (autodiff EL)": "C2"}
+    colors = dict(zip(["sphere_mech", "bare scan", "MuJoCo", "MJX", "angles (autodiff EL)"],
+                      ["C0", "C1", "C3", "C4", "C2"], strict=True))
     ns = sorted({r[0] for r in rows})
     styles = dict(zip(ns, ("-", "--", ":", "-.")[: len(ns)], strict=True))
-    for name, color in colors.items():
+    for name in names:
         for n in ns:
             pts = sorted((b, r) for nn, b, m, r, _, _ in rows if m == name and nn == n)
             if pts:
-                ax.loglog(*zip(*pts, strict=True), styles[n], marker="o", color=color,
+                ax.loglog(*zip(*pts, strict=True), styles[n], marker="o", color=colors[name],
                           label=f"{name}, n={n}")
     ax.set(xlabel="batch size", ylabel="pendulum-steps per second",
-           title="Throughput (RK4, dt = 1e-3, float64, 2 cores)")
+           title=f"Throughput (RK4, dt = 1e-3, {setting})")
     ax.legend(fontsize=7)
-    for name in ("sphere_mech", "MuJoCo"):
+    for name in cost_names:
         pts = sorted((n, c[name] * 1e6) for n, c in cost.items() if name in c)
-        if pts:
-            ax2.loglog(*zip(*pts, strict=True), marker="o", color=colors[name], label=name)
+        ax2.loglog(*zip(*pts, strict=True), marker="o", color=colors[name], label=name)
     ax2.set(xlabel="links n", ylabel="microseconds per step", title="One trajectory")
     ax2.legend()
     fig.tight_layout()
-    fig.savefig(RESULTS / "throughput.png", dpi=120)
+    fig.savefig(RESULTS / f"{stem}.png", dpi=120)
     agreement = "\n".join(f"- {k}: {v:.1e}" for k, v in errors.items())
-    (RESULTS / "throughput.md").write_text(
+    (RESULTS / f"{stem}.md").write_text(
+        f"Measured on: {setting}.\n\n"
         f"Agreement with sphere_mech (max position difference after 0.2 s):\n{agreement}\n\n"
         f"{table}\n\nOne trajectory, cost per RK4 step:\n\n{cost_table}\n"
     )
-    print(f"\nwrote {RESULTS / 'throughput.png'} and {RESULTS / 'throughput.md'}")
+    print(f"\nwrote {RESULTS / stem}.png and {RESULTS / stem}.md")
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="fewer sizes and steps")
-    parser.add_argument("--ns", type=int, nargs="*", help="links to measure (default 2 8 32)")
-    parser.add_argument("--batches", type=int, nargs="*", help="batch sizes")
-    parser.add_argument("--per-n", type=int, nargs="*", help="n for the single-trajectory cost")
-    parser.add_argument("--merge", action="store_true",
-                        help="add to the results of earlier runs in results/throughput.json")
-    opts = parser.parse_args()
-    ns = opts.ns if opts.ns is not None else ((2, 8) if opts.quick else (2, 8, 32))
-    batches = opts.batches or ((1, 1024) if opts.quick else (1, 64, 1024, 8192))
-    per_n = opts.per_n if opts.per_n is not None else (
-        (1, 4, 16) if opts.quick else (1, 2, 4, 8, 16, 32, 64))
-    budget = 5e4 if opts.quick else 2e5  # pendulum-steps per timed run at n = 2
-    print(f"devices: {jax.devices()}  (cores: {CORES}); float64, RK4, dt = {DT}")
+    if OPTS.device == "gpu" and jax.default_backend() != "gpu":
+        raise SystemExit(f"--device gpu: JAX sees no GPU (its backend is {jax.default_backend()})")
+    quick, gpu = OPTS.quick, OPTS.device == "gpu"
+    ns = OPTS.ns if OPTS.ns is not None else ((2, 8) if quick else (2, 8, 32))
+    batches = OPTS.batches or ((1, 1024) if quick else
+                               (1, 1024, 8192, 65536) if gpu else (1, 64, 1024, 8192))
+    per_n = OPTS.per_n if OPTS.per_n is not None else (
+        (1, 4, 16) if quick else (1, 2, 4, 8, 16, 32, 64))
+    budget = (5e4 if quick else 2e5) * (100 if gpu else 1)  # pendulum-steps per run, n = 2
+    device = jax.devices()[0].device_kind if gpu else f"{CORES}-core CPU"
+    setting = f"{device}, {OPTS.dtype}"
+    print(f"devices: {jax.devices()}; {setting}, RK4, dt = {DT}")
     RESULTS.mkdir(exist_ok=True)
-    store = RESULTS / "throughput.json"
+    stem = ("throughput" if (OPTS.device, OPTS.dtype) == ("cpu", "float64")
+            else f"throughput_{OPTS.device}_{OPTS.dtype}")
+    store = RESULTS / f"{stem}.json"
     records = {"batch": {}, "cost": {}, "agreement": {}}
-    if opts.merge and store.exists():
+    if OPTS.merge and store.exists():
         records = json.loads(store.read_text())
     records["agreement"] = check_agreement()
     measure_batches(ns, batches, budget, records)
     measure_cost(per_n, records)
     store.write_text(json.dumps(records, indent=1))
-    report(records, records["agreement"])
+    report(records, records["agreement"], stem, setting)
 
 
 if __name__ == "__main__":

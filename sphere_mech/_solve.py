@@ -110,14 +110,19 @@ def _all_finite(tree) -> jax.Array:
 def solve(system, y0, t0, t1, dt0, args, opts: Options) -> diffrax.Solution:
     """One trajectory, never raising for a run-time failure: `sol.result` is a
     `RESULTS` code. Non-finite rates at the initial state give
-    `RESULTS.nonfinite_initial`; a trajectory that stepped into NaN without any solver
-    noticing (fixed steps of a solver that does not check), `RESULTS.nonfinite`."""
+    `RESULTS.nonfinite_initial`; a trajectory that stepped into NaN, `RESULTS.nonfinite`
+    (an adaptive controller rejects such steps; fixed steps carry the NaN to the end)."""
     ok = _all_finite(system.rates(t0, y0, args))
-    # Not finite at the start: integrate over [t0, t0] (no step, nothing saved) instead
-    # of letting an adaptive controller reject NaN steps until max_steps.
-    saveat = eqx.tree_at(_save_times, opts.saveat, replace_fn=lambda ts: jnp.where(ok, ts, t0))
+    saveat = opts.saveat
+    if isinstance(opts.controller, diffrax.AbstractAdaptiveStepSizeController):
+        # Not finite at the start: integrate over [t0, t0] (no step, nothing saved)
+        # instead of letting the controller reject NaN steps until max_steps. Fixed steps
+        # keep t1: their step count does not depend on the state, so under vmap the loop
+        # stays unbatched (no select over the loop state at every step).
+        saveat = eqx.tree_at(_save_times, saveat, replace_fn=lambda ts: jnp.where(ok, ts, t0))
+        t1 = jnp.where(ok, t1, t0)
     sol = diffrax.diffeqsolve(
-        MechanicsTerm(system), opts.solver, t0, jnp.where(ok, t1, t0), dt0, y0, args=args,
+        MechanicsTerm(system), opts.solver, t0, t1, dt0, y0, args=args,
         saveat=saveat, stepsize_controller=opts.controller, max_steps=opts.max_steps,
         progress_meter=opts.meter, adjoint=opts.adjoint, event=opts.event, throw=False,
     )

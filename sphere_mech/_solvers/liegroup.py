@@ -14,7 +14,6 @@ from diffrax import (
 )
 
 from .._geometry import project, rotate
-from .projected import flag_nonfinite
 
 
 def _check_state_structure(y0):
@@ -131,7 +130,7 @@ class LieRK4(AbstractAdaptiveSolver):
         y_error = (q1 - q_hat, v1 - v_hat)
         k = jtu.tree_map(lambda a, b: jnp.stack([a, b]), terms.prod(f0, h), terms.prod(f1, h))
         dense_info = dict(y0=y0, y1=y1, k=k)
-        return y1, y_error, dense_info, f1, flag_nonfinite(y1, RESULTS.successful)
+        return y1, y_error, dense_info, f1, RESULTS.successful
 
     def func(self, terms, t0, y0, args):
         return terms.vf(t0, y0, args)

@@ -1,18 +1,8 @@
 """A wrapper that keeps any diffrax solver's state on the tangent bundle of (S^2)^n."""
 
-import jax.numpy as jnp
-import jax.tree_util as jtu
-from diffrax import RESULTS, AbstractSolver, AbstractWrappedSolver
+from diffrax import AbstractSolver, AbstractWrappedSolver
 
 from .._geometry import retract
-
-
-def flag_nonfinite(y, result):
-    """`RESULTS.nonfinite` if the new state has a NaN or infinity (and the step had not
-    failed already). An adaptive controller rejects such a step and retries a smaller
-    one (its error estimate is then infinite); with fixed steps the run stops there."""
-    finite = jnp.all(jnp.array([jnp.all(jnp.isfinite(x)) for x in jtu.tree_leaves(y)]))
-    return RESULTS.where(finite | (result != RESULTS.successful), result, RESULTS.nonfinite)
 
 
 class Projected(AbstractWrappedSolver):
@@ -29,7 +19,6 @@ class Projected(AbstractWrappedSolver):
     at the unprojected end point; it differs from the one at the projected point by the
     local error times a Lipschitz constant, which does not change the order.
 
-    A step whose result is not finite returns `RESULTS.nonfinite`.
     The state must be the pair `(q, v)` of `(n, 3)` arrays used throughout sphere_mech.
     """
 
@@ -85,7 +74,7 @@ class Projected(AbstractWrappedSolver):
         y1, y_error, dense_info, solver_state, result = self.solver.step(
             terms, t0, t1, y0, args, solver_state, made_jump
         )
-        return retract(*y1), y_error, dense_info, solver_state, flag_nonfinite(y1, result)
+        return retract(*y1), y_error, dense_info, solver_state, result
 
     def func(self, terms, t0, y0, args):
         return self.solver.func(terms, t0, y0, args)

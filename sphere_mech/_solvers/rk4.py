@@ -12,8 +12,6 @@ from diffrax import (
     ThirdOrderHermitePolynomialInterpolation,
 )
 
-from .projected import flag_nonfinite
-
 
 def axpy(y, *terms):
     """`y + sum_i c_i k_i` over PyTrees, for `terms = ((c_1, k_1), (c_2, k_2), ...)`."""
@@ -32,7 +30,7 @@ class RK4(AbstractSolver):
     use the same method and the same number of force evaluations. Use it with
     `diffrax.ConstantStepSize()` and a `dt0`, and wrap it in `sphere_mech.Projected` to
     keep the state on the spheres (unwrapped, `|q_i| - 1` drifts by the local error of
-    every step). A step whose result is not finite returns `RESULTS.nonfinite`.
+    every step).
     """
 
     term_structure: ClassVar = AbstractTerm
@@ -57,7 +55,7 @@ class RK4(AbstractSolver):
         y1 = axpy(y0, (1 / 6, k1), (1 / 3, k2), (1 / 3, k3), (1 / 6, k4))
         # Hermite dense output from the end-point slopes (k4 approximates f(t1, y1)).
         k = jtu.tree_map(lambda a, b: jnp.stack([a, b]), k1, k4)
-        return y1, None, dict(y0=y0, y1=y1, k=k), None, flag_nonfinite(y1, RESULTS.successful)
+        return y1, None, dict(y0=y0, y1=y1, k=k), None, RESULTS.successful
 
     def func(self, terms, t0, y0, args):
         return terms.vf(t0, y0, args)
