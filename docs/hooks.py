@@ -121,9 +121,10 @@ def listed(doc: str) -> dict[str, str]:
     out, names = {}, []
     for line in doc.splitlines():
         entry = re.match(r"\s*- ((?:`\w+`(?:,\s*|\s+and\s+)?)+):?\s*(.*)", line)
-        if entry:
-            names = re.findall(r"`(\w+)`", entry[1])
-            out.update(dict.fromkeys(names, entry[2]))
+        more = re.match(r"\s+((?:`\w+`(?:,\s*)?)+):\s*(.*)", line)
+        if entry or (more and names and not out[names[0]]):  # names may span two lines
+            names = [*([] if entry else names), *re.findall(r"`(\w+)`", (entry or more)[1])]
+            out.update(dict.fromkeys(names, (entry or more)[2]))
         elif names and line.startswith(" ") and line.strip():
             out.update({n: f"{out[n]} {line.strip()}" for n in names})
         else:
@@ -146,7 +147,8 @@ def _parameters(obj) -> list[str]:
 def problems(name: str, obj, module: griffe.Module) -> list[str]:
     """What the docstring of public name `name` lacks: a description (data, abstract
     classes, enumerations); constructor arguments (classes); arguments and return value
-    (functions). Every parameter must be a list entry under `**Arguments:**`."""
+    (functions). Every parameter must be a list entry under `**Arguments:**` (or, for a
+    record such as `FitResult`, `**Attributes:**`)."""
     if not (inspect.isclass(obj) or inspect.isfunction(obj)):
         doc = module[name].docstring
         return [] if doc and doc.value.strip() else ["no description (an attribute "
@@ -158,8 +160,10 @@ def problems(name: str, obj, module: griffe.Module) -> list[str]:
         return []
     out = []
     missing = [p for p in _parameters(obj) if p not in listed(doc)]
-    if "**Arguments:**" not in doc:
-        out.append("no **Arguments:** section")
+    heading = ("**Arguments:**", "**Attributes:**") if inspect.isclass(obj) else (
+        "**Arguments:**",)  # a record (FitResult, ...) lists its attributes
+    if _parameters(obj) and not any(h in doc for h in heading):
+        out.append(f"no {' or '.join(heading)} section")
     if missing:
         out.append(f"arguments not documented: {', '.join(missing)}")
     if inspect.isfunction(obj) and "**Returns:**" not in doc:

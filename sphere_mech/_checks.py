@@ -14,7 +14,16 @@ UNIT_TOLERANCE = {np.dtype("float64"): 1e-6, np.dtype("float32"): 1e-4}
 
 
 def unit_tolerance(dtype) -> float:
-    """How far from unit length (and from tangency) an input may be, per dtype."""
+    """How far from unit length (and from tangency) an input state may be.
+
+    The checked entry points accept a state when `max_i ||q_i| - 1| <= tol` and
+    `max_i |q_i . v_i| <= tol (1 + max_i |v_i|)`.
+
+    **Arguments:**
+    - `dtype`: the floating dtype of the state.
+
+    **Returns:** `tol`: `1e-6` for float64, `1e-4` for float32 (and other dtypes).
+    """
     return UNIT_TOLERANCE.get(np.dtype(dtype), 1e-4)
 
 

@@ -20,7 +20,14 @@ class Scene(AbstractConstantInertiaLagrangian):
 
     Kinetic terms stack their spheres in the order given. Only the listed effects are
     traced, each under its class name (no force effect: `forces` is `None`). Each
-    effect is checked against the scene (indices, counts) at construction."""
+    effect is checked against the scene (indices, counts) at construction.
+
+    **Arguments:**
+    - `effects`: the effects, in any order: at least one kinetic term (`Chain`,
+      `Particles`, `SharedSphere`), then any potentials (`Gravity`, `Spring`, `Bending`,
+      `PairInteraction`) and forces (`JointDamping`, `BaseTorque`, `TipForce`,
+      `VibratingSupport`).
+    """
 
     kinetic: tuple[AbstractKinetic, ...]
     potentials: tuple[AbstractPotential, ...]
@@ -121,13 +128,22 @@ class Scene(AbstractConstantInertiaLagrangian):
 
 
 def chain_pendulum(masses, lengths, g=9.81, *, torque=None, tip_force=None) -> Scene:
-    """The chain pendulum of Lee, Leok & McClamroch, section V: `Scene(Chain(masses,
-    lengths), Gravity(g) [, BaseTorque(torque)] [, TipForce(tip_force)])`, with lengths
-    and `g` in the floating dtype of `masses` (kg; lengths in m, `g` in m/s^2).
+    """The chain pendulum of Lee, Leok & McClamroch, section V.
 
-    `torque` (applied by the base on the first link, `f_1 = torque x q_1`) and
-    `tip_force` (on the last mass) are optional `(3,)` vectors or functions
-    `(t, q, qdot, args) -> (3,)`."""
+    `Scene(Chain(masses, lengths), Gravity(g) [, BaseTorque(torque)] [, TipForce(tip_force)])`,
+    with lengths and `g` in the floating dtype of `masses`.
+
+    **Arguments:**
+    - `masses`: the masses at the tips of the links (kg), one per link.
+    - `lengths`: the link lengths (m), one per link.
+    - `g`: gravity (m/s^2), along `-e3`.
+    - `torque`: optional torque applied by the base on the first link
+      (`f_1 = torque x q_1`): a `(3,)` vector or a function `(t, q, qdot, args) -> (3,)`.
+    - `tip_force`: optional force on the last mass: a `(3,)` vector or a function
+      `(t, q, qdot, args) -> (3,)`.
+
+    **Returns:** the `Scene` (state `(q, qdot)`, Corollary-1 fast path).
+    """
     masses = jnp.asarray(masses)
     dtype = jnp.result_type(masses, float)
     effects = [Chain(masses.astype(dtype), jnp.asarray(lengths, dtype)),

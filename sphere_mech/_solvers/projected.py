@@ -31,6 +31,10 @@ class Projected(AbstractWrappedSolver):
 
     A step whose result is not finite returns `RESULTS.nonfinite`.
     The state must be the pair `(q, v)` of `(n, 3)` arrays used throughout sphere_mech.
+
+    **Arguments:**
+    - `solver`: any diffrax solver, e.g. `diffrax.Tsit5()` (the default of `simulate`),
+      `diffrax.Dopri8()`, `diffrax.Kvaerno5()` or `sphere_mech.RK4()`.
     """
 
     solver: AbstractSolver
