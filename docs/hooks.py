@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parent.parent
 API_PAGE = ROOT / "docs" / "api.md"
 MARKER = "<!-- scene-file-reference -->"
 SHARED = ("notebooks", "benchmarks/results")  # repository folders the site serves
-MATHJAX = ("tex-chtml.js", "input", "output", "ui", "a11y", "adaptors")  # from its es5/
+MATHJAX = ("tex-svg.js", "input", "ui", "a11y", "adaptors")  # from its es5/ (SVG: no fonts)
 
 log = logging.getLogger("mkdocs.hooks.sphere_mech")
 
@@ -43,14 +43,12 @@ class _ListAfterLine(markdown.preprocessors.Preprocessor):
     needs a blank line before a list, so insert one (outside fenced code)."""
 
     def run(self, lines):
-        out, fenced = [], False
+        out, verbatim = [], False
         for line in lines:
-            if line.lstrip().startswith(("```", "~~~")):
-                fenced = not fenced
-            item = re.match(r"\s*[-*] ", line)
-            if not fenced and item and out and out[-1].strip() and not re.match(
-                r"\s*([-*] |\d+\. )", out[-1]
-            ) and not out[-1].startswith(" "):
+            if line.lstrip().startswith(("```", "~~~", "$$")):  # code or display math
+                verbatim = line.count("$$") != 2 and not verbatim
+            heading = out and re.fullmatch(r"\S.*:(\*\*)?\s*", out[-1])  # "**Arguments:**"
+            if not verbatim and heading and re.match(r"\s*- ", line):
                 out.append("")
             out.append(line)
         return out
@@ -75,10 +73,15 @@ def on_config(config):
 def on_files(files, config):
     for folder in SHARED:
         for path in sorted((ROOT / folder).glob("*")):
-            if path.suffix in (".ipynb", ".png"):
-                files.append(mkdocs.structure.files.File(
-                    f"{folder}/{path.name}", src_dir=str(ROOT), dest_dir=config.site_dir,
-                    use_directory_urls=config.use_directory_urls))
+            if path.suffix in (".ipynb", ".png", ".md"):
+                files.append(
+                    mkdocs.structure.files.File(
+                        f"{folder}/{path.name}",
+                        src_dir=str(ROOT),
+                        dest_dir=config.site_dir,
+                        use_directory_urls=config.use_directory_urls,
+                    )
+                )
     return files
 
 
@@ -140,8 +143,11 @@ def _documentation(obj) -> str:
 
 
 def _parameters(obj) -> list[str]:
-    return [p.name for p in inspect.signature(obj).parameters.values()
-            if p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)]
+    return [
+        p.name
+        for p in inspect.signature(obj).parameters.values()
+        if p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)
+    ]
 
 
 def problems(name: str, obj, module: griffe.Module) -> list[str]:
@@ -151,8 +157,11 @@ def problems(name: str, obj, module: griffe.Module) -> list[str]:
     record such as `FitResult`, `**Attributes:**`)."""
     if not (inspect.isclass(obj) or inspect.isfunction(obj)):
         doc = module[name].docstring
-        return [] if doc and doc.value.strip() else ["no description (an attribute "
-                                                     "docstring after the assignment)"]
+        return (
+            []
+            if doc and doc.value.strip()
+            else ["no description (an attribute docstring after the assignment)"]
+        )
     doc = _documentation(obj)
     if not doc.strip():
         return ["no docstring"]
@@ -160,8 +169,9 @@ def problems(name: str, obj, module: griffe.Module) -> list[str]:
         return []
     out = []
     missing = [p for p in _parameters(obj) if p not in listed(doc)]
-    heading = ("**Arguments:**", "**Attributes:**") if inspect.isclass(obj) else (
-        "**Arguments:**",)  # a record (FitResult, ...) lists its attributes
+    heading = (
+        ("**Arguments:**", "**Attributes:**") if inspect.isclass(obj) else ("**Arguments:**",)
+    )  # a record (FitResult, ...) lists its attributes
     if _parameters(obj) and not any(h in doc for h in heading):
         out.append(f"no {' or '.join(heading)} section")
     if missing:
@@ -179,13 +189,19 @@ def undocumented(api_markdown: str | None = None) -> list[str]:
     api_markdown = API_PAGE.read_text() if api_markdown is None else api_markdown
     entries = set(re.findall(r"^::: sphere_mech\.(\w+)\s*$", api_markdown, re.M))
     module = griffe.load("sphere_mech", search_paths=[str(ROOT)], resolve_aliases=True)
-    out = [f"docs/api.md: {name} (in sphere_mech.__all__) has no '::: sphere_mech.{name}' "
-           "entry" for name in sphere_mech.__all__ if name not in entries]
-    out += [f"docs/api.md: '::: sphere_mech.{name}' is not in sphere_mech.__all__"
-            for name in sorted(entries - set(sphere_mech.__all__))]
+    out = [
+        f"docs/api.md: {name} (in sphere_mech.__all__) has no '::: sphere_mech.{name}' entry"
+        for name in sphere_mech.__all__
+        if name not in entries
+    ]
+    out += [
+        f"docs/api.md: '::: sphere_mech.{name}' is not in sphere_mech.__all__"
+        for name in sorted(entries - set(sphere_mech.__all__))
+    ]
     for name in sphere_mech.__all__:
-        out += [f"sphere_mech.{name}: {p}" for p in
-                problems(name, getattr(sphere_mech, name), module)]
+        out += [
+            f"sphere_mech.{name}: {p}" for p in problems(name, getattr(sphere_mech, name), module)
+        ]
     return out
 
 
@@ -210,14 +226,23 @@ def _effect_table(kind: str, cls, files) -> str:
     schema_of = files.schema(cls)
     fields = listed(_documentation(cls))
     cell = lambda text: text.replace("|", "\\|")
-    rows = [f"| `{field}` | {' or '.join(files.KINDS[k][0] for k in kinds)} | "
-            f"{_toml(default)} | {cell(fields.get(field, ''))} |"
-            for field, (kinds, default) in schema_of.items()]
-    return "\n".join([
-        f"### `{kind}`", "",
-        f"[`sm.{cls.__name__}`][sphere_mech.{cls.__name__}]: "
-        f"{_summary(inspect.getdoc(cls))}", "",
-        "| field | a file gives | default | meaning |", "|---|---|---|---|", *rows, ""])
+    rows = [
+        f"| `{field}` | {' or '.join(files.KINDS[k][0] for k in kinds)} | "
+        f"{_toml(default)} | {cell(fields.get(field, ''))} |"
+        for field, (kinds, default) in schema_of.items()
+    ]
+    return "\n".join(
+        [
+            f"### `{kind}`",
+            "",
+            f"[`sm.{cls.__name__}`][sphere_mech.{cls.__name__}]: {_summary(inspect.getdoc(cls))}",
+            "",
+            "| field | a file gives | default | meaning |",
+            "|---|---|---|---|",
+            *rows,
+            "",
+        ]
+    )
 
 
 def scene_file_reference() -> str:
@@ -227,20 +252,38 @@ def scene_file_reference() -> str:
 
     initial = [f"| `{key}` | {what} |" for key, (_, what, _) in files.INITIAL.items()]
     simulate = [f"| `{key}` | {what} |" for key, what in files.SIMULATE.items()]
-    return "\n".join([
-        "### Effects (`[[effects]]`)", "",
-        "One table per effect; `type` names it (the class name in snake_case). Effect "
-        "types: " + ", ".join(f"`{k}`" for k in files.EFFECTS) + ". Controllers (inline "
-        "tables where Python takes a function): " + ", ".join(f"`{k}`" for k in files.DRIVES)
-        + ".", "",
-        *(_effect_table(kind, cls, files) for kind, cls in files.EFFECTS.items()),
-        *(_effect_table(kind, cls, files) for kind, cls in files.DRIVES.items()),
-        "### Initial state (`[initial]`)", "",
-        "Either `q` (and optionally `qdot`), or `polar_deg` and `azimuth_deg` with optional "
-        "rates; each one value for every sphere or a list with one per sphere.", "",
-        "| key | expected |", "|---|---|", *initial, "",
-        "### Integration (`[simulate]`)", "",
-        "Keyword arguments of [`sm.simulate`][sphere_mech.simulate], with its defaults.", "",
-        "| key | expected |", "|---|---|", *simulate, "",
-        "Solver names: `Projected(<solver>)`, `Variational`, `Variational(order=4)`, "
-        + ", ".join(f"`{k}`" for k in files.PLAIN_SOLVERS) + " (parentheses optional).", ""])
+    return "\n".join(
+        [
+            "### Effects (`[[effects]]`)",
+            "",
+            "One table per effect; `type` names it (the class name in snake_case). Effect "
+            "types: " + ", ".join(f"`{k}`" for k in files.EFFECTS) + ". Controllers (inline "
+            "tables where Python takes a function): "
+            + ", ".join(f"`{k}`" for k in files.DRIVES)
+            + ".",
+            "",
+            *(_effect_table(kind, cls, files) for kind, cls in files.EFFECTS.items()),
+            *(_effect_table(kind, cls, files) for kind, cls in files.DRIVES.items()),
+            "### Initial state (`[initial]`)",
+            "",
+            "Either `q` (and optionally `qdot`), or `polar_deg` and `azimuth_deg` with optional "
+            "rates; each one value for every sphere or a list with one per sphere.",
+            "",
+            "| key | expected |",
+            "|---|---|",
+            *initial,
+            "",
+            "### Integration (`[simulate]`)",
+            "",
+            "Keyword arguments of [`sm.simulate`][sphere_mech.simulate], with its defaults.",
+            "",
+            "| key | expected |",
+            "|---|---|",
+            *simulate,
+            "",
+            "Solver names: `Projected(<solver>)`, `Variational`, `Variational(order=4)`, "
+            + ", ".join(f"`{k}`" for k in files.PLAIN_SOLVERS)
+            + " (parentheses optional).",
+            "",
+        ]
+    )
