@@ -1,6 +1,7 @@
-// MathJax 3 configuration, read before docs/assets/mathjax/tex-chtml.js loads.
-// Arithmatex (generic mode) writes \( \) and \[ \] into pages and docstrings; notebook
-// cells use $ $. Code blocks are skipped (MathJax's default skipHtmlTags).
+// MathJax 3 configuration, read before docs/assets/mathjax/tex-svg.js (copied into the
+// site by docs/hooks.py) loads. Arithmatex (generic mode) writes \( \) and \[ \] into
+// pages and docstrings; notebook cells use $ $. Code is skipped (MathJax's default
+// skipHtmlTags). SVG output needs no web fonts.
 window.MathJax = {
   tex: {
     inlineMath: [["\\(", "\\)"], ["$", "$"]],
@@ -8,13 +9,11 @@ window.MathJax = {
     processEscapes: true,
     processEnvironments: true,
   },
-  options: { ignoreHtmlClass: "tex2jax_ignore", processHtmlClass: "arithmatex|jp-RenderedMarkdown" },
 };
-// Material's instant navigation swaps pages without reloading: typeset each new one.
+// Material's instant navigation (if enabled) swaps pages without reloading: typeset each.
 if (typeof document$ !== "undefined") {
   document$.subscribe(() => {
     if (window.MathJax && MathJax.typesetPromise) {
-      MathJax.startup.output.clearCache();
       MathJax.typesetClear();
       MathJax.texReset();
       MathJax.typesetPromise();

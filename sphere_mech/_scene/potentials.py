@@ -17,7 +17,9 @@ def safe_norm(x: jax.Array) -> jax.Array:
 
 
 class Gravity(AbstractPotential):
-    """Uniform gravity: `U = -g sum_i m_i direction . x_i`.
+    """Uniform gravity.
+
+    `U = -g sum_i m_i direction . x_i` over the positions `x_i` of the masses.
 
     **Arguments:**
     - `g`: strength (m/s^2), a scalar `>= 0`.
