@@ -13,6 +13,7 @@
   the network.
 """
 
+import functools
 import importlib.util
 import inspect
 import logging
@@ -25,6 +26,7 @@ import markdown
 import markdown.preprocessors
 import mkdocs.plugins
 import mkdocs.structure.files
+import yaml
 
 ROOT = Path(__file__).resolve().parent.parent
 API_PAGE = ROOT / "docs" / "api.md"
@@ -146,8 +148,30 @@ def _parameters(obj) -> list[str]:
     return [
         p.name
         for p in inspect.signature(obj).parameters.values()
-        if p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)
+        if p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD) and p.name != "self"
     ]
+
+
+@functools.cache
+def _hidden_names() -> tuple[str, ...]:
+    """The patterns of member names the API reference hides (mkdocs.yml's `filters`)."""
+    config = yaml.safe_load((ROOT / "mkdocs.yml").read_text())
+    plugin = next(p["mkdocstrings"] for p in config["plugins"] if "mkdocstrings" in p)
+    return tuple(f.removeprefix("!") for f in plugin["handlers"]["python"]["options"]["filters"])
+
+
+def _members(cls) -> dict[str, object]:
+    """The methods a class's API entry shows: defined in the class itself, public by the
+    `filters` of mkdocs.yml, with a docstring of their own (mkdocstrings hides members
+    without one)."""
+    hidden = _hidden_names()
+    return {
+        name: value
+        for name, value in vars(cls).items()
+        if inspect.isfunction(value)
+        and value.__doc__
+        and not any(re.search(pattern, name) for pattern in hidden)
+    }
 
 
 def problems(name: str, obj, module: griffe.Module) -> list[str]:
@@ -183,7 +207,8 @@ def problems(name: str, obj, module: griffe.Module) -> list[str]:
 
 def undocumented(api_markdown: str | None = None) -> list[str]:
     """Every problem of the API reference: names of `sphere_mech.__all__` without an
-    entry in docs/api.md, and public names whose docstrings lack something."""
+    entry in docs/api.md, and public names (and the methods their entries show) whose
+    docstrings lack something."""
     import sphere_mech
 
     api_markdown = API_PAGE.read_text() if api_markdown is None else api_markdown
@@ -199,9 +224,10 @@ def undocumented(api_markdown: str | None = None) -> list[str]:
         for name in sorted(entries - set(sphere_mech.__all__))
     ]
     for name in sphere_mech.__all__:
-        out += [
-            f"sphere_mech.{name}: {p}" for p in problems(name, getattr(sphere_mech, name), module)
-        ]
+        obj = getattr(sphere_mech, name)
+        out += [f"sphere_mech.{name}: {p}" for p in problems(name, obj, module)]
+        for method, function in _members(obj).items() if inspect.isclass(obj) else ():
+            out += [f"sphere_mech.{name}.{method}: {p}" for p in problems(method, function, module)]
     return out
 
 

@@ -82,6 +82,21 @@ def test_the_api_check_finds_what_is_missing():
         "arguments not documented: y",
         "no **Returns:** section",
     ]
+
+    # A method the API reference shows, without its argument and return value.
+    class C:
+        def method(self, x):
+            """Does something with `x`."""
+
+        def _private(self, x):
+            """Not shown."""
+
+    assert list(hooks._members(C)) == ["method"]
+    assert hooks.problems("method", C.method, None) == [
+        "no **Arguments:** section",
+        "arguments not documented: x",
+        "no **Returns:** section",
+    ]
     assert hooks.listed("- `a`, `b`: two\n  more\n- `c`:\n") == {
         "a": "two more",
         "b": "two more",

@@ -178,7 +178,13 @@ class VibratingSupport(AbstractForce):
         base.check_vector("direction", self.direction, unit=True)
 
     def acceleration(self, t):
-        """`s''(t)`, the acceleration of the support."""
+        """The acceleration of the support, `s''(t)`.
+
+        **Arguments:**
+        - `t`: time.
+
+        **Returns:** a `(3,)` vector (m/s^2).
+        """
         w = self.angular_frequency
         return -self.amplitude * w**2 * jnp.cos(w * t + self.phase) * self.direction
 

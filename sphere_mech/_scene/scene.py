@@ -69,8 +69,15 @@ class Scene(AbstractConstantInertiaLagrangian):
         return jsl.block_diag(*[k.inertia() for k in self.kinetic])
 
     def inverse_inertia_bands(self, args=None):
-        """`M` is block-diagonal over the kinetic terms and each block has a tridiagonal
-        inverse, so `M^-1` is tridiagonal (zero coupling between blocks): O(n) solves."""
+        """The bands of `M^-1`: `M` is block-diagonal over the kinetic terms and each
+        block has a tridiagonal inverse, so `M^-1` is tridiagonal (zero coupling between
+        blocks): O(n) solves.
+
+        **Arguments:**
+        - `args`: unused (the inertia is the effects' own).
+
+        **Returns:** its diagonal `(n,)` and off-diagonal `(n - 1,)`.
+        """
         bands = [k.inverse_inertia_bands() for k in self.kinetic]
         d = jnp.concatenate([b[0] for b in bands])
         zero = jnp.zeros((1,), dtype=d.dtype)
@@ -79,30 +86,54 @@ class Scene(AbstractConstantInertiaLagrangian):
         return d, e
 
     def masses(self) -> jax.Array:
-        """The `(n,)` point masses."""
+        """The point masses of the kinetic terms, in the order of the spheres.
+
+        **Returns:** an `(n,)` array (kg).
+        """
         return jnp.concatenate([k.masses for k in self.kinetic])
 
     def positions(self, q: jax.Array) -> jax.Array:
-        """Positions of the masses in the support frame, `(n, 3)`."""
+        """Positions of the masses in the support frame.
+
+        **Arguments:**
+        - `q`: the scene's unit vectors, `(n, 3)`.
+
+        **Returns:** the positions, `(n, 3)` (m).
+        """
         o = self._offsets()
         return jnp.concatenate(
             [k.positions(q[a:b]) for k, a, b in zip(self.kinetic, o[:-1], o[1:], strict=True)]
         ).astype(q.dtype)
 
     def parents(self) -> np.ndarray:
-        """Global index of each sphere's parent in its joint (-1: the support)."""
+        """The joint structure of the scene.
+
+        **Returns:** the global index of each sphere's parent in its joint (-1: the support),
+        an `(n,)` integer array.
+        """
         blocks = zip(self.kinetic, self._offsets(), strict=False)
         return np.asarray([p + a if p >= 0 else -1 for k, a in blocks for p in k.parents()],
                           dtype=int)
 
     def bend_pairs(self) -> tuple[np.ndarray, np.ndarray]:
-        """Global index arrays `(i, j)` of consecutive links."""
+        """Where bending stiffness acts.
+
+        **Returns:** global index arrays `(i, j)` of consecutive links.
+        """
         blocks = zip(self.kinetic, self._offsets(), strict=False)
         pairs = [(i + a, j + a) for k, a in blocks for i, j in k.bends()]
         return np.asarray(pairs, dtype=int).reshape(-1, 2).T
 
     def kinetic_energy(self, q, qdot, args=None):
-        """`T = 1/2 sum_i m_i |xdot_i|^2`, O(n)."""
+        """`T = 1/2 sum_i m_i |xdot_i|^2`, O(n).
+
+        **Arguments:**
+        - `q`: the scene's unit vectors, `(n, 3)`.
+        - `qdot`: their velocities, `(n, 3)`.
+        - `args`: unused.
+
+        **Returns:** a scalar (J).
+        """
         xdot = jax.jvp(self.positions, (q,), (qdot,))[1]
         return (0.5 * jnp.sum(self.masses() * jnp.sum(xdot**2, axis=-1))).astype(q.dtype)
 
