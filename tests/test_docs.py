@@ -21,8 +21,8 @@ spec.loader.exec_module(hooks)
 
 @pytest.fixture(scope="module")
 def site(tmp_path_factory):
-    """Build the site once, strictly, into a temporary directory (from another working
-    directory, as a user of the README's command would not need to)."""
+    """Build the site once, strictly, into a temporary directory, from another working
+    directory (the build does not depend on it)."""
     out = tmp_path_factory.mktemp("site")
     env = os.environ | {
         "PYTHONPATH": os.pathsep.join([str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])]),
