@@ -1,8 +1,9 @@
 """Validation of user input: static problems raise `ValueError` at trace time, value
 problems go through `equinox.error_if` so they stay inside jit/vmap/grad.
 
-Tolerances (documented in docs/concepts.md, "Tolerances and input checks"): a configuration is accepted when
-`max_i | |q_i| - 1 | <= unit_tolerance(dtype)` and a velocity or momentum when
+Tolerances (documented in docs/concepts.md, "Tolerances and input checks"): a
+configuration is accepted when `max_i | |q_i| - 1 | <= unit_tolerance(dtype)` and a
+velocity or momentum when
 `max_i |q_i . v_i| <= unit_tolerance(dtype) * (1 + max_i |v_i|)`.
 """
 
