@@ -85,3 +85,11 @@ from ._system import (
 from ._term import MechanicsTerm as MechanicsTerm
 
 __version__ = importlib.metadata.version("sphere_mech")
+
+# Every public name: what `from sphere_mech import *` gives and what docs/api.md must
+# document (tests/test_docs.py checks both ways).
+__all__ = sorted(
+    name
+    for name, value in globals().items()
+    if not name.startswith("_") and not isinstance(value, type(importlib))
+)

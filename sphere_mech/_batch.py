@@ -108,10 +108,14 @@ def simulate_batch(
 ) -> diffrax.Solution:
     """Integrate a batch of trajectories: `simulate` over a leading batch axis.
 
-    **Arguments** (as `sphere_mech.simulate`, except):
+    **Arguments:**
+    - `system`, `t1`, `t0`, `solver`, `dt0`, `rtol`, `atol`, `stepsize_controller`,
+      `saveat`, `max_steps`, `adjoint`, `event`: as in `sphere_mech.simulate`
+      (shared by every trajectory; `system` too unless `batch_system=True`).
     - `y0`: `(q0, v0)`, arrays of shape `(batch, n, 3)`.
     - `args`: passed to the system; its array leaves have a leading batch axis (one value
-      per trajectory: masses, gains, ...) unless `batch_args=False` (shared by all).
+      per trajectory: masses, gains, ...) unless `batch_args=False`.
+    - `batch_args`: `False` shares `args` between all trajectories (no batch axis).
     - `batch_system`: if True, every array leaf of `system` has a leading batch axis, e.g.
       `eqx.filter_vmap(sm.chain_pendulum)(masses, lengths)` for a batch of chains.
     - `throw`: as in `simulate`: `True` (default) raises after the solve if any

@@ -1,8 +1,9 @@
 """Validation of user input: static problems raise `ValueError` at trace time, value
 problems go through `equinox.error_if` so they stay inside jit/vmap/grad.
 
-Tolerances (documented in the README, "Conventions"): a configuration is accepted when
-`max_i | |q_i| - 1 | <= unit_tolerance(dtype)` and a velocity or momentum when
+Tolerances (documented in docs/concepts.md, "Tolerances and input checks"): a
+configuration is accepted when `max_i | |q_i| - 1 | <= unit_tolerance(dtype)` and a
+velocity or momentum when
 `max_i |q_i . v_i| <= unit_tolerance(dtype) * (1 + max_i |v_i|)`.
 """
 
@@ -14,7 +15,16 @@ UNIT_TOLERANCE = {np.dtype("float64"): 1e-6, np.dtype("float32"): 1e-4}
 
 
 def unit_tolerance(dtype) -> float:
-    """How far from unit length (and from tangency) an input may be, per dtype."""
+    """How far from unit length (and from tangency) an input state may be.
+
+    The checked entry points accept a state when `max_i ||q_i| - 1| <= tol` and
+    `max_i |q_i . v_i| <= tol (1 + max_i |v_i|)`.
+
+    **Arguments:**
+    - `dtype`: the floating dtype of the state.
+
+    **Returns:** `tol`: `1e-6` for float64, `1e-4` for float32 (and other dtypes).
+    """
     return UNIT_TOLERANCE.get(np.dtype(dtype), 1e-4)
 
 

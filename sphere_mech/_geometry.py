@@ -12,7 +12,13 @@ from ._custom_types import Points, Scalar, Tangents
 
 
 def hat(x: jax.Array) -> jax.Array:
-    """The hat map: `hat(x) @ y == cross(x, y)`. Shape `(..., 3) -> (..., 3, 3)`."""
+    """The hat map: `hat(x) @ y == cross(x, y)`.
+
+    **Arguments:**
+    - `x`: vectors, shape `(..., 3)`.
+
+    **Returns:** the skew-symmetric matrices, shape `(..., 3, 3)`.
+    """
     x1, x2, x3 = x[..., 0], x[..., 1], x[..., 2]
     z = jnp.zeros_like(x1)
     rows = [
@@ -29,26 +35,51 @@ def dot(a: jax.Array, b: jax.Array) -> jax.Array:
 
 
 def normalize(q: jax.Array) -> jax.Array:
-    """Scale each row of `q` to unit length."""
+    """Scale each row of `q` to unit length.
+
+    **Arguments:**
+    - `q`: nonzero vectors, shape `(..., 3)`.
+
+    **Returns:** `q_i / |q_i|`, the same shape.
+    """
     return q / jnp.linalg.norm(q, axis=-1, keepdims=True)
 
 
 def project(q: Points, v: jax.Array) -> Tangents:
-    """Remove from each `v_i` its component along `q_i`: `(I - q_i q_i^T) v_i` (unit `q`)."""
+    """Remove from each `v_i` its component along `q_i`: `(I - q_i q_i^T) v_i`.
+
+    **Arguments:**
+    - `q`: unit vectors, `(n, 3)` (or `(3,)`).
+    - `v`: vectors of the same shape.
+
+    **Returns:** the tangent parts of `v`, the same shape.
+    """
     return v - dot(q, v) * q
 
 
 def retract(q: jax.Array, v: jax.Array) -> tuple[Points, Tangents]:
-    """Put a state back on the tangent bundle: normalize `q`, make `v` tangent to it."""
+    """Put a state back on the tangent bundle: normalize `q`, make `v` tangent to it.
+
+    **Arguments:**
+    - `q`: nonzero vectors, `(n, 3)`, near the spheres.
+    - `v`: vectors of the same shape (a velocity, angular velocity or momentum).
+
+    **Returns:** `(q / |q|, v projected on the tangent planes at the normalized q)`.
+    """
     q = normalize(q)
     return q, project(q, v)
 
 
 def tangent_basis(q: Points) -> jax.Array:
-    """An orthonormal basis of each tangent plane, `(n, 3) -> (n, 3, 2)`.
+    """An orthonormal basis of each tangent plane.
 
     Uses the branch-free construction of Duff et al. (2017); columns `b1, b2` satisfy
     `b1 x b2 = q_i`. `q` is normalized first, so points slightly off the sphere are fine.
+
+    **Arguments:**
+    - `q`: points, `(n, 3)` (or `(3,)`).
+
+    **Returns:** the bases, `(n, 3, 2)` (or `(3, 2)`): column `k` of `[i]` is `b_k` at `q_i`.
     """
     q = normalize(q)
     x, y, z = q[..., 0], q[..., 1], q[..., 2]
@@ -72,14 +103,27 @@ def _sinc_and_cosc(theta2: jax.Array) -> tuple[jax.Array, jax.Array]:
 
 
 def rotate(w: jax.Array, x: jax.Array) -> jax.Array:
-    """Apply the rotation `exp(hat(w_i))` to each `x_i` (Rodrigues' formula)."""
+    """Apply the rotation `exp(hat(w_i))` to each `x_i` (Rodrigues' formula).
+
+    **Arguments:**
+    - `w`: rotation vectors (axis times angle in rad), `(..., 3)`.
+    - `x`: vectors to rotate, same shape.
+
+    **Returns:** the rotated vectors, same shape; smooth (and differentiable) at `w = 0`.
+    """
     sinc, cosc = _sinc_and_cosc(jnp.sum(w * w, axis=-1, keepdims=True))
     wx = jnp.cross(w, x)
     return x + sinc * wx + cosc * jnp.cross(w, wx)
 
 
 def rotation_matrix(w: jax.Array) -> jax.Array:
-    """`exp(hat(w))` as a `(..., 3, 3)` rotation matrix."""
+    """`exp(hat(w))` as a rotation matrix (Rodrigues' formula).
+
+    **Arguments:**
+    - `w`: rotation vectors (axis times angle in rad), `(..., 3)`.
+
+    **Returns:** the rotation matrices, `(..., 3, 3)`.
+    """
     sinc, cosc = _sinc_and_cosc(jnp.sum(w * w, axis=-1))
     W = hat(w)
     eye = jnp.eye(3, dtype=w.dtype)
@@ -87,18 +131,39 @@ def rotation_matrix(w: jax.Array) -> jax.Array:
 
 
 def sphere_exp(q: Points, v: Tangents) -> Points:
-    """The exponential map of the round sphere: follow the great circle from `q_i` with
-    initial velocity `v_i` (tangent) for unit time. Equals `rotate(cross(q, v), q)`."""
+    """The exponential map of the round sphere: follow the great circle from `q_i`
+    with initial velocity `v_i` for unit time. Equals `rotate(cross(q, v), q)`.
+
+    **Arguments:**
+    - `q`: points, `(n, 3)` unit vectors.
+    - `v`: tangent vectors at `q` (`q_i . v_i = 0`), same shape.
+
+    **Returns:** the end points, `(n, 3)` unit vectors.
+    """
     return rotate(jnp.cross(q, v), q)
 
 
 def constraint_error(q: jax.Array) -> Scalar:
-    """`max_i | |q_i| - 1 |`, the distance of a configuration from (S^2)^n."""
+    """The distance of a configuration from (S^2)^n.
+
+    **Arguments:**
+    - `q`: vectors, `(n, 3)` (or with leading axes, e.g. a trajectory `(T, n, 3)`).
+
+    **Returns:** the scalar `max_i | |q_i| - 1 |` over every point.
+    """
     return jnp.max(jnp.abs(jnp.linalg.norm(q, axis=-1) - 1.0))
 
 
 def random_points(key: jax.Array, n: int, *, dtype=None) -> Points:
-    """`n` independent uniformly distributed points on the unit sphere, `(n, 3)`."""
+    """Independent, uniformly distributed points on the unit sphere.
+
+    **Arguments:**
+    - `key`: a JAX PRNG key.
+    - `n`: the number of points.
+    - `dtype`: the floating dtype (default JAX's, float64 with x64 enabled).
+
+    **Returns:** an `(n, 3)` array of unit vectors.
+    """
     return normalize(jr.normal(key, (n, 3), dtype=dtype))
 
 
@@ -107,9 +172,16 @@ def random_state(
 ) -> tuple[Points, Tangents]:
     """A random state `(q, v)` on the tangent bundle of (S^2)^n.
 
-    `q` is uniform on each sphere; `v` is a Gaussian tangent vector with standard
-    deviation `speed` per tangent direction. `v` can equally be read as an angular
-    velocity (`q_i . omega_i = 0`) or a momentum.
+    `q` is uniform on each sphere; `v` is a Gaussian tangent vector. `v` can equally be
+    read as an angular velocity (`q_i . omega_i = 0`) or a momentum.
+
+    **Arguments:**
+    - `key`: a JAX PRNG key.
+    - `n`: the number of spheres.
+    - `speed`: standard deviation of `v` per tangent direction.
+    - `dtype`: the floating dtype (default JAX's).
+
+    **Returns:** `(q, v)`, two `(n, 3)` arrays with `|q_i| = 1` and `q_i . v_i = 0`.
     """
     kq, kv = jr.split(key)
     q = random_points(kq, n, dtype=dtype)

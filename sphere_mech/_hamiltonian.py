@@ -15,7 +15,13 @@ class Hamiltonian(AbstractHamiltonianSystem):
     """A system given by a Hamiltonian `H(t, q, mu, args) -> scalar` in the momenta
     `mu_i = (I - q_i q_i^T) dL/dqdot_i` (form 3, Proposition 3); state `(q, mu)`.
 
-    `forces(t, q, mu, args) -> (n, 3)` (virtual-work convention).
+    Hamilton's equations need gradients of `H` only, no linear solve.
+
+    **Arguments:**
+    - `H`: the Hamiltonian, a JAX function of time, `q` (`(n, 3)` unit vectors), `mu`
+      (`(n, 3)` tangent) and `args`.
+    - `forces`: optional `forces(t, q, mu, args) -> (n, 3)`, generalized forces with
+      virtual work `sum_i f_i . delta q_i`.
     """
 
     H: Callable
@@ -34,9 +40,14 @@ class Hamiltonian(AbstractHamiltonianSystem):
 
 class AngularHamiltonian(AbstractHamiltonianSystem):
     """A system given by a Hamiltonian `H(t, q, pi, args) -> scalar` in the momenta
-    `pi_i` conjugate to the angular velocities (form 4, Proposition 4); state `(q, pi)`.
+    `pi_i = q_i x mu_i` conjugate to the angular velocities (form 4, Proposition 4); state
+    `(q, pi)`.
 
-    `forces(t, q, pi, args) -> (n, 3)` (virtual-work convention).
+    **Arguments:**
+    - `H`: the Hamiltonian, a JAX function of time, `q` (`(n, 3)` unit vectors), `pi`
+      (`(n, 3)` tangent) and `args`.
+    - `forces`: optional `forces(t, q, pi, args) -> (n, 3)`, generalized forces with
+      virtual work `sum_i f_i . delta q_i`.
     """
 
     H: Callable

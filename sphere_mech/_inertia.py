@@ -38,19 +38,47 @@ class AbstractConstantInertiaLagrangian(AbstractLagrangianSystem):
 
     @abc.abstractmethod
     def inertia(self, args: Args) -> jax.Array:
-        """The scalar inertia matrix `M`, `(n, n)`."""
+        """The scalar inertia matrix `M`.
+
+        **Arguments:**
+        - `args`: the user's `args` (`M` may depend on them, not on `q` or time).
+
+        **Returns:** `M`, `(n, n)`, symmetric positive definite.
+        """
 
     @abc.abstractmethod
     def potential(self, t, q: Points, args: Args) -> Scalar:
-        """The potential energy `U(t, q, args)`."""
+        """The potential energy `U(t, q, args)`.
+
+        **Arguments:**
+        - `t`: time.
+        - `q`: `(n, 3)` unit vectors.
+        - `args`: the user's `args`.
+
+        **Returns:** a scalar.
+        """
 
     def inverse_inertia_bands(self, args: Args) -> tuple[jax.Array, jax.Array] | None:
-        """If `M^-1` is tridiagonal, its diagonal `(n,)` and off-diagonal `(n - 1,)`
-        (then every solve costs O(n)); `None` (the default) for a dense `M`."""
+        """The bands of `M^-1` when it is tridiagonal (then every solve costs O(n)).
+
+        **Arguments:**
+        - `args`: the user's `args`.
+
+        **Returns:** its diagonal `(n,)` and off-diagonal `(n - 1,)`, or `None` (the default)
+        for a dense `M`.
+        """
         return None
 
     def kinetic_energy(self, q, qdot, args) -> Scalar:
-        """`1/2 sum_jk M_jk qdot_j . qdot_k`."""
+        """The kinetic energy `1/2 sum_jk M_jk qdot_j . qdot_k`.
+
+        **Arguments:**
+        - `q`: `(n, 3)` unit vectors.
+        - `qdot`: velocities, `(n, 3)`.
+        - `args`: the user's `args`.
+
+        **Returns:** a scalar.
+        """
         return 0.5 * jnp.sum(self.inertia(args) * (qdot @ qdot.T))
 
     def lagrangian(self, t, q, qdot, args):
@@ -90,8 +118,20 @@ class AbstractConstantInertiaLagrangian(AbstractLagrangianSystem):
     def velocity_from_momentum(self, t, q, p, args=None, *, guess=None, quadratic=None,
                                tol=None, max_steps=32):
         """The fast path of the inverse Legendre map: the tangent `qdot` with
-        `P M qdot = p`, exact, by the same multiplier solve as the accelerations (O(n)
-        when `M^-1` is tridiagonal). The options of the general method do not apply."""
+        `P M qdot = p`, exact, by the same multiplier solve as the accelerations (O(n) when
+        `M^-1` is tridiagonal).
+
+        **Arguments:**
+        - `t`: time.
+        - `q`: `(n, 3)` unit vectors.
+        - `p`: the momentum `mu`, `(n, 3)`.
+        - `args`: the user's `args`.
+        - `guess`, `quadratic`, `tol`, `max_steps`: the options of the general method; they do
+          not apply here.
+
+        **Returns:** `(qdot, result)`: the velocity, `(n, 3)`, and a `RESULTS` code
+        (`singular` if it is not finite).
+        """
         del guess, quadratic, tol, max_steps
         v = self._multiplier_solve(q, p, jnp.zeros(q.shape[:1], dtype=q.dtype), args)
         return v, RESULTS.where(jnp.all(jnp.isfinite(v)), RESULTS.successful,

@@ -72,11 +72,18 @@ class Lagrangian(AbstractLagrangianSystem):
 
 
 class AngularLagrangian(AbstractLagrangianSystem):
-    """A system given by a Lagrangian `L(t, q, omega, args)` in the angular velocities
-    `omega_i = q_i x qdot_i` (form 2, Proposition 2); state `(q, omega)`.
+    """A system given by a Lagrangian `L(t, q, omega, args) -> scalar` in the angular
+    velocities `omega_i = q_i x qdot_i` (form 2, Proposition 2); state `(q, omega)`.
 
-    `forces(t, q, omega, args) -> (n, 3)` use the same virtual-work convention as
-    everywhere. `sphere_mech.angular(Lagrangian(...))` builds one from a form-1 system.
+    `sphere_mech.angular(Lagrangian(...))` builds one from a form-1 system.
+
+    **Arguments:**
+    - `L`: the Lagrangian, a JAX function of time, `q` (`(n, 3)` unit vectors), `omega`
+      (`(n, 3)` tangent) and `args`.
+    - `forces`: optional `forces(t, q, omega, args) -> (n, 3)`, generalized forces with
+      virtual work `sum_i f_i . delta q_i` (the same convention as everywhere).
+    - `quadratic_in_velocity`: declare that `L` is (at most) quadratic in `omega`; then
+      `legendre` inverts the momentum map by one linear solve instead of Newton.
     """
 
     L: Callable
@@ -97,6 +104,16 @@ class AngularLagrangian(AbstractLagrangianSystem):
         return _tangent_solve(hvp, q, rhs)
 
     def angular_acceleration(self, t, q: Points, omega: Tangents, args: Args = None):
-        """`omegadot` from the Euler-Lagrange equations in `(q, omega)` (Proposition 2)."""
+        """`omegadot` from the Euler-Lagrange equations in `(q, omega)` (Proposition 2),
+        after checking the state.
+
+        **Arguments:**
+        - `t`: time.
+        - `q`: `(n, 3)` unit vectors.
+        - `omega`: angular velocities, `(n, 3)`, tangent at `q`.
+        - `args`: the user's `args`.
+
+        **Returns:** `omegadot`, `(n, 3)`.
+        """
         q, omega = self.check_state(q, omega)
         return check_finite(self._vdot(t, q, omega, args), SINGULAR_MESSAGE)

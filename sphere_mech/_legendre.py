@@ -16,22 +16,51 @@ from ._system import AbstractHamiltonianSystem, AbstractLagrangianSystem, Abstra
 
 
 def omega_from_qdot(q, qdot):
-    """Angular velocities `omega_i = q_i x qdot_i` (tangent to the sphere)."""
+    """Angular velocities from velocities: `omega_i = q_i x qdot_i`.
+
+    **Arguments:**
+    - `q`: points, `(n, 3)` unit vectors.
+    - `qdot`: velocities tangent at `q`, `(n, 3)`.
+
+    **Returns:** the angular velocities `omega`, `(n, 3)`, tangent at `q` too.
+    """
     return jnp.cross(q, qdot)
 
 
 def qdot_from_omega(q, omega):
-    """Velocities `qdot_i = omega_i x q_i`."""
+    """Velocities from angular velocities: `qdot_i = omega_i x q_i`.
+
+    **Arguments:**
+    - `q`: points, `(n, 3)` unit vectors.
+    - `omega`: angular velocities tangent at `q`, `(n, 3)`.
+
+    **Returns:** the velocities `qdot`, `(n, 3)`.
+    """
     return jnp.cross(omega, q)
 
 
 def pi_from_mu(q, mu):
-    """Angular momenta `pi_i = q_i x mu_i` (the same map as for velocities)."""
+    """Angular momenta from momenta: `pi_i = q_i x mu_i` (the same map as for
+    velocities).
+
+    **Arguments:**
+    - `q`: points, `(n, 3)` unit vectors.
+    - `mu`: momenta tangent at `q` (form 3), `(n, 3)`.
+
+    **Returns:** the angular momenta `pi` (form 4), `(n, 3)`.
+    """
     return jnp.cross(q, mu)
 
 
 def mu_from_pi(q, pi):
-    """Momenta `mu_i = pi_i x q_i`."""
+    """Momenta from angular momenta: `mu_i = pi_i x q_i`.
+
+    **Arguments:**
+    - `q`: points, `(n, 3)` unit vectors.
+    - `pi`: angular momenta tangent at `q` (form 4), `(n, 3)`.
+
+    **Returns:** the momenta `mu` (form 3), `(n, 3)`.
+    """
     return jnp.cross(pi, q)
 
 
@@ -46,9 +75,19 @@ class _Reparametrized(eqx.Module):
 
 
 def angular(system: AbstractSystem) -> AbstractSystem:
-    """The same system in angular variables: a form-1 Lagrangian system becomes an
-    `AngularLagrangian` (`L~(q, omega) = L(q, omega x q)`), a `Hamiltonian` becomes an
-    `AngularHamiltonian` (`H~(q, pi) = H(q, pi x q)`). Forces are carried over."""
+    """The same system in angular variables.
+
+    A form-1 Lagrangian system becomes an `AngularLagrangian`
+    (`L~(q, omega) = L(q, omega x q)`), a `Hamiltonian` becomes an `AngularHamiltonian`
+    (`H~(q, pi) = H(q, pi x q)`). Forces are carried over.
+
+    **Arguments:**
+    - `system`: a form-1 Lagrangian system (`Lagrangian`, `ConstantInertiaLagrangian`, a
+      `Scene`, ...) or a `Hamiltonian`. A system already in angular variables raises
+      `TypeError`.
+
+    **Returns:** an `AngularLagrangian` or an `AngularHamiltonian`.
+    """
     if system.angular:
         raise TypeError(f"angular() takes a form-1 or form-3 system; {type(system).__name__} "
                         "is in angular variables already.")
@@ -140,9 +179,19 @@ def legendre(system: AbstractSystem, *, quadratic: bool | None = None) -> Abstra
     `Hamiltonian` in `(q, mu)`; an `AngularLagrangian` gives an `AngularHamiltonian` in
     `(q, pi)`. The velocity is recovered from the momentum by the system's
     `velocity_from_momentum`: O(n) and exact for constant-inertia systems (chains,
-    scenes), one linear solve when `L` is quadratic in the velocity (`quadratic=True`,
-    the default for `Lagrangian(..., quadratic_in_velocity=True)`), otherwise Newton's
-    method. `quadratic` overrides the system's declaration for the general path.
+    scenes), one linear solve when `L` is quadratic in the velocity, otherwise Newton's
+    method (globalized by a line search when the linear guess leaves the domain of `L`).
+    `H` is differentiated by the envelope theorem, not through the solve.
+
+    **Arguments:**
+    - `system`: a Lagrangian system (forms 1 and 2); anything else raises `TypeError`.
+    - `quadratic`: overrides the system's `quadratic_in_velocity` declaration on the general
+      path: `True` assumes `L` is quadratic in the velocity (one linear solve; a wrong
+      velocity if it is not), `False` forces Newton's method, `None` (default) keeps the
+      system's declaration.
+
+    **Returns:** a `Hamiltonian` (from form 1) or an `AngularHamiltonian` (from form 2),
+    with the system's forces carried over.
     """
     if not isinstance(system, AbstractLagrangianSystem):
         raise TypeError(f"legendre() takes a Lagrangian system, got {type(system)}.")

@@ -34,7 +34,14 @@ from ._solvers.variational import Variational
 
 
 class SceneFileError(ValueError):
-    """A problem in a scene file, reported as `<file>: <field>: <what was expected>`."""
+    """A problem in a scene file, reported as `<file>: <field>: <what was expected>`
+    (a `ValueError`; the command line prints it and exits with status 2).
+
+    **Arguments:**
+    - `path`: the scene file.
+    - `field`: where in the file, e.g. `effects[0].masses` or `simulate.t1`.
+    - `expected`: what was expected there (or the effect's own message).
+    """
 
     def __init__(self, path, field: str, expected: str):
         self.path, self.field, self.expected = str(path), field, expected
@@ -239,9 +246,22 @@ SIMULATE = {"solver": "a solver name", "t0": "a time in s", "t1": "a time in s a
 
 @dataclasses.dataclass
 class SceneSpec:
-    """Everything a scene file says, checked and converted: the arguments of
-    `sm.simulate` (`solver_name` as the file spells the solver) and the spacing
-    `save_dt` of the saved trajectory."""
+    """Everything a scene file says, checked and converted (what `load_scene` returns):
+    the scene, its initial state and the arguments of `sm.simulate`.
+
+    **Attributes:**
+    - `path`: the file.
+    - `name`: the scene's `name` (default: the file's stem).
+    - `scene`: the `Scene` built from `[[effects]]`.
+    - `y0`: the initial state `(q0, qdot0)` from `[initial]`, `(n, 3)` arrays.
+    - `solver`: the solver named in `[simulate]` (default `Projected(diffrax.Tsit5())`).
+    - `solver_name`: the solver as the file spells it.
+    - `t0`, `t1`: start and end times (s).
+    - `dt0`: the (initial) step (s), or `None`.
+    - `rtol`, `atol`: tolerances of adaptive solvers, or `None` (`simulate`'s defaults).
+    - `max_steps`: the most steps the run may take.
+    - `save_dt`: the spacing of the saved trajectory (s), from `[output]`.
+    """
 
     path: Path
     name: str
@@ -306,7 +326,14 @@ def _read(path: Path) -> dict:
 
 
 def load_scene(path) -> SceneSpec:
-    """Read and check a scene file (TOML, data only). Raises `SceneFileError`."""
+    """Read and check a scene file (TOML, data only: no code is evaluated).
+
+    **Arguments:**
+    - `path`: the file (a `str` or `Path`).
+
+    **Returns:** a `SceneSpec`. Raises `SceneFileError` naming the file, the field and
+    what was expected, with the effect's own message for a value it rejects.
+    """
     path = Path(path)
     data = _read(path)
     _no_unknown(path, "", data, ("name", "effects", "initial", "simulate", "output"))

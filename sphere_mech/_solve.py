@@ -14,12 +14,17 @@ from ._solvers.projected import Projected
 from ._term import MechanicsTerm
 
 DEFAULT_MAX_STEPS = 100_000
+"""Default `max_steps` of `simulate` and `simulate_batch`: the most steps one run may take
+before it fails with `RESULTS.max_steps_reached`."""
 DEFAULT_TOLERANCES = {np.dtype("float64"): (1e-8, 1e-10), np.dtype("float32"): (1e-5, 1e-6)}
 """Default `(rtol, atol)` of the adaptive step-size controller, by dtype of `q`."""
 
 
 def default_solver() -> diffrax.AbstractSolver:
-    """The solver `simulate` uses when none is given: `Projected(diffrax.Tsit5())`."""
+    """The solver `simulate` uses when none is given.
+
+    **Returns:** `Projected(diffrax.Tsit5())`.
+    """
     return Projected(diffrax.Tsit5())
 
 

@@ -43,16 +43,39 @@ class AbstractSystem(eqx.Module):
 
     @abc.abstractmethod
     def rates(self, t, y: State, args: Args) -> State:
-        """`d(q, v)/dt` at `y = (q, v)`, with no input checks (diffrax's Runge-Kutta
-        stages may be slightly off the spheres)."""
+        """`d(q, v)/dt`: the vector field handed to diffrax, with no input checks
+        (Runge-Kutta stages may be slightly off the spheres).
+
+        **Arguments:**
+        - `t`: time.
+        - `y`: the state `(q, v)`, `(n, 3)` arrays.
+        - `args`: the user's `args`.
+
+        **Returns:** `(qdot, vdot)`, `(n, 3)` arrays.
+        """
 
     @abc.abstractmethod
     def energy(self, t, q: Points, v: Tangents, args: Args = None) -> Scalar:
-        """Total energy (the Hamiltonian) at the state `(q, v)`."""
+        """Total energy (the Hamiltonian) at the state `(q, v)`.
+
+        **Arguments:**
+        - `t`: time.
+        - `q`: `(n, 3)` unit vectors.
+        - `v`: the system's second state variable, `(n, 3)`.
+        - `args`: the user's `args`.
+
+        **Returns:** a scalar.
+        """
 
     @abc.abstractmethod
     def velocity(self, t, q: Points, v: Tangents, args: Args = None) -> Tangents:
-        """`qdot` at the state `(q, v)`."""
+        """`qdot` at the state `(q, v)`.
+
+        **Arguments:**
+        - `t`, `q`, `v`, `args`: as in `energy`.
+
+        **Returns:** `qdot`, `(n, 3)`.
+        """
 
     @property
     def has_forces(self) -> bool:
@@ -60,14 +83,26 @@ class AbstractSystem(eqx.Module):
         return self.forces is not None
 
     def generalized_force(self, t, q: Points, v: Tangents, args: Args = None):
-        """The generalized force at `(q, v)`, or `None` without forces (then no force
-        operation is compiled)."""
+        """The generalized force at `(q, v)` (virtual work `sum_i f_i . delta q_i`).
+
+        **Arguments:**
+        - `t`, `q`, `v`, `args`: as in `energy`.
+
+        **Returns:** `f`, `(n, 3)`, or `None` without forces (then no force operation is
+        compiled).
+        """
         if self.forces is None:
             return None
         return check_forces(self.forces(t, q, v, args), jnp.shape(q))
 
     def power(self, t, q: Points, v: Tangents, args: Args = None) -> Scalar:
-        """Power of the generalized forces, `sum_i f_i . qdot_i` (zero without forces)."""
+        """Power of the generalized forces, `sum_i f_i . qdot_i`.
+
+        **Arguments:**
+        - `t`, `q`, `v`, `args`: as in `energy`.
+
+        **Returns:** a scalar (zero without forces).
+        """
         f = self.generalized_force(t, q, v, args)
         if f is None:
             return jnp.zeros((), dtype=jnp.result_type(q))
@@ -80,23 +115,50 @@ class AbstractSystem(eqx.Module):
         return None
 
     def check_size(self, q: Points) -> None:
-        """Raise `ValueError` if `q` does not have the system's number of spheres."""
+        """Raise `ValueError` if `q` does not have the system's number of spheres.
+
+        **Arguments:**
+        - `q`: a configuration, `(n, 3)`.
+
+        **Returns:** `None`.
+        """
         if self.n is not None and jnp.ndim(q) == 2 and jnp.shape(q)[0] != self.n:
             raise ValueError(f"the state has {jnp.shape(q)[0]} spheres but the system has "
                              f"{self.n}: q must have shape ({self.n}, 3), got {jnp.shape(q)}.")
 
     def check_state(self, q: Points, v: Tangents) -> State:
-        """Raise a clear error if `(q, v)` is not a valid state (shape, number of spheres,
-        unit length, tangency); returns the unchanged state."""
+        """Raise a clear error if `(q, v)` is not a valid state (shape, number of
+        spheres, unit length, tangency, within `unit_tolerance`).
+
+        **Arguments:**
+        - `q`: `(n, 3)` unit vectors.
+        - `v`: the system's second state variable, `(n, 3)`, tangent at `q`.
+
+        **Returns:** the unchanged state `(q, v)`.
+        """
         self.check_size(q)
         return check_state(q, v, self.state_name)
 
     def to_linear(self, q: Points, v: Tangents) -> Tangents:
-        """The linear variable (`qdot` or `mu`) of the state variable `v`."""
+        """The linear variable (`qdot` or `mu`) of the state variable `v`.
+
+        **Arguments:**
+        - `q`: `(n, 3)` unit vectors.
+        - `v`: the state variable (`omega x q` for angular forms, `v` itself otherwise).
+
+        **Returns:** `(n, 3)`.
+        """
         return jnp.cross(v, q) if self.angular else v
 
     def from_linear(self, q: Points, x: Tangents) -> Tangents:
-        """The state variable of the linear variable `x` (`qdot` or `mu`)."""
+        """The state variable of the linear variable `x` (`qdot` or `mu`).
+
+        **Arguments:**
+        - `q`: `(n, 3)` unit vectors.
+        - `x`: `qdot` or `mu`, `(n, 3)`.
+
+        **Returns:** `q x x` for angular forms, `x` otherwise.
+        """
         return jnp.cross(q, x) if self.angular else x
 
 
@@ -113,7 +175,16 @@ class AbstractLagrangianSystem(AbstractSystem):
 
     @abc.abstractmethod
     def lagrangian(self, t, q: Points, v: Tangents, args: Args) -> Scalar:
-        """The Lagrangian in the system's own velocity variable."""
+        """The Lagrangian in the system's own velocity variable.
+
+        **Arguments:**
+        - `t`: time.
+        - `q`: `(n, 3)` unit vectors.
+        - `v`: `qdot` (form 1) or `omega` (form 2), `(n, 3)`.
+        - `args`: the user's `args`.
+
+        **Returns:** a scalar.
+        """
 
     @abc.abstractmethod
     def _vdot(self, t, q: Points, v: Tangents, args: Args) -> Tangents:
@@ -124,9 +195,18 @@ class AbstractLagrangianSystem(AbstractSystem):
         return self.to_linear(q, v), self._vdot(t, q, v, args)
 
     def acceleration(self, t, q: Points, v: Tangents, args: Args = None) -> Tangents:
-        """`qddot` at the state `(q, v)` (Proposition 1; in form 2 the time derivative of
-        `omega x q`). Checks its input (shapes, unit `q`, tangent `v`) and raises on a
-        singular reduced mass matrix."""
+        """`qddot` at the state `(q, v)` (Proposition 1; in form 2 the time
+        derivative of `omega x q`). Checks its input (shapes, unit `q`, tangent `v`) and raises
+        on a singular reduced mass matrix.
+
+        **Arguments:**
+        - `t`: time.
+        - `q`: `(n, 3)` unit vectors.
+        - `v`: `qdot` (form 1) or `omega` (form 2), `(n, 3)`, tangent at `q`.
+        - `args`: the user's `args`.
+
+        **Returns:** `qddot`, `(n, 3)`.
+        """
         q, v = self.check_state(q, v)
         qddot = jax.jvp(self.to_linear, (q, v), self.rates(t, (q, v), args))[1]
         return check_finite(qddot, SINGULAR_MESSAGE)
@@ -135,7 +215,14 @@ class AbstractLagrangianSystem(AbstractSystem):
         return self.to_linear(q, v)
 
     def lagrangian_qdot(self, t, q: Points, qdot: Tangents, args: Args) -> Scalar:
-        """The Lagrangian as a function of `qdot`, whatever the form."""
+        """The Lagrangian as a function of `qdot`, whatever the form.
+
+        **Arguments:**
+        - `t`, `q`, `args`: as in `lagrangian`.
+        - `qdot`: velocities, `(n, 3)`.
+
+        **Returns:** a scalar.
+        """
         return self.lagrangian(t, q, self.from_linear(q, qdot), args)
 
     def _dL_dv(self, t, q, v, args) -> Tangents:
@@ -143,20 +230,45 @@ class AbstractLagrangianSystem(AbstractSystem):
         return jax.grad(L)(v)
 
     def momentum(self, t, q: Points, v: Tangents, args: Args = None) -> Tangents:
-        """The conjugate momentum `P dL/dv` (`mu` in form 1, `pi` in form 2)."""
+        """The conjugate momentum `P dL/dv` (`mu` in form 1, `pi` in form 2).
+
+        **Arguments:**
+        - `t`, `q`, `v`, `args`: as in `acceleration`.
+
+        **Returns:** the momentum, `(n, 3)`, tangent at `q`.
+        """
         return project(q, self._dL_dv(t, q, v, args))
 
     def energy(self, t, q, v, args=None):
-        """`E = sum_i v_i . dL/dv_i - L`."""
+        """The energy `E = sum_i v_i . dL/dv_i - L`.
+
+        **Arguments:**
+        - `t`, `q`, `v`, `args`: as in `acceleration`.
+
+        **Returns:** a scalar.
+        """
         return jnp.sum(v * self._dL_dv(t, q, v, args)) - self.lagrangian(t, q, v, args)
 
     def velocity_from_momentum(self, t, q: Points, p: Tangents, args: Args = None, *,
                                guess=None, quadratic: bool | None = None, tol=None,
                                max_steps: int = 32):
-        """The inverse Legendre map: the tangent velocity `v` with `P dL/dv = p`, and a
-        `RESULTS` code (never raised here). One linear solve around `guess` (default
-        zero) when `L` is quadratic (`quadratic`, default `quadratic_in_velocity`),
-        otherwise refined by Newton's method (tolerance `tol`, default `eps ** 0.75`)."""
+        """The inverse Legendre map: the tangent velocity `v` with `P dL/dv = p`.
+
+        One linear solve around `guess` when `L` is quadratic, otherwise refined by Newton's
+        method (globalized by a line search when needed). Systems with a cheaper inverse
+        (constant inertia) override it.
+
+        **Arguments:**
+        - `t`, `q`, `args`: as in `acceleration`.
+        - `p`: the momentum (`mu` or `pi`), `(n, 3)`.
+        - `guess`: the starting velocity (default zero).
+        - `quadratic`: whether `L` is quadratic in `v` (default `quadratic_in_velocity`).
+        - `tol`: Newton's tolerance (default `eps ** 0.75` of the dtype).
+        - `max_steps`: Newton's iteration limit.
+
+        **Returns:** `(v, result)`: the velocity, `(n, 3)`, and a `RESULTS` code (never raised
+        here).
+        """
         return invert_momentum(
             self.lagrangian, t, q, p, args,
             guess=jnp.zeros_like(q) if guess is None else guess,
@@ -178,16 +290,38 @@ class AbstractHamiltonianSystem(AbstractSystem):
         return jax.grad(H, argnums=(0, 1))(q, p)
 
     def energy(self, t, q, p, args=None):
-        """The Hamiltonian `H(t, q, p, args)`."""
+        """The Hamiltonian `H(t, q, p, args)`.
+
+        **Arguments:**
+        - `t`: time.
+        - `q`: `(n, 3)` unit vectors.
+        - `p`: the momentum (`mu` or `pi`), `(n, 3)`.
+        - `args`: the user's `args`.
+
+        **Returns:** a scalar.
+        """
         return self.H(t, q, p, args)
 
     def velocity(self, t, q, p, args=None):
-        """`qdot = P dH/dmu`; in angular variables `dH/dpi x q`."""
+        """`qdot = P dH/dmu`; in angular variables `dH/dpi x q`.
+
+        **Arguments:**
+        - `t`, `q`, `p`, `args`: as in `energy`.
+
+        **Returns:** `qdot`, `(n, 3)`.
+        """
         dH_dp = self._gradients(t, q, p, args)[1]
         return self.to_linear(q, dH_dp) if self.angular else project(q, dH_dp)
 
     def vector_field(self, t, q: Points, p: Tangents, args: Args = None) -> State:
-        """`(qdot, pdot)` from Hamilton's equations, after checking the state."""
+        """`(qdot, pdot)` from Hamilton's equations, after checking the state.
+
+        **Arguments:**
+        - `t`, `q`, `p`, `args`: as in `energy`; `p` tangent at `q`.
+
+        **Returns:** `(qdot, pdot)`, two `(n, 3)` arrays (`(qdot, mudot)` in form 3,
+        `(qdot, pidot)` in form 4).
+        """
         q, p = self.check_state(q, p)
         qdot, pdot = self.rates(t, (q, p), args)
         message = (

@@ -7,11 +7,16 @@ from ._system import AbstractSystem
 
 
 class MechanicsTerm(diffrax.AbstractTerm):
-    """The vector field of a sphere_mech system as a diffrax term:
+    """The vector field of a sphere_mech system as a diffrax term.
+
     `diffrax.diffeqsolve(MechanicsTerm(system), solver, t0, t1, dt0, (q0, v0), args=args)`
     integrates `d(q, v)/dt = system.rates(t, (q, v), args)` with the user's own `args`.
     Solvers that need more than the vector field (the variational integrator needs the
-    Lagrangian) take the system from this term."""
+    Lagrangian) take the system from this term.
+
+    **Arguments:**
+    - `system`: any sphere_mech system (`AbstractSystem`).
+    """
 
     system: AbstractSystem
 

@@ -217,14 +217,22 @@ def _trajectory(sol) -> tuple[np.ndarray, np.ndarray]:
 
 def animate(system_or_scene: AbstractSystem, sol: diffrax.Solution, *,
             frames: int = MAX_FRAMES) -> Animation:
-    """An animation of a solution of `sm.simulate` saved at several times (e.g.
-    `saveat=diffrax.SaveAt(ts=...)`): an HTML player with play, pause, step and a time
-    slider, at most `frames` frames, that a notebook displays.
+    """An animation of a solution: an HTML player with play, pause, step and a time
+    slider, that a notebook displays (no network needed).
 
     A `Scene` is drawn from its kinetic terms at `scene.positions(q)` (chains from their
     pivot, beads with their shared sphere); any other system as the points `q` on the
-    unit sphere. Returns the player's HTML as a `str` (write it into a page's body to
-    keep it)."""
+    unit sphere.
+
+    **Arguments:**
+    - `system_or_scene`: the system that was simulated.
+    - `sol`: a solution of `sm.simulate` saved at several times (e.g.
+      `saveat=diffrax.SaveAt(ts=...)`).
+    - `frames`: the most frames embedded (states are subsampled evenly).
+
+    **Returns:** the player's HTML as a `str` subclass that notebooks display (write it
+    into a page's body to keep it).
+    """
     t, q = _trajectory(sol)
     if len(t) < 2:
         raise ValueError(f"sol: expected states at two times or more, got {len(t)}; "

@@ -38,7 +38,21 @@ def work_integral(ts, P, dP):
 
 
 def work_energy_balance(system, ts, q, v, args=None):
-    """`(E, W, E - E(0) - W)` along a trajectory sampled at the solver's steps `ts`."""
+    """The work-energy balance of a forced trajectory: `E(t) - E(0) - W(t)`.
+
+    `W = int P dt` (`P = system.power`) is integrated over the given times by the
+    end-corrected trapezoidal rule `h/2 (P_k + P_{k+1}) + h^2/12 (P'_k - P'_{k+1})` (fourth
+    order; `P' = dP/dt` along the flow by `jax.jvp`), so on the solver's own steps
+    (`SaveAt(steps=True)`) the balance measures the integrator alone.
+
+    **Arguments:**
+    - `system`: a Lagrangian system in `(q, qdot)` (a `Scene`, `Lagrangian`, ...).
+    - `ts`: the times, shape `(T,)`, increasing (e.g. the solver's accepted steps).
+    - `q`, `v`: the states at `ts`, shape `(T, n, 3)` each.
+    - `args`: the system's `args`.
+
+    **Returns:** `(E, W, E - E(0) - W)`, three numpy arrays of shape `(T,)`.
+    """
     energy, P, dP = (np.asarray(a) for a in _energy_and_power(system, jnp.asarray(ts), q, v,
                                                                args))
     W = work_integral(np.asarray(ts), P, dP)
@@ -47,7 +61,23 @@ def work_energy_balance(system, ts, q, v, args=None):
 
 @dataclasses.dataclass
 class SceneResult:
-    """Arrays of a scene run (numpy) and its summary."""
+    """Arrays of a scene run (numpy) and its summary: what `sphere-mech run` writes.
+
+    **Attributes:**
+    - `t`: the saved times, `(T,)`.
+    - `q`, `v`: the saved states, `(T, n, 3)` each.
+    - `x`: the positions of the masses at `t`, `(T, n, 3)`.
+    - `energy`: the energy `E` at `t`.
+    - `error_t`: the times of `error` (`t`, or the solver's steps for a scene with forces).
+    - `error`: the relative energy error `(E - E(0)) / |E(0)|`, or with forces the
+      work-energy balance `E - E(0) - W` divided by the larger of `max |E|`, `max |W|`.
+    - `constraint`: `max_i | |q_i| - 1 |` at `t`.
+    - `summary`: what `summary.json` holds (solver, tolerances or step, steps, wall time,
+      largest constraint and energy or balance error).
+    - `potential`: `U` at `t` (kinetic energy: `energy - potential`).
+    - `work`: with forces, the work `W` done at `error_t`.
+    - `step_energy`: with forces, `E` at `error_t`.
+    """
 
     t: np.ndarray
     q: np.ndarray
@@ -73,8 +103,15 @@ def _split(sol, forced):
 
 
 def run_scene(spec, *, t1=None, progress=False) -> SceneResult:
-    """Simulate a `SceneSpec` (from `load_scene`), optionally up to another end time
-    `t1`, and report its energy bookkeeping."""
+    """Simulate a scene file's scene and report its energy bookkeeping.
+
+    **Arguments:**
+    - `spec`: a `SceneSpec`, from `load_scene`.
+    - `t1`: another end time (s) instead of the file's.
+    - `progress`: show a progress bar.
+
+    **Returns:** a `SceneResult`.
+    """
     scene, args = spec.scene, None
     t1 = float(spec.t1 if t1 is None else t1)
     n_out = max(2, int(round((t1 - spec.t0) / spec.save_dt)) + 1)

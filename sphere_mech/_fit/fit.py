@@ -23,6 +23,7 @@ from .shooting import Residuals, map_flagged, model_output, split_segments
 class FitResult(eqx.Module):
     """What `fit` returns.
 
+    **Attributes:**
     - `params`: the fitted parameters, same structure as `params0`.
     - `loss`: the loss `1/2 sum r^2` (observation and continuity residuals) at the
       solution.

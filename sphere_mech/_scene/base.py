@@ -101,23 +101,42 @@ class AbstractKinetic(AbstractEffect):
 
     @abc.abstractmethod
     def inertia(self) -> jax.Array:
-        """The `(n, n)` scalar inertia matrix."""
+        """The block's scalar inertia matrix.
+
+        **Returns:** `M`, `(n, n)`, over this block's spheres.
+        """
 
     @abc.abstractmethod
     def inverse_inertia_bands(self) -> tuple[jax.Array, jax.Array]:
-        """`M^-1` is tridiagonal for every kinetic term here: its diagonal `(n,)` and
-        off-diagonal `(n - 1,)` (used by the O(n) fast path)."""
+        """The bands of `M^-1`, tridiagonal for every kinetic term here (used by
+        the O(n) fast path).
+
+        **Returns:** its diagonal `(n,)` and off-diagonal `(n - 1,)`.
+        """
 
     @abc.abstractmethod
     def positions(self, q: jax.Array) -> jax.Array:
-        """Positions of the masses in the support frame, `(n, 3)`, from this block's `q`."""
+        """Positions of the masses in the support frame.
+
+        **Arguments:**
+        - `q`: this block's unit vectors, `(n, 3)`.
+
+        **Returns:** the positions, `(n, 3)` (m).
+        """
 
     def parents(self) -> tuple[int, ...]:
-        """For each sphere, the local index of its parent in its joint (-1: the support)."""
+        """The joint structure, for joint damping and joint torques.
+
+        **Returns:** for each sphere, the local index of its parent in its joint (-1: the
+        support).
+        """
         return (-1,) * self.n
 
     def bends(self) -> tuple[tuple[int, int], ...]:
-        """Local index pairs of consecutive links (where bending stiffness acts)."""
+        """Where bending stiffness acts.
+
+        **Returns:** the local index pairs `(i, i + 1)` of consecutive links (none by default).
+        """
         return ()
 
 
@@ -126,7 +145,16 @@ class AbstractPotential(AbstractEffect):
 
     @abc.abstractmethod
     def potential(self, t, q, scene, args) -> jax.Array:
-        """Potential energy (scalar); `scene` gives positions, masses and joints."""
+        """The potential energy of the scene's configuration.
+
+        **Arguments:**
+        - `t`: time.
+        - `q`: the scene's unit vectors, `(n, 3)`.
+        - `scene`: the `Scene` (positions, masses and joints).
+        - `args`: the user's `args`.
+
+        **Returns:** a scalar (J).
+        """
 
 
 class AbstractForce(AbstractEffect):
@@ -135,7 +163,17 @@ class AbstractForce(AbstractEffect):
 
     @abc.abstractmethod
     def generalized_force(self, t, q, qdot, scene, args) -> jax.Array:
-        """The `(n, 3)` generalized force."""
+        """The generalized force, virtual work `sum_i f_i . delta q_i`.
+
+        **Arguments:**
+        - `t`: time.
+        - `q`: the scene's unit vectors, `(n, 3)`.
+        - `qdot`: their velocities, `(n, 3)`.
+        - `scene`: the `Scene` (positions, masses and joints).
+        - `args`: the user's `args`.
+
+        **Returns:** `f`, `(n, 3)`.
+        """
 
 
 class AbstractDrive(eqx.Module):

@@ -34,7 +34,11 @@ class JointDamping(AbstractForce):
     """Viscous damping in every joint (between a link and its parent, or the support).
 
     Rayleigh function `R = c/2 sum_i |omega_i - omega_parent(i)|^2`, `f = -dR/dqdot`; its
-    power is `-2R <= 0`. `coefficient`: `c` (N m s), a scalar or one per sphere."""
+    power is `-2R <= 0`.
+
+    **Arguments:**
+    - `coefficient`: `c` (N m s, `>= 0`), a scalar or one value per sphere.
+    """
 
     coefficient: jax.Array = eqx.field(converter=base.as_float)
 
@@ -55,11 +59,15 @@ class JointDamping(AbstractForce):
 
 
 class BaseTorque(AbstractForce):
-    """A torque in the joint of link `link` (default 0: the base joint of the first link).
+    """A torque in the joint of a link, applied by its parent (or the support).
 
-    Applied by the parent (or the support) on the link: `f_link = tau x q_link`, and
-    `-tau x q_parent` on the parent. `torque` (N m): a constant `(3,)` vector or a
-    function `torque(t, q, qdot, args) -> (3,)` (a controller such as `PDTorque`)."""
+    `f_link = tau x q_link`, and `-tau x q_parent` on the parent.
+
+    **Arguments:**
+    - `torque`: `tau` (N m): a constant `(3,)` vector or a function
+      `torque(t, q, qdot, args) -> (3,)` (a controller such as `PDTorque`).
+    - `link`: the link's index (static; default 0: the base joint of the first link).
+    """
 
     torque: jax.Array | Callable = eqx.field(converter=_drive_value)
     link: int = eqx.field(default=0, static=True)
@@ -87,8 +95,15 @@ class PDTorque(AbstractDrive):
     """A proportional-derivative controller for `BaseTorque`.
 
     Steers link `link` toward the unit vector `target`: `tau = kp q_link x target -
-    kd omega_link`, gains `kp` (N m) and `kd` (N m s); its generalized force is
-    `kp P target - kd qdot_link` (P the tangent projection)."""
+    kd omega_link`; its generalized force is `kp P target - kd qdot_link` (P the tangent
+    projection).
+
+    **Arguments:**
+    - `kp`: proportional gain (N m, `>= 0`).
+    - `kd`: derivative gain (N m s, `>= 0`).
+    - `target`: the unit vector the link is steered toward.
+    - `link`: the index of the link whose direction is measured (static).
+    """
 
     kp: jax.Array = eqx.field(converter=base.as_float)
     kd: jax.Array = eqx.field(default=0.0, converter=base.as_float)
@@ -111,8 +126,13 @@ class PDTorque(AbstractDrive):
 class TipForce(AbstractForce):
     """A force on one mass (default the last one: the tip of a chain).
 
-    `f = d/dq (d . x_point(q))` with `d` held fixed. `force` (N): a constant `(3,)`
-    vector or a function `force(t, q, qdot, args) -> (3,)`."""
+    `f = d/dq (d . x_point(q))` with `d` held fixed (virtual work).
+
+    **Arguments:**
+    - `force`: `d` (N): a constant `(3,)` vector or a function
+      `force(t, q, qdot, args) -> (3,)`.
+    - `point`: the index of the mass it acts on (static; negative counts from the end).
+    """
 
     force: jax.Array | Callable = eqx.field(converter=_drive_value)
     point: int = eqx.field(default=-1, static=True)
@@ -132,11 +152,18 @@ class TipForce(AbstractForce):
 class VibratingSupport(AbstractForce):
     """A prescribed motion of the support (every chain base and sphere centre).
 
-    `s(t) = amplitude cos(angular_frequency t + phase) direction` (m, rad/s, rad), felt in
-    the support frame as the inertial force `-m_i s''(t)` on each mass (a force, not a
-    potential, so that the work-energy balance uses `power`). The Kapitza pendulum: a
-    pendulum of length `l` is stable upright when `amplitude^2 angular_frequency^2 > 2 g
-    l` (vertical vibration)."""
+    `s(t) = amplitude cos(angular_frequency t + phase) direction`, felt in the support
+    frame as the inertial force `-m_i s''(t)` on each mass (a force, not a potential, so
+    that the work-energy balance uses `power`). The Kapitza pendulum: a pendulum of length
+    `l` is stable upright when `amplitude^2 angular_frequency^2 > 2 g l` (vertical
+    vibration).
+
+    **Arguments:**
+    - `amplitude`: `a` (m).
+    - `angular_frequency`: `w` (rad/s).
+    - `direction`: the unit vector of the motion.
+    - `phase`: (rad).
+    """
 
     amplitude: jax.Array = eqx.field(converter=base.as_float)
     angular_frequency: jax.Array = eqx.field(converter=base.as_float)
@@ -151,7 +178,13 @@ class VibratingSupport(AbstractForce):
         base.check_vector("direction", self.direction, unit=True)
 
     def acceleration(self, t):
-        """`s''(t)`, the acceleration of the support."""
+        """The acceleration of the support, `s''(t)`.
+
+        **Arguments:**
+        - `t`: time.
+
+        **Returns:** a `(3,)` vector (m/s^2).
+        """
         w = self.angular_frequency
         return -self.amplitude * w**2 * jnp.cos(w * t + self.phase) * self.direction
 

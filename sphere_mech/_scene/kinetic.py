@@ -11,8 +11,15 @@ class Chain(AbstractKinetic):
 
     Mass `m_i` sits at the tip of link `i` (length `l_i`, along `q_i`), at
     `x_i = base + sum_{j<=i} l_j q_j`; `M_ij = l_i l_j sum_{k>=max(i,j)} m_k` (constant:
-    Corollary 1 applies). `masses` (kg) and `lengths` (m) give one value per link, or a
-    scalar for every link; `links` (optional) is the number of links."""
+    Corollary 1 applies).
+
+    **Arguments:**
+    - `masses`: `m_i` (kg, `> 0`): one value per link, or a scalar for every link.
+    - `lengths`: `l_i` (m, `> 0`): one value per link, or a scalar for every link.
+    - `base`: the pivot, a `(3,)` point (m).
+    - `links`: the number of links (optional; needed when both `masses` and `lengths` are
+      scalars).
+    """
 
     masses: jax.Array
     lengths: jax.Array
@@ -82,11 +89,15 @@ class AbstractSphereMasses(AbstractKinetic):
 
 
 class Particles(AbstractSphereMasses):
-    """Free point masses, each on its own sphere.
+    """Free point masses, each on its own sphere: `x_i = c_i + r_i q_i`.
 
-    Mass `m_i` (kg) moves on a sphere of radius `r_i` (m) centred at `c_i`:
-    `x_i = c_i + r_i q_i`. A scalar mass or radius applies to every particle, one `(3,)`
-    centre to all; `count` (optional) is the number of particles."""
+    **Arguments:**
+    - `masses`: `m_i` (kg, `> 0`): one per particle, or a scalar for every particle.
+    - `radii`: `r_i` (m, `> 0`): one per particle, or a scalar for every particle.
+    - `centers`: `c_i` (m): one `(3,)` centre for all, or an `(n, 3)` array.
+    - `count`: the number of particles (optional; needed when `masses` and `radii` are
+      scalars).
+    """
 
     def __init__(self, masses: jax.Array, radii: jax.Array,
                  centers: jax.Array = (0.0, 0.0, 0.0), count: int | None = None):
@@ -94,10 +105,14 @@ class Particles(AbstractSphereMasses):
 
 
 class SharedSphere(AbstractSphereMasses):
-    """Several point masses (beads) moving on one sphere.
+    """Several point masses (beads) moving on one sphere: `x_i = center + radius q_i`.
 
-    Masses `m_i` (kg; a scalar for all `count` beads) on the sphere of radius `radius`
-    (m) centred at `center`: `x_i = center + radius q_i`."""
+    **Arguments:**
+    - `masses`: `m_i` (kg, `> 0`): one per bead, or a scalar for all `count` beads.
+    - `radius`: the sphere's radius (m, `> 0`).
+    - `center`: the sphere's centre, a `(3,)` point (m).
+    - `count`: the number of beads (optional; needed when `masses` is a scalar).
+    """
 
     def __init__(self, masses: jax.Array, radius: jax.Array = 1.0,
                  center: jax.Array = (0.0, 0.0, 0.0), count: int | None = None):

@@ -19,8 +19,12 @@ def safe_norm(x: jax.Array) -> jax.Array:
 class Gravity(AbstractPotential):
     """Uniform gravity.
 
-    Strength `g` (m/s^2) along the unit vector `direction`: `U = -g sum_i m_i
-    direction . x_i`."""
+    `U = -g sum_i m_i direction . x_i` over the positions `x_i` of the masses.
+
+    **Arguments:**
+    - `g`: strength (m/s^2), a scalar `>= 0`.
+    - `direction`: the unit vector gravity points along.
+    """
 
     g: jax.Array = eqx.field(default=9.81, converter=base.as_float)
     direction: jax.Array = eqx.field(default=(0.0, 0.0, -1.0), converter=base.as_float)
@@ -37,9 +41,14 @@ class Gravity(AbstractPotential):
 class Spring(AbstractPotential):
     """A linear spring between two points of the scene.
 
-    `U = 1/2 k (|x_a - x_b| - L0)^2`, stiffness `k` (N/m), rest length `L0` (m). Each end
-    `a`, `b` is the index of a mass of the scene (an `int`, static) or a fixed point in
-    the support frame (a `(3,)` vector)."""
+    `U = 1/2 k (|x_a - x_b| - L0)^2`.
+
+    **Arguments:**
+    - `a`, `b`: the ends: each the index of a mass of the scene (an `int`, static;
+      negative counts from the end) or a fixed point in the support frame (a `(3,)` vector).
+    - `stiffness`: `k` (N/m), a scalar `>= 0`.
+    - `rest_length`: `L0` (m).
+    """
 
     stiffness: jax.Array = eqx.field(converter=base.as_float)
     rest_length: jax.Array = eqx.field(converter=base.as_float)
@@ -78,8 +87,12 @@ class Bending(AbstractPotential):
     """Bending stiffness between consecutive links of every chain.
 
     `U = k sum_joints (1 - q_i . q_{i+1})`, about `k theta^2 / 2` for small bend angles
-    (N m per rad^2; for a rod of bending stiffness `EI` cut into links of length `l`,
-    `k = EI/l`). `stiffness`: a scalar or one value per joint."""
+    (for a rod of bending stiffness `EI` cut into links of length `l`, `k = EI/l`). Needs
+    a `Chain` of two links or more in the scene.
+
+    **Arguments:**
+    - `stiffness`: `k` (N m per rad^2), `>= 0`: a scalar or one value per joint.
+    """
 
     stiffness: jax.Array = eqx.field(converter=base.as_float)
 
@@ -103,10 +116,14 @@ class Bending(AbstractPotential):
 class PairInteraction(AbstractPotential):
     """A pairwise interaction between masses, `U = k sum_{i<j} c_i c_j / |x_i - x_j|^p`.
 
-    Inverse-distance repulsion of charges `c_i` for `p = 1`, `k > 0`. `strength`: `k`
-    (J m^p); `exponent`: `p > 0`; `masses`: the indices of the interacting masses
-    (static; default all of the scene); `charges`: one per interacting mass (default
-    ones)."""
+    Inverse-distance repulsion of charges `c_i` for `p = 1`, `k > 0`.
+
+    **Arguments:**
+    - `strength`: `k` (J m^p), a scalar.
+    - `exponent`: `p > 0`.
+    - `charges`: one value per interacting mass (default: ones).
+    - `masses`: the indices of the interacting masses (static; default: all of the scene).
+    """
 
     strength: jax.Array = eqx.field(converter=base.as_float)
     exponent: jax.Array = eqx.field(default=1.0, converter=base.as_float)

@@ -20,7 +20,14 @@ class Scene(AbstractConstantInertiaLagrangian):
 
     Kinetic terms stack their spheres in the order given. Only the listed effects are
     traced, each under its class name (no force effect: `forces` is `None`). Each
-    effect is checked against the scene (indices, counts) at construction."""
+    effect is checked against the scene (indices, counts) at construction.
+
+    **Arguments:**
+    - `effects`: the effects, in any order: at least one kinetic term (`Chain`,
+      `Particles`, `SharedSphere`), then any potentials (`Gravity`, `Spring`, `Bending`,
+      `PairInteraction`) and forces (`JointDamping`, `BaseTorque`, `TipForce`,
+      `VibratingSupport`).
+    """
 
     kinetic: tuple[AbstractKinetic, ...]
     potentials: tuple[AbstractPotential, ...]
@@ -62,8 +69,15 @@ class Scene(AbstractConstantInertiaLagrangian):
         return jsl.block_diag(*[k.inertia() for k in self.kinetic])
 
     def inverse_inertia_bands(self, args=None):
-        """`M` is block-diagonal over the kinetic terms and each block has a tridiagonal
-        inverse, so `M^-1` is tridiagonal (zero coupling between blocks): O(n) solves."""
+        """The bands of `M^-1`: `M` is block-diagonal over the kinetic terms and each
+        block has a tridiagonal inverse, so `M^-1` is tridiagonal (zero coupling between
+        blocks): O(n) solves.
+
+        **Arguments:**
+        - `args`: unused (the inertia is the effects' own).
+
+        **Returns:** its diagonal `(n,)` and off-diagonal `(n - 1,)`.
+        """
         bands = [k.inverse_inertia_bands() for k in self.kinetic]
         d = jnp.concatenate([b[0] for b in bands])
         zero = jnp.zeros((1,), dtype=d.dtype)
@@ -72,30 +86,54 @@ class Scene(AbstractConstantInertiaLagrangian):
         return d, e
 
     def masses(self) -> jax.Array:
-        """The `(n,)` point masses."""
+        """The point masses of the kinetic terms, in the order of the spheres.
+
+        **Returns:** an `(n,)` array (kg).
+        """
         return jnp.concatenate([k.masses for k in self.kinetic])
 
     def positions(self, q: jax.Array) -> jax.Array:
-        """Positions of the masses in the support frame, `(n, 3)`."""
+        """Positions of the masses in the support frame.
+
+        **Arguments:**
+        - `q`: the scene's unit vectors, `(n, 3)`.
+
+        **Returns:** the positions, `(n, 3)` (m).
+        """
         o = self._offsets()
         return jnp.concatenate(
             [k.positions(q[a:b]) for k, a, b in zip(self.kinetic, o[:-1], o[1:], strict=True)]
         ).astype(q.dtype)
 
     def parents(self) -> np.ndarray:
-        """Global index of each sphere's parent in its joint (-1: the support)."""
+        """The joint structure of the scene.
+
+        **Returns:** the global index of each sphere's parent in its joint (-1: the support),
+        an `(n,)` integer array.
+        """
         blocks = zip(self.kinetic, self._offsets(), strict=False)
         return np.asarray([p + a if p >= 0 else -1 for k, a in blocks for p in k.parents()],
                           dtype=int)
 
     def bend_pairs(self) -> tuple[np.ndarray, np.ndarray]:
-        """Global index arrays `(i, j)` of consecutive links."""
+        """Where bending stiffness acts.
+
+        **Returns:** global index arrays `(i, j)` of consecutive links.
+        """
         blocks = zip(self.kinetic, self._offsets(), strict=False)
         pairs = [(i + a, j + a) for k, a in blocks for i, j in k.bends()]
         return np.asarray(pairs, dtype=int).reshape(-1, 2).T
 
     def kinetic_energy(self, q, qdot, args=None):
-        """`T = 1/2 sum_i m_i |xdot_i|^2`, O(n)."""
+        """`T = 1/2 sum_i m_i |xdot_i|^2`, O(n).
+
+        **Arguments:**
+        - `q`: the scene's unit vectors, `(n, 3)`.
+        - `qdot`: their velocities, `(n, 3)`.
+        - `args`: unused.
+
+        **Returns:** a scalar (J).
+        """
         xdot = jax.jvp(self.positions, (q,), (qdot,))[1]
         return (0.5 * jnp.sum(self.masses() * jnp.sum(xdot**2, axis=-1))).astype(q.dtype)
 
@@ -121,13 +159,22 @@ class Scene(AbstractConstantInertiaLagrangian):
 
 
 def chain_pendulum(masses, lengths, g=9.81, *, torque=None, tip_force=None) -> Scene:
-    """The chain pendulum of Lee, Leok & McClamroch, section V: `Scene(Chain(masses,
-    lengths), Gravity(g) [, BaseTorque(torque)] [, TipForce(tip_force)])`, with lengths
-    and `g` in the floating dtype of `masses` (kg; lengths in m, `g` in m/s^2).
+    """The chain pendulum of Lee, Leok & McClamroch, section V.
 
-    `torque` (applied by the base on the first link, `f_1 = torque x q_1`) and
-    `tip_force` (on the last mass) are optional `(3,)` vectors or functions
-    `(t, q, qdot, args) -> (3,)`."""
+    `Scene(Chain(masses, lengths), Gravity(g) [, BaseTorque(torque)] [, TipForce(tip_force)])`,
+    with lengths and `g` in the floating dtype of `masses`.
+
+    **Arguments:**
+    - `masses`: the masses at the tips of the links (kg), one per link.
+    - `lengths`: the link lengths (m), one per link.
+    - `g`: gravity (m/s^2), along `-e3`.
+    - `torque`: optional torque applied by the base on the first link
+      (`f_1 = torque x q_1`): a `(3,)` vector or a function `(t, q, qdot, args) -> (3,)`.
+    - `tip_force`: optional force on the last mass: a `(3,)` vector or a function
+      `(t, q, qdot, args) -> (3,)`.
+
+    **Returns:** the `Scene` (state `(q, qdot)`, Corollary-1 fast path).
+    """
     masses = jnp.asarray(masses)
     dtype = jnp.result_type(masses, float)
     effects = [Chain(masses.astype(dtype), jnp.asarray(lengths, dtype)),

@@ -20,6 +20,10 @@ class Projected(AbstractWrappedSolver):
     local error times a Lipschitz constant, which does not change the order.
 
     The state must be the pair `(q, v)` of `(n, 3)` arrays used throughout sphere_mech.
+
+    **Arguments:**
+    - `solver`: any diffrax solver, e.g. `diffrax.Tsit5()` (the default of `simulate`),
+      `diffrax.Dopri8()`, `diffrax.Kvaerno5()` or `sphere_mech.RK4()`.
     """
 
     solver: AbstractSolver
