@@ -63,10 +63,9 @@ def raise_on_failure(sol: diffrax.Solution, max_steps, what: str) -> diffrax.Sol
     a `RuntimeError` naming how many, which and why when called eagerly, an
     `eqx.branched_error_if` check with the same message when traced."""
     values = jnp.ravel(code(sol.result))
-    messages = _messages(max_steps)
     if isinstance(values, jax.core.Tracer):
         first = values[jnp.argmax(failed(values))]
-        prefixed = [f"{what}: {m}" for m in messages]
+        prefixed = [f"{what}: {m}" for m in _messages(max_steps)]
         ys = eqx.branched_error_if(sol.ys, jnp.any(failed(values)), first, prefixed)
         return eqx.tree_at(lambda s: s.ys, sol, ys, is_leaf=lambda x: x is None)
     values = np.asarray(values)
@@ -78,4 +77,4 @@ def raise_on_failure(sol: diffrax.Solution, max_steps, what: str) -> diffrax.Sol
         shown = ", ".join(map(str, bad[:10])) + (", ..." if bad.size > 10 else "")
         where = (f" {bad.size} of {values.size} trajectories failed (indices {shown}); "
                  f"trajectory {bad[0]}:")
-    raise RuntimeError(f"{what}:{where} {messages[values[bad[0]]]}")
+    raise RuntimeError(f"{what}:{where} {_messages(max_steps)[values[bad[0]]]}")
