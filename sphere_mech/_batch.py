@@ -131,7 +131,8 @@ def simulate_batch(
       other backends). Results do not depend on it.
     - `devices`: devices to shard the batch over (default: all of JAX's default backend).
       With more than one, the batch is split along a 1-D `Mesh` with `shard_map`; batch
-      sizes that do not divide the device count are padded and the padding stripped.
+      sizes that do not divide the device count are padded and the padding stripped; a
+      batch smaller than the device count uses only as many devices as trajectories.
     - `progress`: diffrax's progress bar over the batch's time.
 
     Compiles once per structure (shapes, dtypes, solver and options): new values of
@@ -159,7 +160,9 @@ def simulate_batch(
     mask = jax.tree.map(lambda _: False, dynamic)
     mask = (batch_system, batch_args) + mask[2:]  # prefixes: all of system / args or none
     batched, shared = eqx.partition(dynamic, mask)
-    devices = jax.devices() if devices is None else list(devices)
+    # A batch smaller than the device count uses as many devices as trajectories: the
+    # others would only integrate padding.
+    devices = (jax.devices() if devices is None else list(devices))[:size]
     mesh = Mesh(np.array(devices), (BATCH_AXIS,)) if len(devices) > 1 else None
     per_device = -(-size // len(devices))
     chunk = _chunk_size(chunk_size, n, per_device, devices[0].platform)

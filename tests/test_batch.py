@@ -123,9 +123,12 @@ SHARDED = textwrap.dedent(
     assert not sharded.ys[0].sharding.is_fully_replicated
     odd = sm.simulate_batch(chain, tuple(y[:5] for y in y0), 0.5, **kw)  # padded to 6
     assert odd.ys[0].shape == (5, 3, 2, 3)
-    for a, b, c in zip(sharded.ys, single.ys, odd.ys):
+    one = sm.simulate_batch(chain, tuple(y[:1] for y in y0), 0.5, **kw)  # no padding device
+    assert len(one.ys[0].sharding.device_set) == 1
+    for a, b, c, d in zip(sharded.ys, single.ys, odd.ys, one.ys):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-14)
         np.testing.assert_allclose(c, b[:5], rtol=0, atol=1e-14)
+        np.testing.assert_allclose(d, b[:1], rtol=0, atol=1e-14)
     print("ok")
     """
 )
