@@ -87,9 +87,23 @@ class AbstractConstantInertiaLagrangian(AbstractLagrangianSystem):
     def energy(self, t, q, qdot, args=None):
         return self.kinetic_energy(q, qdot, args) + self.potential(t, q, args)
 
-    def _multiplier_solve(self, q, rhs, target, args):
-        """The `x` with `sum_j M_ij x_j = rhs_i + lam_i q_i` and `q_i . x_i = target_i`
-        (one scalar multiplier per sphere), `q` normalized first."""
+    def multiplier_solver(self, q: Points, args: Args) -> Callable:
+        """The linear solve of the constrained inertia at the configuration `q`: the map
+        `(rhs, target) -> x` with `sum_j M_ij x_j = rhs_i + lam_i q_i` and
+        `q_i . x_i = target_i` (one scalar multiplier per sphere). With `target = 0`, `x`
+        is the tangent vector with `P M x = P rhs`: the inverse of `T^T (M kron I) T`
+        applied to `T^T rhs`, without forming it. Everything that depends on `q` only is
+        built once, so the map can be applied to many right-hand sides (the Newton
+        iterations of `Variational`); each application is O(n) when `M^-1` is
+        tridiagonal.
+
+        **Arguments:**
+        - `q`: the `(n, 3)` configuration (normalized first).
+        - `args`: the system's `args` (they may set `M`).
+
+        **Returns:** a function `(rhs, target) -> x`, `rhs` and `x` of shape `(n, 3)`,
+        `target` of shape `(n,)`.
+        """
         q = normalize(q)
         bands = self.inverse_inertia_bands(args)
         if bands is None:
@@ -103,9 +117,13 @@ class AbstractConstantInertiaLagrangian(AbstractLagrangianSystem):
             apply = lambda x: tridiagonal_matvec(d, e, x)
             s_off = e * jnp.sum(q[:-1] * q[1:], axis=-1)
             solve = lambda r: tridiagonal_spd_solve(d, s_off, r)
-        y = apply(rhs)
-        lam = solve(target - jnp.sum(q * y, axis=-1))
-        return y + apply(lam[:, None] * q)
+
+        def multiplier_solve(rhs, target):
+            y = apply(rhs)
+            lam = solve(target - jnp.sum(q * y, axis=-1))
+            return y + apply(lam[:, None] * q)
+
+        return multiplier_solve
 
     def _vdot(self, t, q, qdot, args):
         t = as_time(t, q)
@@ -113,7 +131,7 @@ class AbstractConstantInertiaLagrangian(AbstractLagrangianSystem):
         g = -jax.grad(U)(q)
         f = self.generalized_force(t, q, qdot, args)
         g = g if f is None else g + f
-        return self._multiplier_solve(q, g, -jnp.sum(qdot * qdot, axis=-1), args)
+        return self.multiplier_solver(q, args)(g, -jnp.sum(qdot * qdot, axis=-1))
 
     def velocity_from_momentum(self, t, q, p, args=None, *, guess=None, quadratic=None,
                                tol=None, max_steps=32):
@@ -133,7 +151,7 @@ class AbstractConstantInertiaLagrangian(AbstractLagrangianSystem):
         (`singular` if it is not finite).
         """
         del guess, quadratic, tol, max_steps
-        v = self._multiplier_solve(q, p, jnp.zeros(q.shape[:1], dtype=q.dtype), args)
+        v = self.multiplier_solver(q, args)(p, jnp.zeros(q.shape[:1], dtype=q.dtype))
         return v, RESULTS.where(jnp.all(jnp.isfinite(v)), RESULTS.successful,
                                 RESULTS.singular)
 
