@@ -12,7 +12,15 @@ A third column times Hamilton's equations of `sm.legendre(chain)` (the inverse L
 map by the same O(n) fast path, gradients by the envelope theorem) against the chain's
 own accelerations. Prints a markdown table; writes benchmarks/results/fast_path.{png,md}.
 
-    python benchmarks/fast_path.py [--quick]
+Second table: the variational integrator on the same chains, whose Newton solve uses the
+same O(n) multiplier solve. Cost per step of one trajectory (`sm.simulate`, float64,
+fixed step `--dt`, default 1e-3, from a chain released near its hanging position, best
+of 5 runs) of
+`Variational(2)` and `Variational(4)` against `Projected(RK4())` measured in the same run
+(ratios), and of the dense-Newton `Variational(2, fast_path=False)` (the path general
+systems take) for n <= 32, checked to agree with the O(n) path.
+
+    python benchmarks/fast_path.py [--quick] [--dt 1e-3] [--steps 1000]
 """
 
 import argparse
@@ -72,10 +80,82 @@ def time_per_evaluation(fn, q, qdot, repeats):
     return statistics.median(times) / q.shape[0], compile_time
 
 
+def start_state(n):
+    """A chain released near its hanging position: links tilted by about 0.3 rad, slow."""
+    kq, kv = jax.random.split(jax.random.PRNGKey(n))
+    q = sm.normalize(0.3 * jax.random.normal(kq, (n, 3)) + jnp.array([0.0, 0.0, -1.0]))
+    return q, sm.project(q, 0.3 * jax.random.normal(kv, (n, 3)))
+
+
+def time_per_step(system, solver, y0, dt, steps, repeats):
+    """(minimum over `repeats` runs of the seconds per step of one trajectory: the least
+    disturbed run on a shared machine; final state; seconds of the first call:
+    compilation and one run)."""
+
+    def run():
+        sol = sm.simulate(system, y0, jnp.asarray(dt * steps), solver=solver,
+                          dt0=jnp.asarray(dt), max_steps=steps + 1)
+        return jax.block_until_ready(sol.ys)
+
+    t0 = time.perf_counter()
+    final = run()
+    first = time.perf_counter() - t0
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        run()
+        times.append(time.perf_counter() - t0)
+    return min(times) / steps, final, first
+
+
+def variational_rows(ns, dt, steps, repeats):
+    """Per-step cost of Projected(RK4), Variational(2), Variational(4) and the dense
+    Variational(2, fast_path=False) (n <= 32) on the chains of `make_systems`."""
+    rows = []
+    for n in ns:
+        chain, _ = make_systems(n)
+        y0 = start_state(n)
+        rk4, _, _ = time_per_step(chain, sm.Projected(sm.RK4()), y0, dt, steps, repeats)
+        var2, (q2, _), compile2 = time_per_step(chain, sm.Variational(), y0, dt, steps, repeats)
+        var4, _, _ = time_per_step(chain, sm.Variational(4), y0, dt, steps, repeats)
+        dense, difference = float("nan"), float("nan")
+        if n <= 32:
+            dense, (qd, _), _ = time_per_step(chain, sm.Variational(fast_path=False), y0, dt,
+                                              steps, repeats)
+            difference = float(jnp.max(jnp.abs(q2[-1] - qd[-1])))
+            assert difference < 1e-9, f"O(n) and dense variational steps disagree: {difference}"
+        rows.append((n, rk4, var2, var4, dense, difference, compile2))
+        print(f"n={n}: Projected(RK4) {rk4 * 1e6:.1f} us/step, Variational(2) "
+              f"{var2 * 1e6:.1f}, Variational(4) {var4 * 1e6:.1f}, dense Variational(2) "
+              f"{dense * 1e6:.1f}", flush=True)
+    return rows
+
+
+def variational_table(rows, dt, steps, repeats):
+    header = (
+        f"Variational integrator, cost per step of one trajectory (float64, dt = {dt:g}, "
+        f"{steps} steps from a chain released near its hanging position, best of "
+        f"{repeats} runs), against Projected(RK4()) in the same run. Dense: "
+        "Variational(2, fast_path=False), Newton with the dense Jacobian (n <= 32); "
+        "max |q| difference: its final state against the O(n) path's.\n\n"
+        "| n | Projected(RK4) (us/step) | Variational(2) (us/step) | Variational(2) / RK4 "
+        "| Variational(4) (us/step) | Variational(4) / RK4 | dense Variational(2) (us/step) "
+        "| dense / O(n) | max abs q difference | first call of Variational(2) (s) |\n"
+        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n"
+    )
+    return header + "".join(
+        f"| {n} | {r * 1e6:.1f} | {v2 * 1e6:.1f} | {v2 / r:.2f} | {v4 * 1e6:.1f} "
+        f"| {v4 / r:.2f} | {d * 1e6:.1f} | {d / v2:.1f} | {e:.1e} | {c:.1f} |\n"
+        for n, r, v2, v4, d, e, c in rows
+    )
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="n <= 8, fewer repeats")
     parser.add_argument("--batch", type=int, default=256)
+    parser.add_argument("--dt", type=float, default=1e-3, help="variational table: step")
+    parser.add_argument("--steps", type=int, default=1000, help="variational table: steps")
     opts = parser.parse_args()
     ns = [1, 2, 4, 8] if opts.quick else [1, 2, 4, 8, 16, 32, 64]
     repeats = 5 if opts.quick else 20
@@ -114,13 +194,17 @@ def main():
         f"| {h * 1e6:.3f} | {hr:.2f} |\n"
         for n, f, s, r, cf, cs, e, h, hr in rows
     )
+    var_repeats = 3 if opts.quick else 5
+    var_rows = variational_rows(ns[1:], opts.dt, opts.steps, var_repeats)
+    var_table = variational_table(var_rows, opts.dt, opts.steps, var_repeats)
     print()
     print(table)
+    print(var_table)
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "fast_path.md").write_text(table)
+    (RESULTS / "fast_path.md").write_text(table + "\n" + var_table)
 
     n_arr = np.array([r[0] for r in rows])
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
+    fig, (ax1, ax2, ax3) = plt.subplots(1, 3, figsize=(15, 4))
     ax1.loglog(n_arr, [r[1] * 1e6 for r in rows], "o-", label="fast path (constant inertia)")
     ax1.loglog(n_arr, [r[2] * 1e6 for r in rows], "s-", label="general path (autodiff Hessian)")
     ax1.loglog(n_arr, [r[7] * 1e6 for r in rows], "^-", label="legendre(chain): Hamilton")
@@ -134,7 +218,17 @@ def main():
     ax2.set_xlabel("links n")
     ax2.set_ylabel("speed-up of the fast path (x)")
     ax2.grid(True, which="both", alpha=0.3)
-    fig.suptitle(f"Chain pendulum accelerations, float64, batch {opts.batch}")
+    n_var = np.array([r[0] for r in var_rows])
+    for k, label in ((1, "Projected(RK4())"), (2, "Variational(2), O(n)"),
+                     (3, "Variational(4), O(n)"), (4, "Variational(2), dense Newton")):
+        ax3.loglog(n_var, [r[k] * 1e6 for r in var_rows], "o-", label=label)
+    ax3.set_xscale("log", base=2)
+    ax3.set_xlabel("links n")
+    ax3.set_ylabel(f"time per step, one trajectory (us), dt = {opts.dt:g}")
+    ax3.legend()
+    ax3.grid(True, which="both", alpha=0.3)
+    fig.suptitle(f"Chain pendulum, float64: accelerations (batch {opts.batch}) and "
+                 "integrator steps")
     fig.tight_layout()
     fig.savefig(RESULTS / "fast_path.png", dpi=120)
     print(f"wrote {RESULTS / 'fast_path.png'} and {RESULTS / 'fast_path.md'}")

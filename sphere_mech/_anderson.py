@@ -7,6 +7,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import optimistix as optx
+from jax import lax
 from jax.flatten_util import ravel_pytree
 
 from ._linalg import spd_solve
@@ -18,7 +19,9 @@ class _AndersonState(eqx.Module):
     y_prev: jax.Array
     f_prev: jax.Array
     count: jax.Array
-    relative_error: jax.Array
+    first_error: jax.Array  # of the first step, to estimate the contraction rate
+    rate: jax.Array  # estimated contraction rate of the plain iteration
+    relative_error: jax.Array  # of the returned iterate
 
 
 class Anderson(optx.AbstractFixedPointSolver):
@@ -29,49 +32,64 @@ class Anderson(optx.AbstractFixedPointSolver):
     converges slowly or diverges along a few directions, for the price of a
     `depth x depth` least-squares problem per step (O(N depth^2) for `N` unknowns).
 
-    Stops when the last residual is below `atol + rtol |g(y)|` (in `norm`), as
-    `optimistix.FixedPointIteration` does, and then returns `g(y)`. Works with
-    `optimistix.fixed_point` and its implicit differentiation.
+    Returns `g(y)` once its error is estimated below `atol + rtol |g(y)|` (in
+    `norm`): the residual `g(y) - y` is, as in `optimistix.FixedPointIteration`, or, for
+    a contraction at a rate `rho < 1/2` (estimated from the first two steps, which are
+    plain iterations), `rho / (1 - rho)` times it is. Works with `optimistix.fixed_point`
+    and its implicit differentiation.
 
     **Arguments:**
     - `rtol`, `atol`: relative and absolute tolerance on `g(y) - y`.
     - `depth`: how many previous steps are combined (default 3).
+    - `plain_rate`: below this estimated contraction rate (default 0.1) the plain
+      iteration is fast enough and no acceleration is computed.
     - `norm`: the norm of the termination test (default `optimistix.max_norm`).
     """
 
     rtol: float
     atol: float
     depth: int = eqx.field(default=3, static=True)
+    plain_rate: float = eqx.field(default=0.1, static=True)
     norm: Callable = optx.max_norm
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags) -> _AndersonState:
         flat, _ = ravel_pytree(y)
         history = jnp.zeros((self.depth, flat.size), dtype=flat.dtype)
-        return _AndersonState(history, history, flat, jnp.zeros_like(flat),
-                              jnp.array(0), jnp.array(jnp.inf, dtype=flat.dtype))
+        inf = jnp.array(jnp.inf, dtype=flat.dtype)
+        return _AndersonState(history, history, flat, jnp.zeros_like(flat), jnp.array(0),
+                              inf, jnp.ones_like(inf), inf)
 
     def step(self, fn, y, args, options, state: _AndersonState, tags):
         g, aux = fn(y, args)
         flat, unravel = ravel_pytree(y)
         g_flat, _ = ravel_pytree(g)
         f = g_flat - flat
-        error = self.norm(f / (self.atol + self.rtol * jnp.abs(g_flat)))
-        # The newest differences replace the oldest ones (none before the second step).
-        slot = state.count % self.depth
+        residual = self.norm(f / (self.atol + self.rtol * jnp.abs(g_flat)))
         first = state.count == 0
-        dx = state.dx.at[slot].set(jnp.where(first, 0.0, flat - state.y_prev))
-        df = state.df.at[slot].set(jnp.where(first, 0.0, f - state.f_prev))
-        used = jnp.arange(self.depth) < jnp.minimum(state.count, self.depth)
-        # min_gamma |f - df^T gamma| by the normal equations; unused slots and a tiny
-        # relative ridge keep them positive definite when differences are degenerate.
-        gram = df @ df.T
-        ridge = 1e-12 * jnp.max(jnp.diag(gram)) + jnp.finfo(f.dtype).tiny
-        gram = gram + jnp.diag(jnp.where(used, ridge, 1.0))
-        gamma = jnp.where(used, spd_solve(gram, df @ f), 0.0)
-        accelerated = g_flat - (dx + df).T @ gamma
-        # Converged: return g(y) itself (the extrapolation would only add rounding).
-        new = jnp.where(error < 1, g_flat, accelerated)
-        new_state = _AndersonState(dx, df, flat, f, state.count + 1, error)
+        rate = jnp.where(state.count == 1, residual / state.first_error, state.rate)
+        first_error = jnp.where(first, residual, state.first_error)
+        # The error of g(y) is about rate / (1 - rate) times the residual.
+        error = jnp.where(rate < 0.5, residual * rate / (1 - rate), residual)
+        error = jnp.minimum(error, residual)
+        # The newest differences replace the oldest ones (none before the second step).
+        dx = jnp.concatenate([state.dx[1:], jnp.where(first, 0.0, flat - state.y_prev)[None]])
+        df = jnp.concatenate([state.df[1:], jnp.where(first, 0.0, f - state.f_prev)[None]])
+        used = jnp.arange(self.depth) >= self.depth - jnp.minimum(state.count, self.depth)
+
+        def accelerated():
+            # min_gamma |f - df^T gamma| by the normal equations; unused slots and a tiny
+            # relative ridge keep them positive definite when differences are degenerate.
+            gram = df @ df.T
+            ridge = 1e-12 * jnp.max(jnp.diag(gram)) + jnp.finfo(f.dtype).tiny
+            gram = gram + jnp.diag(jnp.where(used, ridge, 1.0))
+            gamma = jnp.where(used, spd_solve(gram, df @ f), 0.0)
+            return g_flat - (dx + df).T @ gamma
+
+        # Converged: return g(y) itself (the extrapolation would only add rounding); a
+        # fast contraction (rate below `plain_rate`) needs no acceleration either.
+        plain = (error < 1) | (rate < self.plain_rate)
+        new = lax.cond(plain, lambda: g_flat, accelerated)
+        new_state = _AndersonState(dx, df, flat, f, state.count + 1, first_error, rate, error)
         return unravel(new), new_state, aux
 
     def terminate(self, fn, y, args, options, state: _AndersonState, tags):

@@ -24,3 +24,14 @@ def max_rel_error(x, y):
 def fitted_order(step_sizes, errors):
     """Slope of log(error) against log(step size): the measured order of convergence."""
     return float(np.polyfit(np.log(step_sizes), np.log(errors), 1)[0])
+
+
+def jaxpr_equations(jaxpr):
+    """All equations of a jaxpr, including those of nested jaxprs (pjit, custom_jvp...)."""
+    for eqn in jaxpr.eqns:
+        yield eqn
+        for param in eqn.params.values():
+            for sub in param if isinstance(param, list | tuple) else [param]:
+                inner = getattr(sub, "jaxpr", sub)
+                if hasattr(inner, "eqns"):
+                    yield from jaxpr_equations(inner)

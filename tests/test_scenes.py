@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import jaxpr_equations
 
 import sphere_mech as sm
 
@@ -289,17 +290,6 @@ def test_effect_parameters_are_differentiable_and_vmappable(getkey):
 
 # ---- only what is called for --------------------------------------------------------------
 
-def _equations(jaxpr):
-    """All equations of a jaxpr, including those of nested jaxprs (pjit, custom_jvp...)."""
-    for eqn in jaxpr.eqns:
-        yield eqn
-        for param in eqn.params.values():
-            for sub in param if isinstance(param, list | tuple) else [param]:
-                inner = getattr(sub, "jaxpr", sub)
-                if hasattr(inner, "eqns"):
-                    yield from _equations(inner)
-
-
 def _vector_field_jaxpr(scene, n):
     q = jnp.tile(jnp.array([[0.0, 0.6, -0.8]]), (n, 1))
     y = (q, jnp.zeros_like(q).at[:, 0].set(1.0))
@@ -311,8 +301,8 @@ def test_absent_effects_add_no_operation():
     gravity_only = sm.Scene(chain, sm.Gravity())
     driven = sm.Scene(chain, sm.Gravity(), sm.JointDamping(0.1),
                       sm.BaseTorque(sm.PDTorque(2.0, 0.5)))
-    small = list(_equations(_vector_field_jaxpr(gravity_only, 4)))
-    large = list(_equations(_vector_field_jaxpr(driven, 4)))
+    small = list(jaxpr_equations(_vector_field_jaxpr(gravity_only, 4)))
+    large = list(jaxpr_equations(_vector_field_jaxpr(driven, 4)))
     assert len(small) < len(large)
     stacks = lambda eqns: " ".join(str(e.source_info.name_stack) for e in eqns)
     assert "Gravity" in stacks(small) and "Gravity" in stacks(large)

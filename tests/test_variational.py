@@ -1,6 +1,7 @@
 """The variational (RATTLE-type) integrator: order, reversibility, |q| = 1, energy,
 symplecticity, gradients, forces, refusals."""
 
+import functools
 import importlib.util
 from pathlib import Path
 
@@ -9,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import fitted_order, max_rel_error
+from helpers import fitted_order, jaxpr_equations, max_rel_error
 
 import sphere_mech as sm
 from sphere_mech._solvers.discrete_mechanics import substep
@@ -274,3 +275,68 @@ def test_composition_conditions(composition):
     assert abs(np.sum(gammas) - 1) < 1e-14
     assert abs(np.sum(gammas**3)) < 1e-14
     assert sm.Variational().gammas == (1.0,)
+
+
+# ---- the O(n) step of constant-inertia systems -------------------------------------------
+
+STRUCTURED = {
+    "chain": sm.chain_pendulum([1.0, 0.7, 1.3, 0.9], [1.0, 0.8, 0.6, 1.1]),
+    # a chain and a free particle, springs, bending, damping (velocity-dependent forces)
+    # and drives: every kind of effect the variational step supports
+    "scene": sm.Scene(
+        sm.Chain([1.0, 0.7, 1.3], [1.0, 0.8, 0.6]), sm.Particles(0.5, 0.7, [2.0, 0.0, 0.0]),
+        sm.Gravity(9.81), sm.Spring(2, 3, 3.0, 0.5), sm.Bending(0.4), sm.JointDamping(0.3),
+        sm.BaseTorque(jnp.array([0.2, -0.1, 0.3])), sm.TipForce(jnp.array([0.5, 0.0, -0.4])),
+    ),
+}
+
+
+def _structured_state(n):
+    q, v = sm.random_state(jax.random.PRNGKey(n), n, speed=1.0)
+    q = sm.normalize(0.7 * q + jnp.array([0.0, 0.0, -1.0]))
+    return q, sm.project(q, v)
+
+
+@pytest.mark.parametrize("name", ["chain", "scene"])
+def test_fast_path_agrees_with_dense_newton(name):
+    """Constant-inertia systems solve each step by the O(n) iteration of the fast path;
+    `fast_path=False` takes Newton's method with the dense Jacobian on the same
+    equations: three steps of each agree to rounding."""
+    system = STRUCTURED[name]
+    y0 = _structured_state(system.n)
+    term = sm.MechanicsTerm(system)
+
+    @functools.partial(jax.jit, static_argnums=0)
+    def run(solver, y):  # three steps of 0.05 (one compiled step in a scan)
+        def step(y, t):
+            rates = system.rates(t, y, None)
+            return solver.step(term, t, t + 0.05, y, None, rates, False)[0], None
+
+        return jax.lax.scan(step, y, 0.05 * jnp.arange(3.0))[0]
+
+    fast = run(sm.Variational(), y0)
+    dense = run(sm.Variational(fast_path=False), y0)
+    assert max_rel_error(fast[0], y0[0]) > 0.01  # it moved
+    assert max_rel_error(fast[0], dense[0]) < 1e-12
+    assert max_rel_error(fast[1], dense[1]) < 1e-11
+
+
+def test_fast_path_step_has_no_dense_solve():
+    """The jaxpr of the O(n) step has no LU, Cholesky or triangular solve, where the
+    dense Newton step of the same system has its LU; also past the size where dense
+    solves call LAPACK."""
+    dense_primitives = {"lu", "cholesky", "triangular_solve", "lu_pivots_to_permutation"}
+
+    def primitives(system, solver):
+        n = system.n
+        y0 = _structured_state(n)
+        term = sm.MechanicsTerm(system)
+        step = lambda y: solver.step(term, 0.0, 0.05, y, None, system.rates(0.0, y, None),
+                                     False)[0]
+        return {e.primitive.name for e in jaxpr_equations(jax.make_jaxpr(step)(y0).jaxpr)}
+
+    scene = STRUCTURED["scene"]
+    assert dense_primitives & primitives(scene, sm.Variational(fast_path=False))
+    assert not dense_primitives & primitives(scene, sm.Variational())
+    long_chain = sm.chain_pendulum(jnp.ones(20), jnp.ones(20))  # the unrolled-LAPACK limit
+    assert not dense_primitives & primitives(long_chain, sm.Variational(4))

@@ -72,19 +72,22 @@ def discrete_forces(system, t0, h, q0, q1, args):
     return 0.5 * h * f0, 0.5 * h * f1
 
 
-def solve_position(system, t0, h, q0, mu0, scale, guess, args, tol, max_steps):
+def solve_position(system, t0, h, q0, mu0, scale, guess, args, tol, max_steps, fast_path=True):
     """Solve `P(q0) [mu0 + D1 L_d(q0, q1) + f0] = 0` for `q1 = exp_q0(h T0 a)` (so
     `|q1_i| = 1` holds by construction), starting from the velocity `guess` (tangent).
 
     General systems: Newton's method on the `2n` equations `T0^T [...] / scale` (its
     Jacobian is dense: `2n` Jacobian-vector products and a `2n x 2n` LU per iteration).
-    Constant-inertia systems (`AbstractConstantInertiaLagrangian`): `D1 L_d` is
+    Constant-inertia systems (`AbstractConstantInertiaLagrangian`, unless `fast_path`
+    is false): `D1 L_d` is
     `-(P0 M P0) c` up to terms of relative size `h |qdot|` (`c` the chord velocity), so
     the Newton step is taken with the Jacobian `-T0^T (M kron I) T0`, whose inverse is
     the fast path's multiplier solve at `q0` (O(n) for a chain): a chord iteration
     `a <- a + T0^T x`, `P0 M x = P0 [mu0 + D1 L_d + f0]`, `q0 . x = 0`, converging
-    linearly at a rate of about the angle a sphere turns in one step. It solves the
-    same equations, so the step is the same to the tolerance.
+    linearly at a rate of about the angle a sphere turns in one step, amplified by the
+    spread of `M`'s eigenvalues; Anderson acceleration takes care of the few slow
+    directions. It solves the same equations, so the step is the same to the
+    tolerance; steps too coarse for it to converge are reported like a failed Newton.
 
     Returns the map `a -> q1` and the optimistix solution (implicit differentiation)."""
     T0 = tangent_basis(q0)
@@ -99,7 +102,7 @@ def solve_position(system, t0, h, q0, mu0, scale, guess, args, tol, max_steps):
         forces = discrete_forces(system, t0, h, q0, q1, args)
         return mu0 + d1 if forces is None else mu0 + d1 + forces[0]
 
-    if isinstance(system, AbstractConstantInertiaLagrangian):
+    if fast_path and isinstance(system, AbstractConstantInertiaLagrangian):
         solve = system.multiplier_solver(q0, args)
         zero = jnp.zeros(q0.shape[:1], dtype=q0.dtype)
         chord = lambda a, _: a + to_tangent(T0, solve(momentum_residual(a), zero))
@@ -111,8 +114,9 @@ def solve_position(system, t0, h, q0, mu0, scale, guess, args, tol, max_steps):
     return position, sol
 
 
-def substep(system, t0, h, q0, v0, rates0, args, tol, max_steps):
-    """One step of size `h` (any sign) from the state `(q0, v0)` with rates `rates0`.
+def substep(system, t0, h, q0, v0, rates0, args, tol, max_steps, fast_path=True):
+    """One step of size `h` (any sign) from the state `(q0, v0)` with rates `rates0`
+    (`fast_path`: see `solve_position`).
 
     Returns the new state, the system's rates there, and a result code."""
     qdot0, qddot0 = jax.jvp(system.to_linear, (q0, v0), rates0)
@@ -124,7 +128,8 @@ def substep(system, t0, h, q0, v0, rates0, args, tol, max_steps):
     # Predictor: the geodesic with velocity qdot0 + h/2 P qddot0 matches the Taylor
     # expansion of q(t0 + h) to O(h^3); Newton then needs about two iterations.
     guess = qdot0 + 0.5 * h * qddot0
-    position, sol = solve_position(system, t0, h, q0, mu0, scale, guess, args, tol, max_steps)
+    position, sol = solve_position(system, t0, h, q0, mu0, scale, guess, args, tol, max_steps,
+                                   fast_path)
     # exp keeps |q1_i| = 1 to rounding; renormalizing stops rounding errors from
     # accumulating over millions of steps (a change far below the Newton tolerance).
     q1 = normalize(position(sol.value))

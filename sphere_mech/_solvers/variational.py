@@ -46,9 +46,14 @@ class Variational(AbstractSolver):
 
     Works for any `Lagrangian`, `AngularLagrangian`, `ConstantInertiaLagrangian`
     or `Scene`: the equations come from `L` by autodiff; each (sub)step
-    solves `2n` nonlinear equations by Newton's method (optimistix; implicit
-    differentiation, so `jax.grad` works through it), started from a predictor built
-    from the accelerations so that about two iterations suffice. `L` is evaluated on the
+    solves `2n` nonlinear equations (optimistix; implicit differentiation, so
+    `jax.grad` works through it), started from a predictor built from the
+    accelerations. General systems use Newton's method (about two iterations, each
+    with the dense `2n x 2n` Jacobian: O(n^3)). Constant-inertia systems (chains,
+    scenes) take the Newton steps with the constant inertia in place of the exact
+    Jacobian, solved by the fast path's O(n) multiplier solve, and Anderson
+    acceleration (a few more, much cheaper iterations: O(n) per step). Both solve the
+    same equations, to the same tolerance. `L` is evaluated on the
     tangent bundle only (at the chord velocity projected on each tangent plane), so the
     discrete trajectory does not depend on how `L` is written off it, and forms 1 and 2
     give the same steps. Time-dependent `L` is supported (the step stays symplectic;
@@ -70,17 +75,23 @@ class Variational(AbstractSolver):
     - `composition` (order 4): `"suzuki"` (default; 5 substeps, smaller error
       constants) or `"yoshida"` (the triple jump: 3 substeps, one of them backward and
       1.7 times the step, so Newton needs a smaller step to converge).
-    - `root_find_max_steps`: Newton iterations allowed per substep (default 16).
+    - `root_find_max_steps`: iterations allowed per substep (default 32).
     - `root_find_tol`: Newton tolerance; default `eps ** 0.75` of the state's dtype.
       Newton stops when its last correction is below it (relative to the velocity) and
       the residual, relative to the momenta it is made of, is too; quadratic
       convergence then leaves errors at about rounding.
+    - `fast_path`: whether constant-inertia systems use the O(n) iteration (default
+      `True`). Its convergence rate is about the angle a link turns per step, times
+      the spread of the inertia's eigenvalues: on steps too coarse for it (a long
+      chain whipping at a step that barely resolves it), it runs out of iterations
+      where Newton's method (`fast_path=False`, O(n^3) per step) may still converge.
     """
 
     gammas: tuple[float, ...] = eqx.field(static=True)
     claimed_order: int = eqx.field(static=True)
     root_find_max_steps: int = eqx.field(static=True)
     root_find_tol: float | None = eqx.field(static=True)
+    fast_path: bool = eqx.field(static=True)
 
     term_structure: ClassVar = MechanicsTerm
     interpolation_cls: ClassVar[Callable[..., ThirdOrderHermitePolynomialInterpolation]] = (
@@ -92,13 +103,15 @@ class Variational(AbstractSolver):
         order: int = 2,
         *,
         composition: str = "suzuki",
-        root_find_max_steps: int = 16,
+        root_find_max_steps: int = 32,
         root_find_tol: float | None = None,
+        fast_path: bool = True,
     ):
         self.gammas = composition_coefficients(order, composition)
         self.claimed_order = order
         self.root_find_max_steps = root_find_max_steps
         self.root_find_tol = root_find_tol
+        self.fast_path = fast_path
 
     def order(self, terms):
         return self.claimed_order
@@ -125,7 +138,8 @@ class Variational(AbstractSolver):
             t, y, rates, result = carry
             dt = gamma * h_safe
             y1, rates1, result1 = substep(
-                system, t, dt, y[0], y[1], rates, args, tol, self.root_find_max_steps
+                system, t, dt, y[0], y[1], rates, args, tol, self.root_find_max_steps,
+                self.fast_path,
             )
             result = RESULTS.where(result == RESULTS.successful, result1, result)
             return (t + dt, y1, rates1, result), None
