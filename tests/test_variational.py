@@ -9,10 +9,12 @@ import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 import pytest
 from helpers import fitted_order, jaxpr_equations, max_rel_error
 
 import sphere_mech as sm
+from sphere_mech._anderson import Anderson
 from sphere_mech._solvers.discrete_mechanics import substep
 
 
@@ -340,3 +342,27 @@ def test_fast_path_step_has_no_dense_solve():
     assert not dense_primitives & primitives(scene, sm.Variational())
     long_chain = sm.chain_pendulum(jnp.ones(20), jnp.ones(20))  # the unrolled-LAPACK limit
     assert not dense_primitives & primitives(long_chain, sm.Variational(4))
+
+
+def test_anderson_converges_where_the_plain_iteration_diverges():
+    """The acceleration of the O(n) iteration, on an affine map `y -> B y + c` with one
+    eigenvalue of `B` above 1 (the plain iteration diverges): the fixed point
+    `(I - B)^-1 c` to rounding, and its derivative in `c` by implicit differentiation."""
+    rotation, _ = np.linalg.qr(np.random.default_rng(0).normal(size=(4, 4)))
+    B = jnp.asarray(rotation @ np.diag([1.5, 0.5, 0.2, -0.3]) @ rotation.T)
+    c = jnp.array([1.0, -2.0, 0.5, 0.3])
+    exact = jnp.linalg.solve(jnp.eye(4) - B, c)
+
+    def solve(solver, c):
+        sol = optx.fixed_point(lambda y, c: B @ y + c, solver, jnp.zeros(4), c,
+                               max_steps=40, throw=False)
+        return sol.value, sol.result
+
+    anderson = jax.jit(lambda c: solve(Anderson(rtol=1e-13, atol=1e-13), c))
+    value, result = anderson(c)
+    assert result == optx.RESULTS.successful
+    assert max_rel_error(value, exact) < 1e-12
+    plain = solve(optx.FixedPointIteration(rtol=1e-13, atol=1e-13), c)
+    assert plain[1] != optx.RESULTS.successful
+    jacobian = jax.jacfwd(lambda c: anderson(c)[0])(c)
+    assert max_rel_error(jacobian, jnp.linalg.inv(jnp.eye(4) - B)) < 1e-10
