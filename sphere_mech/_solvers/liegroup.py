@@ -7,6 +7,7 @@ import equinox as eqx
 import jax.lax as lax
 import jax.numpy as jnp
 import jax.tree_util as jtu
+import numpy as np
 from diffrax import (
     RESULTS,
     AbstractAdaptiveSolver,
@@ -34,15 +35,9 @@ def _check_state_structure(y0):
         )
 
 
-def _combine(coeffs, us):
-    """`sum_j c_j u_j` over Lie-algebra elements, leaving out zero coefficients."""
-    terms = [(float(c), u) for c, u in zip(coeffs, us) if c != 0]
-    if not terms:
-        return jtu.tree_map(jnp.zeros_like, us[0])
-    return jtu.tree_map(
-        lambda *xs: sum(c * x for (c, _), x in zip(terms, xs, strict=True)),
-        *[u for _, u in terms],
-    )
+def _combine(coeffs, ks):
+    """`sum_j c_j k_j` over Lie-algebra elements stacked along a leading axis."""
+    return jtu.tree_map(lambda K: jnp.tensordot(coeffs, K, axes=1), ks)
 
 
 def _minus(a, b):
@@ -146,6 +141,18 @@ class LieRK(AbstractAdaptiveSolver):
             return RotateTranslate()
         return SpecialEuclidean(system_of(terms).angular)
 
+    def _stage_rows(self, dtype):
+        """`(i, a_i, c_i)` for the stages `i = 2..s` computed inside a step (0-based `i`;
+        all but the last of a first-same-as-last tableau), `a_i` padded to length `s`."""
+        tableau = self.solver.tableau
+        s = tableau.num_stages
+        rows = tableau.a_lower[: s - 1 - tableau.fsal]
+        a = np.zeros((len(rows), s))
+        for i, row in enumerate(rows):
+            a[i, : len(row)] = row
+        index = jnp.arange(1, len(rows) + 1)
+        return index, jnp.asarray(a, dtype), jnp.asarray(tableau.c[: len(rows)], dtype)
+
     def init(self, terms, t0, t1, y0, args):
         _check_state_structure(y0)
         self.group(terms)  # a static error now, if the action cannot work with `terms`
@@ -158,19 +165,29 @@ class LieRK(AbstractAdaptiveSolver):
         f0 = solver_state
         if not (isinstance(made_jump, bool) and not made_jump):
             f0 = lax.cond(jnp.any(made_jump), lambda: terms.vf(t0, y0, args), lambda: f0)
-        ks = [group.algebra(y0, terms.prod(f0, h))]
-        for a, c in list(zip(tableau.a_lower, tableau.c))[: tableau.num_stages - 1 - tableau.fsal]:
+        dtype = jnp.result_type(*jtu.tree_leaves(y0))
+        rows, s = self._stage_rows(dtype), tableau.num_stages
+        # The stages' algebra elements k_1..k_s, in one array per leaf (k_s of a
+        # first-same-as-last tableau is filled in after the step).
+        k1 = group.algebra(y0, terms.prod(f0, h))
+        ks = jtu.tree_map(lambda k: jnp.zeros((s,) + k.shape, k.dtype).at[0].set(k), k1)
+
+        def stage(ks, row):
+            i, a, c = row
             u = _combine(a, ks)
             y = group.act(u, y0)
-            t = t1 if c == 1 else t0 + float(c) * (t1 - t0)
-            ks.append(group.dexpinv(u, group.algebra(y, terms.vf_prod(t, y, args, h))))
-        u = _combine(tableau.b_sol, ks)
+            k = group.dexpinv(u, group.algebra(y, terms.vf_prod(t0 + c * (t1 - t0), y, args, h)))
+            return jtu.tree_map(lambda K, x: K.at[i].set(x), ks, k), None
+
+        ks, _ = lax.scan(stage, ks, rows)
+        u = _combine(jnp.asarray(tableau.b_sol, dtype), ks)
         y1_unfinished = group.act(u, y0)
         y1 = group.finish(y1_unfinished)
         f1 = terms.vf(t1, y1, args)
         if tableau.fsal:  # the last stage is at u_s = u: the rate at y1
-            ks.append(group.dexpinv(u, group.algebra(y1, terms.prod(f1, h))))
-        u_error = _combine(tableau.b_error, ks)
+            k = group.dexpinv(u, group.algebra(y1, terms.prod(f1, h)))
+            ks = jtu.tree_map(lambda K, x: K.at[s - 1].set(x), ks, k)
+        u_error = _combine(jnp.asarray(tableau.b_error, dtype), ks)
         if self.error == "algebra":
             y_error = u_error
         else:
