@@ -71,7 +71,7 @@ class SpecialEuclidean(AbstractLieAction):
     `eta_i = q_i x (domega_i - xi_i x omega_i)` (for the system's own rates `xi_i =
     omega_i` and `eta_i = q_i x domega_i`, the paper's map). States in a linear variable
     (`qdot`, `mu`; `angular=False`) are converted: `omega_i = q_i x v_i`, and back
-    `v_i = omega_i x q_i`."""
+    `v_i = omega_i x q_i`, so the same group moves the same curves."""
 
     angular: bool = eqx.field(static=True)
 
@@ -90,8 +90,10 @@ class SpecialEuclidean(AbstractLieAction):
         xi, eta = u
         q, v = y
         q1 = rotate(xi, q)
-        omega1 = rotate(xi, self._omega(q, v)) + jnp.cross(left_jacobian(xi, eta), q1)
-        return q1, omega1 if self.angular else jnp.cross(omega1, q1)
+        b_x_q1 = jnp.cross(left_jacobian(xi, eta), q1)
+        # Linear v = omega x q moves to (A omega + b x A q) x A q = A v + (b x A q) x A q:
+        # the same as converting, without rescaling v by |q|^2 at every step.
+        return q1, rotate(xi, v) + (b_x_q1 if self.angular else jnp.cross(b_x_q1, q1))
 
     def dexpinv(self, u, k):
         # ad_(xi, eta) = [[hat(xi), 0], [hat(eta), hat(xi)]] on (a, b), so

@@ -125,9 +125,7 @@ class LieRK(AbstractAdaptiveSolver):
         if self.action not in ACTIONS:
             raise ValueError(f"LieRK: action must be one of {ACTIONS}, got {self.action!r}.")
         if self.error not in ERROR_ESTIMATES:
-            raise ValueError(
-                f"LieRK: error must be one of {ERROR_ESTIMATES}, got {self.error!r}."
-            )
+            raise ValueError(f"LieRK: error must be one of {ERROR_ESTIMATES}, got {self.error!r}.")
 
     def order(self, terms):
         return self.solver.order(terms)
