@@ -158,7 +158,8 @@ def test_adaptive_run_meets_tolerance_on_a_conical_pendulum():
     pendulum = sm.chain_pendulum(jnp.ones(1), jnp.ones(1), g=g)
 
     def q_at(t):
-        return jnp.array([[np.sin(a) * jnp.cos(rate * t), np.sin(a) * jnp.sin(rate * t), -np.cos(a)]])
+        s, c = np.sin(a), np.cos(a)
+        return jnp.array([[s * jnp.cos(rate * t), s * jnp.sin(rate * t), -c]])
 
     y0 = (q_at(0.0), jax.jacfwd(q_at)(0.0))
     ts = jnp.linspace(0.0, 3.0, 7)
