@@ -14,7 +14,7 @@ fixed-step methods at several step sizes) and every scene, it measures
 - the number of force evaluations, counted by a host callback (`jax.debug.callback`)
   in the chain's potential, in a separate diagnostic run so the counter never slows the
   timed run. Every vector-field evaluation of our equations evaluates the gradient of
-  the potential once, so for explicit Runge-Kutta methods (and LieRK4) this is the
+  the potential once, so for explicit Runge-Kutta methods (and LieRK) this is the
   number of vector-field evaluations, `num_steps x new stages per step + start-up
   calls`; for implicit solvers one batched Jacobian (`jax.jacfwd`) counts as one; for
   the variational integrator it is the gradient evaluations of its Newton iterations.
@@ -178,6 +178,9 @@ def methods(quick: bool) -> list[Method]:
         Method("Projected(Kvaerno5)", lambda s: P(diffrax.Kvaerno5()), (1e-4, 1e-6)),
         Method("LieRK4", lambda s: sm.LieRK4(), ADAPTIVE_TOLS),
         Method("LieRK4 (fixed steps)", lambda s: sm.LieRK4(), quick=True),
+        # The best Lie-group solvers of benchmarks/nfold_pendulum.py (SE(3) action).
+        Method("LieRK(Tsit5)", lambda s: sm.LieRK(diffrax.Tsit5()), ADAPTIVE_TOLS),
+        Method("LieRK(Dopri8)", lambda s: sm.LieRK(diffrax.Dopri8()), (1e-6, 1e-8, 1e-10, 1e-12)),
         Method("Variational (order 2)", lambda s: sm.Variational(), max_fixed_steps=20_000),
         Method("Variational (order 4)", lambda s: sm.Variational(order=4),
                max_fixed_steps=4_000),

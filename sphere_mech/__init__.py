@@ -73,7 +73,7 @@ from ._solve import (
     DEFAULT_TOLERANCES as DEFAULT_TOLERANCES,
     default_solver as default_solver,
 )
-from ._solvers.liegroup import LieRK4 as LieRK4
+from ._solvers.liegroup import LieRK as LieRK, LieRK4 as LieRK4
 from ._solvers.projected import Projected as Projected
 from ._solvers.rk4 import RK4 as RK4
 from ._solvers.variational import Variational as Variational

@@ -116,6 +116,36 @@ def rotate(w: jax.Array, x: jax.Array) -> jax.Array:
     return x + sinc * wx + cosc * jnp.cross(w, wx)
 
 
+def left_jacobian(w: jax.Array, b: jax.Array) -> jax.Array:
+    """`J(w) b`, row-wise over `(..., 3)`, with `J(w) = sum_k hat(w)^k / (k + 1)! =
+    I + (1 - cos t)/t^2 hat(w) + (t - sin t)/t^3 hat(w)^2` (`t = |w|`) the left
+    Jacobian of `SO(3)`: the exponential of `(w, b)` in `se(3)` is the rotation
+    `exp(hat(w))` followed by the translation `J(w) b`. Smooth at `w = 0`."""
+    theta2 = jnp.sum(w * w, axis=-1, keepdims=True)
+    sinc, cosc = _sinc_and_cosc(theta2)
+    small = theta2 < 1e-4
+    safe2 = jnp.where(small, 1.0, theta2)
+    # (t - sin t)/t^3 = (1 - sinc)/t^2, by its series where that cancels.
+    sinc3 = jnp.where(small, 1 / 6 - theta2 / 120 + theta2**2 / 5040, (1.0 - sinc) / safe2)
+    wb = jnp.cross(w, b)
+    return b + cosc * wb + sinc3 * jnp.cross(w, wb)
+
+
+def dexpinv_so3(w: jax.Array, k: jax.Array) -> jax.Array:
+    """The inverse of the derivative of the exponential of `so(3)`, in closed form:
+    `dexp_w^{-1}(k) = k - (w x k)/2 + c(t) w x (w x k)`, `c(t) = (1 - (t/2) cot(t/2))/t^2`,
+    `t = |w|` (the series `sum_j B_j/j! ad_w^j k` summed, with the Bernoulli numbers
+    `B_j`; valid for `t < 2 pi`). Row-wise over `(..., 3)`; smooth at `w = 0`."""
+    theta2 = jnp.sum(w * w, axis=-1, keepdims=True)
+    small = theta2 < 1e-2
+    safe2 = jnp.where(small, 1.0, theta2)
+    half = 0.5 * jnp.sqrt(safe2)
+    series = 1 / 12 + theta2 / 720 + theta2**2 / 30240 + theta2**3 / 1209600
+    c = jnp.where(small, series, (1.0 - half / jnp.tan(half)) / safe2)
+    wk = jnp.cross(w, k)
+    return k - 0.5 * wk + c * jnp.cross(w, wk)
+
+
 def rotation_matrix(w: jax.Array) -> jax.Array:
     """`exp(hat(w))` as a rotation matrix (Rodrigues' formula).
 

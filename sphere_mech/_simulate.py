@@ -43,8 +43,8 @@ def simulate(
     - `args`: passed to the system's functions. Python floats in `args` and in the
       system's fields become arrays, so new values do not recompile.
     - `solver`: any diffrax solver; default `Projected(diffrax.Tsit5())`. Solvers that do
-      not keep `|q_i| = 1` themselves should be wrapped in `Projected`; `LieRK4()` and
-      `Variational()` keep it by construction.
+      not keep `|q_i| = 1` themselves should be wrapped in `Projected`; `LieRK(...)`,
+      `LieRK4()` and `Variational()` keep it by construction.
     - `dt0`: initial (adaptive) or fixed step size; required for fixed-step solvers.
     - `rtol`, `atol`: tolerances of the default `diffrax.PIDController`; defaults
       `1e-8, 1e-10` in float64 and `1e-5, 1e-6` in float32.

@@ -1,19 +1,27 @@
-"""A Lie-group Runge-Kutta method (Munthe-Kaas, order 4) for states on T(S^2)^n."""
+"""Runge-Kutta-Munthe-Kaas methods over any explicit diffrax tableau, on T(S^2)^n."""
 
 from collections.abc import Callable
 from typing import ClassVar
 
+import equinox as eqx
 import jax.lax as lax
 import jax.numpy as jnp
 import jax.tree_util as jtu
+import numpy as np
 from diffrax import (
     RESULTS,
     AbstractAdaptiveSolver,
+    AbstractERK,
     AbstractTerm,
     ThirdOrderHermitePolynomialInterpolation,
 )
 
-from .._geometry import project, rotate
+from .._term import system_of
+from .lie_actions import AbstractLieAction, RotateTranslate, SpecialEuclidean
+from .rk4 import RK4
+
+ACTIONS = ("SE3", "SO3xR3")
+ERROR_ESTIMATES = ("state", "algebra")
 
 
 def _check_state_structure(y0):
@@ -21,116 +29,182 @@ def _check_state_structure(y0):
     ok = ok and all(jnp.ndim(x) >= 1 and jnp.shape(x)[-1] == 3 for x in y0)
     if not ok or jnp.shape(y0[0]) != jnp.shape(y0[1]):
         raise ValueError(
-            "LieRK4 integrates states y = (q, v) of two arrays of shape (n, 3) (points on "
+            "LieRK integrates states y = (q, v) of two arrays of shape (n, 3) (points on "
             f"(S^2)^n and a tangent vector), got {jtu.tree_map(jnp.shape, y0)}."
         )
 
 
-def _algebra(y, dy):
-    """The Lie-algebra element `(w, a)` of `so(3)^n x R^(3n)` that moves the state
-    `y = (q, v)` with velocity `dy = (dq, dv)`: `w_i = q_i x dq_i` (so that
-    `w_i x q_i = dq_i` for tangent `dq_i`) and `a = dv`."""
-    q, _ = y
-    dq, dv = dy
-    return jnp.cross(q, dq), dv
+def _combine(coeffs, ks):
+    """`sum_j c_j k_j` over Lie-algebra elements stacked along a leading axis."""
+    return jtu.tree_map(lambda K: jnp.tensordot(coeffs, K, axes=1), ks)
 
 
-def _act(u, y0):
-    """The group action `exp(u) . (q, v) = (exp(hat(w)) q, v + a)`."""
-    w, a = u
-    q0, v0 = y0
-    return rotate(w, q0), v0 + a
+def _minus(a, b):
+    return jtu.tree_map(lambda x, y: x - y, a, b)
 
 
-def _dexpinv(u, k):
-    """`dexp_u^{-1}(k)`, truncated after the `ad_u^2` term (the next term of the series
-    is `ad_u^4`, of order h^5 here, so the order 4 is kept). Only the `so(3)` part has
-    brackets (`[w, w'] = w x w'`); the `R^(3n)` part is abelian."""
-    uw, _ = u
-    kw, ka = k
-    cross1 = jnp.cross(uw, kw)
-    return kw - 0.5 * cross1 + jnp.cross(uw, cross1) / 12.0, ka
+class LieRK(AbstractAdaptiveSolver):
+    r"""A Runge-Kutta-Munthe-Kaas (RKMK) method on $T(S^2)^n$ over the Butcher tableau
+    of any explicit diffrax Runge-Kutta solver: `LieRK(diffrax.Dopri5())`,
+    `LieRK(diffrax.Tsit5())`, `LieRK(diffrax.Bosh3())`, `LieRK(diffrax.Dopri8())`,
+    `LieRK(sphere_mech.RK4())`, ...
 
+    A step writes the state as $y = \exp(u) \cdot y_0$ for a Lie group acting on the
+    tangent bundle and integrates $u$ in the Lie algebra with the tableau:
+    $u_i = \sum_j a_{ij} k_j$,
+    $k_i = h\, \mathrm{dexp}_{u_i}^{-1}\big(\xi(\exp(u_i) \cdot y_0)\big)$, where
+    $\xi(y)$ is the algebra element whose infinitesimal action at $y$ is the system's
+    rate (the diffrax term's vector field), and $y_1 = \exp(\sum_i b_i k_i) \cdot y_0$.
+    $\mathrm{dexp}^{-1}$ is in closed form (on $so(3)$ and on $se(3)$), so the method
+    has the order of the tableau (measured in tests/test_liegroup.py: 3 for Bosh3, 4
+    for RK4, 5 for Dopri5 and Tsit5, 8 for Dopri8).
 
-def _combine(*terms):
-    """`sum_i c_i u_i` over Lie-algebra elements, for `terms = ((c_1, u_1), ...)`."""
-    coeffs = [c for c, _ in terms]
-    return jtu.tree_map(lambda *xs: sum(c * x for c, x in zip(coeffs, xs, strict=True)),
-                        *[u for _, u in terms])
+    Adaptive steps use the tableau's embedded pair: the error estimate is the
+    difference of $\exp(\sum_i b_i k_i) \cdot y_0$ and $\exp(\sum_i \hat b_i k_i) \cdot y_0$
+    (`error="state"`), so
+    any diffrax step-size controller works (`PIDController` with `rtol`/`atol` as
+    usual); with `diffrax.ConstantStepSize()` it is a fixed-step method. The rate at
+    the end point, $f(y_1)$, is evaluated once per step and reused as the first stage
+    of the next: for first-same-as-last tableaus (Bosh3, Dopri5, Tsit5, Dopri8, and
+    RK4's with its embedded order-3 stage) it *is* the last stage, so a step costs
+    `num_stages - 1` evaluations; otherwise it costs `num_stages`, as in diffrax.
+    Dense output: cubic Hermite from $f(y_0)$ and $f(y_1)$ (`simulate` retracts saved
+    states).
 
+    **Arguments:**
 
-class LieRK4(AbstractAdaptiveSolver):
-    """A Lie-group Runge-Kutta method of order 4 on T(S^2)^n: the Runge-Kutta-Munthe-Kaas
-    method (RKMK4) built on the classic RK4 tableau, with an embedded order-3 error
-    estimate for adaptive step sizes.
+    - `solver`: an explicit Runge-Kutta solver whose `tableau` is used: any
+      `diffrax.AbstractERK` (`Bosh3`, `Dopri5`, `Tsit5`, `Dopri8`, `Heun`, ...) or
+      `sphere_mech.RK4()`. Only its tableau and order are read.
+    - `action`: the group acting on $T(S^2)^n$, one copy per sphere:
+        - `"SE3"` (default): $SE(3)$ acting by
+          $(A, b) \cdot (q, \omega) = (A q, A \omega + b \times A q)$ on the angular form
+          (Celledoni, Cokaj, Leone, Murari, Owren 2022); states in a linear variable
+          (`qdot`, `mu`) are converted, $\omega_i = q_i \times v_i$. It keeps
+          $|q_i| = 1$ and $q_i \cdot v_i = 0$ to rounding with no projection. It needs
+          the system, so integrate a `MechanicsTerm` (as `simulate` does). The default:
+          on the N-fold pendulum benchmark (benchmarks/nfold_pendulum.py, P = 2 to 20)
+          both actions need the same evaluations and steps for the same error (within
+          2 %, benchmarks/README.md), and this one keeps the tangent bundle exactly
+          instead of by a projection.
+        - `"SO3xR3"`: $SO(3)^n \times \mathbb{R}^{3n}$, rotating each $q_i$ by
+          $\exp(\widehat{w_i})$, $w_i = q_i \times \dot q_i$, and translating $v$;
+          the normal part of $v$ is removed at the end of each step (a change of the
+          order of the local error). Works with any diffrax term whose state is
+          `(q, v)`.
+    - `error`: `"state"` (default), the difference of the two solutions, for diffrax's
+      controllers; or `"algebra"`, the difference of the two algebra increments
+      $\sum_i (b_i - \hat b_i) k_i$ as a state-shaped pair (the estimate of the paper
+      above, for a controller that takes its norm unscaled).
 
-    The state `y = (q, v)` (any of the four forms: `v` is `qdot`, `omega`, `mu` or `pi`)
-    is moved by the group `SO(3)^n x R^(3n)`: each `q_i` by a rotation
-    `exp(h hat(w_i))`, with `w_i = q_i x qdot_i` computed from the system's rates (the
-    diffrax term's vector field), so `|q_i| = 1` holds to rounding without any
-    projection; `v` is advanced by the Runge-Kutta combination of its rates and, at the
-    end of each step, its normal part at the new `q` is removed (`v_i . q_i = 0`). That
-    projection changes `v` by no more than the local error, O(h^5), so the order is kept.
-    The stage values of `v` are not projected: the rates are defined for any `v`, and
-    the tangent bundle is invariant under their flow, which is what RKMK's order theory
-    needs.
+    **Returns:** a diffrax `AbstractAdaptiveSolver`, for `simulate`, `simulate_batch`,
+    `fit` or `diffrax.diffeqsolve(sphere_mech.MechanicsTerm(system), ...)`; it composes
+    with `jax.jit`, `jax.vmap` and `jax.grad`. A step that becomes non-finite is
+    rejected by an adaptive controller; with fixed steps the NaN is carried to the end
+    and the solve reports `RESULTS.nonfinite`.
 
-    Per step: 4 evaluations of the vector field (the 5th, at the new state, is reused as
-    the first of the next step: first same as last), a few cross products and one
-    Rodrigues rotation per stage. The error estimate compares the step with the embedded
-    order-3 method `b^ = (1/6, 1/3, 1/3, 0, 1/6)` (the last stage is `f(y1)`), so
-    `PIDController` works; with `ConstantStepSize` it is a plain fixed-step method.
-    Dense output: cubic Hermite from `f(y0)` and `f(y1)`.
-
-    Reference: H. Munthe-Kaas, High order Runge-Kutta methods on manifolds, Appl. Numer.
-    Math. 29 (1999) 115-127.
+    Reference: H. Munthe-Kaas, High order Runge-Kutta methods on manifolds, Appl.
+    Numer. Math. 29 (1999) 115-127.
     """
+
+    solver: AbstractERK | RK4
+    action: str = eqx.field(static=True, default="SE3")
+    error: str = eqx.field(static=True, default="state")
 
     term_structure: ClassVar = AbstractTerm
     interpolation_cls: ClassVar[Callable[..., ThirdOrderHermitePolynomialInterpolation]] = (
         ThirdOrderHermitePolynomialInterpolation.from_k
     )
 
+    def __check_init__(self):
+        if not isinstance(self.solver, AbstractERK | RK4):
+            raise ValueError(
+                "LieRK needs an explicit Runge-Kutta solver with a Butcher tableau "
+                "(diffrax.Dopri5(), diffrax.Tsit5(), diffrax.Bosh3(), diffrax.Dopri8(), "
+                f"sphere_mech.RK4(), ...), got {type(self.solver).__name__}."
+            )
+        if self.action not in ACTIONS:
+            raise ValueError(f"LieRK: action must be one of {ACTIONS}, got {self.action!r}.")
+        if self.error not in ERROR_ESTIMATES:
+            raise ValueError(f"LieRK: error must be one of {ERROR_ESTIMATES}, got {self.error!r}.")
+
     def order(self, terms):
-        return 4
+        return self.solver.order(terms)
 
     def error_order(self, terms):
-        # The estimate is the difference with an order-3 method: O(h^4) per step.
-        return 4
+        return self.solver.error_order(terms)
+
+    def group(self, terms) -> AbstractLieAction:
+        """The group action this solver moves states with (for the system of `terms`)."""
+        if self.action == "SO3xR3":
+            return RotateTranslate()
+        return SpecialEuclidean(system_of(terms).angular)
+
+    def _stage_rows(self, dtype):
+        """`(i, a_i, c_i)` for the stages `i = 2..s` computed inside a step (0-based `i`;
+        all but the last of a first-same-as-last tableau), `a_i` padded to length `s`."""
+        tableau = self.solver.tableau
+        s = tableau.num_stages
+        rows = tableau.a_lower[: s - 1 - tableau.fsal]
+        a = np.zeros((len(rows), s))
+        for i, row in enumerate(rows):
+            a[i, : len(row)] = row
+        index = jnp.arange(1, len(rows) + 1)
+        return index, jnp.asarray(a, dtype), jnp.asarray(tableau.c[: len(rows)], dtype)
 
     def init(self, terms, t0, t1, y0, args):
         _check_state_structure(y0)
+        self.group(terms)  # a static error now, if the action cannot work with `terms`
         return terms.vf(t0, y0, args)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         _check_state_structure(y0)
+        tableau, group = self.solver.tableau, self.group(terms)
         h = terms.contr(t0, t1)
-        tm = t0 + 0.5 * (t1 - t0)
         f0 = solver_state
         if not (isinstance(made_jump, bool) and not made_jump):
             f0 = lax.cond(jnp.any(made_jump), lambda: terms.vf(t0, y0, args), lambda: f0)
+        dtype = jnp.result_type(*jtu.tree_leaves(y0))
+        rows, s = self._stage_rows(dtype), tableau.num_stages
+        # The stages' algebra elements k_1..k_s, in one array per leaf (k_s of a
+        # first-same-as-last tableau is filled in after the step).
+        k1 = group.algebra(y0, terms.prod(f0, h))
+        ks = jtu.tree_map(lambda k: jnp.zeros((s,) + k.shape, k.dtype).at[0].set(k), k1)
 
-        def stage(t, u):
-            y = _act(u, y0)
-            return _dexpinv(u, _algebra(y, terms.vf_prod(t, y, args, h)))
+        def stage(ks, row):
+            i, a, c = row
+            u = _combine(a, ks)
+            y = group.act(u, y0)
+            k = group.dexpinv(u, group.algebra(y, terms.vf_prod(t0 + c * (t1 - t0), y, args, h)))
+            return jtu.tree_map(lambda K, x: K.at[i].set(x), ks, k), None
 
-        k1 = _algebra(y0, terms.prod(f0, h))
-        k2 = stage(tm, _combine((0.5, k1)))
-        k3 = stage(tm, _combine((0.5, k2)))
-        u4 = k3
-        k4 = stage(t1, u4)
-        u = _combine((1 / 6, k1), (1 / 3, k2), (1 / 3, k3), (1 / 6, k4))
-        q1, v1 = _act(u, y0)
-        y1 = (q1, project(q1, v1))
+        ks, _ = lax.scan(stage, ks, rows)
+        u = _combine(jnp.asarray(tableau.b_sol, dtype), ks)
+        y1_unfinished = group.act(u, y0)
+        y1 = group.finish(y1_unfinished)
         f1 = terms.vf(t1, y1, args)
-        k5 = _dexpinv(u, _algebra(y1, terms.prod(f1, h)))
-        # Embedded order-3 solution: replace the weight 1/6 of k4 by that of k5.
-        u_hat = _combine((1.0, u), (1 / 6, k5), (-1 / 6, k4))
-        q_hat, v_hat = _act(u_hat, y0)
-        y_error = (q1 - q_hat, v1 - v_hat)
+        if tableau.fsal:  # the last stage is at u_s = u: the rate at y1
+            k = group.dexpinv(u, group.algebra(y1, terms.prod(f1, h)))
+            ks = jtu.tree_map(lambda K, x: K.at[s - 1].set(x), ks, k)
+        u_error = _combine(jnp.asarray(tableau.b_error, dtype), ks)
+        if self.error == "algebra":
+            y_error = u_error
+        else:
+            y_error = _minus(y1_unfinished, group.act(_minus(u, u_error), y0))
         k = jtu.tree_map(lambda a, b: jnp.stack([a, b]), terms.prod(f0, h), terms.prod(f1, h))
         dense_info = dict(y0=y0, y1=y1, k=k)
         return y1, y_error, dense_info, f1, RESULTS.successful
 
     def func(self, terms, t0, y0, args):
         return terms.vf(t0, y0, args)
+
+
+def LieRK4() -> LieRK:
+    """The Runge-Kutta-Munthe-Kaas method of order 4 on the classic RK4 tableau, with an
+    embedded order-3 error estimate, moving states by `SO(3)^n x R^(3n)`:
+    `LieRK(RK4(), action="SO3xR3")` (see `LieRK`). Works with any diffrax term whose
+    state is `(q, v)`, adaptive or with fixed steps; 4 evaluations per step.
+
+    **Returns:** the `LieRK` solver.
+    """
+    return LieRK(RK4(), action="SO3xR3")

@@ -5,10 +5,12 @@ from typing import ClassVar
 
 import jax.numpy as jnp
 import jax.tree_util as jtu
+import numpy as np
 from diffrax import (
     RESULTS,
     AbstractSolver,
     AbstractTerm,
+    ButcherTableau,
     ThirdOrderHermitePolynomialInterpolation,
 )
 
@@ -22,6 +24,19 @@ def axpy(y, *terms):
     )
 
 
+_RK4_TABLEAU = ButcherTableau(
+    c=np.array([0.5, 0.5, 1.0, 1.0]),
+    b_sol=np.array([1 / 6, 1 / 3, 1 / 3, 1 / 6, 0.0]),
+    b_error=np.array([0.0, 0.0, 0.0, 1 / 6, -1 / 6]),
+    a_lower=(
+        np.array([0.5]),
+        np.array([0.0, 0.5]),
+        np.array([0.0, 0.0, 1.0]),
+        np.array([1 / 6, 1 / 3, 1 / 3, 1 / 6]),
+    ),
+)
+
+
 class RK4(AbstractSolver):
     """The classic Runge-Kutta method of order 4: four vector-field evaluations per
     step, fixed steps only (it has no error estimate), cubic Hermite dense output.
@@ -32,6 +47,11 @@ class RK4(AbstractSolver):
     keep the state on the spheres (unwrapped, `|q_i| - 1` drifts by the local error of
     every step).
     """
+
+    tableau: ClassVar[ButcherTableau] = _RK4_TABLEAU
+    """The classic tableau with a fifth, first-same-as-last stage `f(y1)` and the embedded
+    order-3 weights `(1/6, 1/3, 1/3, 0, 1/6)`: what `LieRK(RK4())` integrates with (the
+    fixed-step `RK4` itself evaluates only the first four stages)."""
 
     term_structure: ClassVar = AbstractTerm
     interpolation_cls: ClassVar[Callable[..., ThirdOrderHermitePolynomialInterpolation]] = (

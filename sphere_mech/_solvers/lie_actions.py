@@ -1,0 +1,107 @@
+"""The two group actions on the tangent bundle T(S^2)^n that `LieRK` integrates with.
+
+A state `y = (q, v)` is moved by `exp(u) . y` for `u` in the Lie algebra; an action
+knows the algebra element whose infinitesimal action at `y` is a given velocity `dy`
+(`algebra`), the action of its exponential (`act`), the closed-form inverse of the
+derivative of the exponential (`dexpinv`) and how a step's end point is finished
+(`finish`). Algebra elements are pairs of `(n, 3)` arrays, like states.
+"""
+
+import abc
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from .._geometry import dexpinv_so3, left_jacobian, project, rotate
+
+
+class AbstractLieAction(eqx.Module):
+    """A Lie group acting on `T(S^2)^n`, one copy per sphere."""
+
+    @abc.abstractmethod
+    def algebra(self, y, dy):
+        """The algebra element `u` whose infinitesimal action at `y` is `dy`."""
+
+    @abc.abstractmethod
+    def act(self, u, y):
+        """`exp(u) . y`."""
+
+    @abc.abstractmethod
+    def dexpinv(self, u, k):
+        """`dexp_u^{-1}(k)` (with `ad_u = [u, .]`, the matrix commutator)."""
+
+    @abc.abstractmethod
+    def finish(self, y):
+        """The state a step returns from `exp(u) . y0`."""
+
+
+class RotateTranslate(AbstractLieAction):
+    """`SO(3)^n x R^(3n)`: `exp(w, a) . (q, v) = (exp(hat(w_i)) q_i, v_i + a_i)`.
+
+    `q_i` stays on its sphere to rounding; `v` leaves the tangent planes by the local
+    error and `finish` removes its normal part. The algebra element of `(dq, dv)` is
+    `(q_i x dq_i, dv_i)`, so any of the four forms works unchanged."""
+
+    def algebra(self, y, dy):
+        q, _ = y
+        dq, dv = dy
+        return jnp.cross(q, dq), dv
+
+    def act(self, u, y):
+        w, a = u
+        q, v = y
+        return rotate(w, q), v + a
+
+    def dexpinv(self, u, k):
+        # Only so(3) has brackets; R^(3n) is abelian.
+        return dexpinv_so3(u[0], k[0]), k[1]
+
+    def finish(self, y):
+        q, v = y
+        return q, project(q, v)
+
+
+class SpecialEuclidean(AbstractLieAction):
+    """`SE(3)^n` acting on `T S^2` by `(A, b) . (q, w) = (A q, A w + b x A q)` on the
+    angular form `(q, omega)` (Celledoni, Cokaj, Leone, Murari, Owren 2022): it keeps
+    `|q_i| = 1` and `q_i . w_i = 0` to rounding, with nothing to finish.
+
+    The algebra element of `(dq, domega)` at `(q, omega)` is `xi_i = q_i x dq_i`,
+    `eta_i = q_i x (domega_i - xi_i x omega_i)` (for the system's own rates `xi_i =
+    omega_i` and `eta_i = q_i x domega_i`, the paper's map). States in a linear variable
+    (`qdot`, `mu`; `angular=False`) are converted: `omega_i = q_i x v_i`, and back
+    `v_i = omega_i x q_i`, so the same group moves the same curves."""
+
+    angular: bool = eqx.field(static=True)
+
+    def _omega(self, q, v):
+        return v if self.angular else jnp.cross(q, v)
+
+    def algebra(self, y, dy):
+        q, v = y
+        dq, dv = dy
+        omega = self._omega(q, v)
+        domega = dv if self.angular else jnp.cross(dq, v) + jnp.cross(q, dv)
+        xi = jnp.cross(q, dq)
+        return xi, jnp.cross(q, domega - jnp.cross(xi, omega))
+
+    def act(self, u, y):
+        xi, eta = u
+        q, v = y
+        q1 = rotate(xi, q)
+        b_x_q1 = jnp.cross(left_jacobian(xi, eta), q1)
+        # Linear v = omega x q moves to (A omega + b x A q) x A q = A v + (b x A q) x A q:
+        # the same as converting, without rescaling v by |q|^2 at every step.
+        return q1, rotate(xi, v) + (b_x_q1 if self.angular else jnp.cross(b_x_q1, q1))
+
+    def dexpinv(self, u, k):
+        # ad_(xi, eta) = [[hat(xi), 0], [hat(eta), hat(xi)]] on (a, b), so
+        # g(ad) (a, b) = (g(xi) a, g(xi) b + D_xi[g(xi) a](eta)) for g = dexpinv_so3.
+        xi, eta = u
+        a, b = k
+        first, derivative = jax.jvp(lambda x: dexpinv_so3(x, a), (xi,), (eta,))
+        return first, dexpinv_so3(xi, b) + derivative
+
+    def finish(self, y):
+        return y
