@@ -134,7 +134,7 @@ class LieRK(AbstractAdaptiveSolver):
     def error_order(self, terms):
         return self.solver.error_order(terms)
 
-    def group(self, terms) -> AbstractLieAction:
+    def _group(self, terms) -> AbstractLieAction:
         """The group action this solver moves states with (for the system of `terms`)."""
         if self.action == "SO3xR3":
             return RotateTranslate()
@@ -154,12 +154,12 @@ class LieRK(AbstractAdaptiveSolver):
 
     def init(self, terms, t0, t1, y0, args):
         _check_state_structure(y0)
-        self.group(terms)  # a static error now, if the action cannot work with `terms`
+        self._group(terms)  # a static error now, if the action cannot work with `terms`
         return terms.vf(t0, y0, args)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         _check_state_structure(y0)
-        tableau, group = self.solver.tableau, self.group(terms)
+        tableau, group = self.solver.tableau, self._group(terms)
         h = terms.contr(t0, t1)
         f0 = solver_state
         if not (isinstance(made_jump, bool) and not made_jump):
