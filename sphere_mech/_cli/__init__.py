@@ -11,7 +11,9 @@ directory (`$XDG_CACHE_HOME/sphere_mech/jax`, default `~/.cache/sphere_mech/jax`
 `~/Library/Caches/sphere_mech/jax`; Windows `%LOCALAPPDATA%\\sphere_mech\\jax`), so a
 second run of the same scene skips compilation. `--no-cache` or the environment
 variable `SPHERE_MECH_CACHE_DIR=off` turns it off; `SPHERE_MECH_CACHE_DIR=<dir>` puts it
-elsewhere. Deleting the folder is always safe."""
+elsewhere. Deleting the folder is always safe. JAX does not store programs that call
+back to Python (the progress bar, equinox's run-time checks), which today includes the
+integration itself: the cache then saves only the small programs around it."""
 
 import argparse
 import json
