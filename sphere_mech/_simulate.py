@@ -56,7 +56,14 @@ def simulate(
       leaves the spheres by the local error).
     - `max_steps`: maximum number of steps (default 100 000).
     - `progress`: show a tqdm progress bar (diffrax's `TqdmProgressMeter`).
-    - `adjoint`: a diffrax adjoint for gradients (default: checkpointed reverse mode).
+    - `adjoint`: a diffrax adjoint for derivatives. Default (`None`): reverse mode
+      (`jax.grad`, `jax.value_and_grad`) chosen per derivative from the number of
+      differentiated scalars (parameters, state entries, times): at most 4 (e.g. the
+      lengths of a double pendulum), their Jacobian computed during the run in forward
+      mode (memory independent of the number of steps); more,
+      `diffrax.RecursiveCheckpointAdjoint()` (memory: about `sqrt(2 max_steps)` copies
+      of the solver's state, 447 for the default `max_steps`). For `jax.jvp` and
+      `jax.jacfwd` pass `diffrax.ForwardMode()`. Costs: `benchmarks/gradients.py`.
     - `event`: a `diffrax.Event` that stops the run, e.g. `diffrax.Event(lambda t, y,
       args, **kw: y[0][0, 1], root_finder=optimistix.Newton(1e-12, 1e-12))` stops where
       the first point crosses the plane `y = 0` (located to the root finder's tolerance

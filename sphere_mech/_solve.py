@@ -6,6 +6,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.flatten_util import ravel_pytree
 
 from ._checks import check_shapes, check_state
 from ._geometry import retract
@@ -18,6 +19,9 @@ DEFAULT_MAX_STEPS = 100_000
 before it fails with `RESULTS.max_steps_reached`."""
 DEFAULT_TOLERANCES = {np.dtype("float64"): (1e-8, 1e-10), np.dtype("float32"): (1e-5, 1e-6)}
 """Default `(rtol, atol)` of the adaptive step-size controller, by dtype of `q`."""
+FORWARD_COLUMNS = 4
+"""The default adjoint differentiates a run in forward mode when at most this many scalars
+are differentiated (e.g. the lengths of a 2- to 4-link chain), else in reverse mode."""
 
 
 def default_solver() -> diffrax.AbstractSolver:
@@ -34,7 +38,7 @@ class Options(eqx.Module):
     solver: diffrax.AbstractSolver
     controller: diffrax.AbstractStepSizeController
     saveat: diffrax.SaveAt
-    adjoint: diffrax.AbstractAdjoint
+    adjoint: diffrax.AbstractAdjoint | None  # None: `default_adjoint`, chosen per derivative
     meter: diffrax.AbstractProgressMeter
     event: diffrax.Event | None
     max_steps: int | None = eqx.field(static=True)
@@ -74,7 +78,7 @@ def options(solver, dt0, rtol, atol, stepsize_controller, saveat, max_steps, adj
         )
     return Options(
         solver, controller, diffrax.SaveAt(t1=True) if saveat is None else saveat,
-        diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint,
+        adjoint,
         diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter(), event,
         max_steps,
     )
@@ -113,6 +117,90 @@ def _all_finite(tree) -> jax.Array:
 
 
 def solve(system, y0, t0, t1, dt0, args, opts: Options) -> diffrax.Solution:
+    """One trajectory with the adjoint of `opts`, or the default one when it is `None`
+    (see `_default_adjoint`); as `solve_with`."""
+    if opts.adjoint is None:
+        return _default_adjoint((system, y0, t0, t1, dt0, args), opts=opts)
+    return solve_with(opts.adjoint, system, y0, t0, t1, dt0, args, opts)
+
+
+@eqx.filter_custom_vjp
+def _default_adjoint(inputs, *, opts: Options) -> diffrax.Solution:
+    r"""`solve_with` differentiated in reverse mode by the default adjoint
+    (`adjoint=None`), chosen at trace time by `default_adjoint` from the number $P$ of
+    differentiated scalars (the parameters, states and times being differentiated):
+
+    - $P \le$ `FORWARD_COLUMNS` (4): the Jacobian of the run's outputs with respect to
+      those $P$ scalars is computed during the run in forward mode
+      (`diffrax.ForwardMode`, $P$ tangents carried along the steps) and the backward
+      pass multiplies the cotangent by it. Memory: $P + 1$ copies of the solver's state
+      during the run, and the $P \times$ (saved outputs) Jacobian kept for the backward
+      pass, independent of the number of steps and of `max_steps`.
+    - more: `diffrax.RecursiveCheckpointAdjoint()`, reverse mode with online
+      checkpointing. Memory: $\lfloor\sqrt{2 \cdot \text{max\_steps}}\rfloor$
+      checkpoints (447 for the default `max_steps = 100_000`), each a copy of the
+      solver's loop state (the state $(q, v)$, times, the stages a solver keeps between
+      steps), independent of how many steps the run takes.
+
+    Like `RecursiveCheckpointAdjoint`, it does not support forward mode (`jax.jvp`,
+    `jax.jacfwd`): pass `adjoint=diffrax.ForwardMode()` for that."""
+    return solve_with(diffrax.RecursiveCheckpointAdjoint(), *inputs, opts)
+
+
+def _split(perturbed, inputs):
+    """The differentiated leaves of `inputs`, the rest, and the adjoint for them."""
+    x, rest = eqx.partition(inputs, perturbed)
+    return x, rest, default_adjoint(sum(leaf.size for leaf in jax.tree.leaves(x)))
+
+
+@_default_adjoint.def_fwd
+def _default_adjoint_fwd(perturbed, inputs, *, opts: Options):
+    x, rest, adjoint = _split(perturbed, inputs)
+
+    def outputs(x):
+        sol = solve_with(adjoint, *eqx.combine(x, rest), opts)
+        return eqx.filter(sol, eqx.is_inexact_array), sol
+
+    if not isinstance(adjoint, diffrax.ForwardMode):
+        out, pullback, sol = jax.vjp(outputs, x, has_aux=True)
+        return sol, (pullback, out)
+    x_flat, unravel = ravel_pytree(x)
+
+    def flat_outputs(x_flat):
+        out, sol = outputs(unravel(x_flat))
+        return ravel_pytree(out)[0], (out, sol)
+
+    jacobian, (out, sol) = jax.jacfwd(flat_outputs, has_aux=True)(x_flat)
+    return sol, (jacobian, out)
+
+
+@_default_adjoint.def_bwd
+def _default_adjoint_bwd(residuals, grad_sol, perturbed, inputs, *, opts: Options):
+    x, _, adjoint = _split(perturbed, inputs)
+    pullback_or_jacobian, out = residuals
+    cotangent = fill_zeros(eqx.filter(grad_sol, eqx.is_inexact_array), out)
+    if not isinstance(adjoint, diffrax.ForwardMode):
+        return pullback_or_jacobian(cotangent)[0]
+    jacobian, unravel = pullback_or_jacobian, ravel_pytree(x)[1]
+    return unravel(jacobian.T @ ravel_pytree(cotangent)[0].astype(jacobian.dtype))
+
+
+def default_adjoint(columns: int) -> diffrax.AbstractAdjoint:
+    """The adjoint that `adjoint=None` differentiates a run with when `columns` scalars
+    are differentiated: `diffrax.ForwardMode()` for at most `FORWARD_COLUMNS`, else
+    `diffrax.RecursiveCheckpointAdjoint()` (see `_default_adjoint`)."""
+    if columns <= FORWARD_COLUMNS:
+        return diffrax.ForwardMode()
+    return diffrax.RecursiveCheckpointAdjoint()
+
+
+def fill_zeros(tangents, primals):
+    """Symbolic zero tangents (`None`) of array primals as arrays of zeros."""
+    fill = lambda t, p: jnp.zeros_like(p) if t is None and p is not None else t
+    return jax.tree.map(fill, tangents, primals, is_leaf=lambda x: x is None)
+
+
+def solve_with(adjoint, system, y0, t0, t1, dt0, args, opts: Options) -> diffrax.Solution:
     """One trajectory, never raising for a run-time failure: `sol.result` is a
     `RESULTS` code. Non-finite rates at the initial state give
     `RESULTS.nonfinite_initial`; a trajectory that stepped into NaN, `RESULTS.nonfinite`
@@ -129,7 +217,7 @@ def solve(system, y0, t0, t1, dt0, args, opts: Options) -> diffrax.Solution:
     sol = diffrax.diffeqsolve(
         MechanicsTerm(system), opts.solver, t0, t1, dt0, y0, args=args,
         saveat=saveat, stepsize_controller=opts.controller, max_steps=opts.max_steps,
-        progress_meter=opts.meter, adjoint=opts.adjoint, event=opts.event, throw=False,
+        progress_meter=opts.meter, adjoint=adjoint, event=opts.event, throw=False,
     )
     # Unreached save times are `inf` in diffrax, never NaN: only NaN is looked for.
     has_nan = jnp.any(jnp.stack([jnp.any(jnp.isnan(y)) for y in jax.tree.leaves(sol.ys)]))

@@ -3,14 +3,16 @@ every example, the figure and the animation, and that a failing run keeps earlie
 outputs."""
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
 
+import jax
 import numpy as np
 import pytest
 
-from sphere_mech._cli import main
+from sphere_mech._cli import CACHE_ENV, cache_dir, main
 from sphere_mech._cli.figures import figure
 from sphere_mech._cli.report import run_scene
 from sphere_mech._scene_files import load_scene
@@ -178,6 +180,53 @@ def test_no_animation(tmp_path, capsys):
     assert main(["run", str(good), "--out", str(out), "--no-progress", "--no-animation"]) == 0
     assert sorted(p.name for p in out.iterdir()) == sorted(FILES[:3])  # no stale animation
     assert capsys.readouterr().out.splitlines()[-1].endswith("summary.json, plot.png")
+
+
+CACHE_COUNTS = """import collections, sys
+import jax.monitoring
+counts = collections.Counter()
+jax.monitoring.register_event_listener(lambda event, **kw: counts.update([event]))
+from sphere_mech._cli import main
+status = main(sys.argv[1:])
+print("cache", counts["/jax/compilation_cache/cache_hits"],
+      counts["/jax/compilation_cache/cache_misses"])
+sys.exit(status)
+"""
+
+
+def test_compilation_cache_second_run_hits(tmp_path):
+    """Two runs in fresh processes: the first writes the compiled programs to the cache
+    (misses only), the second finds every one of them there (hits only, no new file)."""
+    cache, good = tmp_path / "cache", _bad(tmp_path, GOOD)
+    env = {**os.environ, CACHE_ENV: str(cache),
+           "PYTHONPATH": os.pathsep.join([str(Path(__file__).parents[1]),
+                                          os.environ.get("PYTHONPATH", "")])}
+    argv = [sys.executable, "-c", CACHE_COUNTS, "run", str(good), "--out",
+            str(tmp_path / "out"), "--no-progress", "--no-animation"]
+
+    def run():
+        proc = subprocess.run(argv, capture_output=True, text=True, env=env, timeout=300)
+        assert proc.returncode == 0, proc.stderr
+        hits, misses = map(int, proc.stdout.strip().splitlines()[-1].split()[1:])
+        return hits, misses, sorted(p.name for p in cache.rglob("*"))
+
+    hits, misses, files = run()
+    assert hits == 0 and misses > 0 and len(files) >= misses
+    hits2, misses2, files2 = run()
+    assert hits2 == misses and misses2 == 0 and files2 == files
+
+
+def test_no_cache_writes_nothing(tmp_path, monkeypatch, capsys):
+    """`--no-cache` leaves JAX's cache off even where the environment names a folder."""
+    monkeypatch.setenv(CACHE_ENV, str(tmp_path / "cache"))
+    assert cache_dir() == tmp_path / "cache"
+    good = _bad(tmp_path, GOOD)
+    assert main(["run", str(good), "--out", str(tmp_path / "out"), "--no-progress",
+                 "--no-animation", "--no-cache"]) == 0
+    assert not (tmp_path / "cache").exists()
+    assert jax.config.jax_compilation_cache_dir is None
+    monkeypatch.setenv(CACHE_ENV, "off")
+    assert cache_dir() is None
 
 
 @pytest.fixture(scope="module")

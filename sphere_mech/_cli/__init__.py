@@ -4,7 +4,16 @@ Runs a scene file (default: a double spherical pendulum, 20 s) and writes
 `trajectory.npz`, `summary.json`, `plot.png` and `animation.html` (a self-contained
 player; `--no-animation` skips it), under temporary names, then renamed, so a failing run
 loses nothing. A problem in the scene file gives one line
-`sphere-mech: error: <file>: <field>: <expected>` and exit status 2; a failed run, 1."""
+`sphere-mech: error: <file>: <field>: <expected>` and exit status 2; a failed run, 1.
+
+Compiled programs are kept in JAX's persistent compilation cache, in the user's cache
+directory (`$XDG_CACHE_HOME/sphere_mech/jax`, default `~/.cache/sphere_mech/jax`; macOS
+`~/Library/Caches/sphere_mech/jax`; Windows `%LOCALAPPDATA%\\sphere_mech\\jax`), so a
+second run of the same scene skips compilation. `--no-cache` or the environment
+variable `SPHERE_MECH_CACHE_DIR=off` turns it off; `SPHERE_MECH_CACHE_DIR=<dir>` puts it
+elsewhere. Deleting the folder is always safe. JAX does not store programs that call
+back to Python (the progress bar, equinox's run-time checks), which today includes the
+integration itself: the cache then saves only the small programs around it."""
 
 import argparse
 import json
@@ -24,6 +33,32 @@ from .skeleton import skeleton
 
 PROG = "sphere-mech"
 DEFAULT_SCENE = Path(__file__).resolve().parents[1] / "scenes" / "default.toml"
+
+
+CACHE_ENV = "SPHERE_MECH_CACHE_DIR"
+
+
+def cache_dir() -> Path | None:
+    """The folder of the command line's compilation cache: `$SPHERE_MECH_CACHE_DIR` if set
+    (`None` if it is `off`), else `sphere_mech/jax` in the platform's user cache folder."""
+    env = os.environ.get(CACHE_ENV)
+    if env is not None:
+        return None if env.strip().lower() in ("", "off", "0", "no") else Path(env)
+    if sys.platform == "win32":
+        base = Path(os.environ.get("LOCALAPPDATA", Path.home() / "AppData" / "Local"))
+    elif sys.platform == "darwin":
+        base = Path.home() / "Library" / "Caches"
+    else:
+        base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    return base / "sphere_mech" / "jax"
+
+
+def enable_compilation_cache(folder: Path) -> None:
+    """Keep every compiled program (however quick its compilation) in JAX's persistent
+    compilation cache under `folder`; call before the first compilation."""
+    jax.config.update("jax_compilation_cache_dir", str(folder))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 
 def output_names(animation: bool = True) -> tuple[str, ...]:
@@ -88,7 +123,13 @@ def main(argv=None) -> int:
     p_run.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p_run.add_argument("--no-animation", action="store_true",
                        help="skip animation.html (saves the time to draw its frames)")
+    p_run.add_argument("--no-cache", action="store_true",
+                       help="do not read or write the compilation cache (default folder "
+                       f"{cache_dir() or 'off'}; set by ${CACHE_ENV}, 'off' disables it)")
     ns = parser.parse_args(argv)
+    folder = None if ns.no_cache else cache_dir()
+    if folder is not None:
+        enable_compilation_cache(folder)
     if ns.t1 is not None and not ns.t1 > 0:
         return _fail(f"--t1: expected a positive time in s, got {ns.t1}", 2)
     try:

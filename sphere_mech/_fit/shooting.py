@@ -14,6 +14,7 @@ from jaxtyping import Array, PyTree
 
 from .._geometry import retract
 from .._simulate import simulate
+from .._solve import fill_zeros
 from .._system import AbstractSystem
 
 
@@ -127,7 +128,7 @@ def _segments_jvp(primals, tangents, *, problem, data):
     basis tangents that materializes the least-squares Jacobian, its cost is thus
     independent of the number of segments."""
     u, states = primals
-    du, dstates = (_fill_zeros(t, p) for t, p in zip(tangents, primals, strict=True))
+    du, dstates = (fill_zeros(t, p) for t, p in zip(tangents, primals, strict=True))
     u_flat, unravel_u = ravel_pytree(u)
     s_flat, unravel_s = _ravel_segments(states)
 
@@ -147,9 +148,3 @@ def _ravel_segments(tree):
     """A pytree of `(B, K, ...)` arrays as `(B, K, m)`, and the unravel of one segment."""
     flat = jax.vmap(jax.vmap(lambda x: ravel_pytree(x)[0]))(tree)
     return flat, ravel_pytree(jtu.tree_map(lambda x: x[0, 0], tree))[1]
-
-
-def _fill_zeros(tangents, primals):
-    """Symbolic zero tangents (`None`) of array primals as arrays of zeros."""
-    fill = lambda t, p: jnp.zeros_like(p) if t is None and p is not None else t
-    return jtu.tree_map(fill, tangents, primals, is_leaf=lambda x: x is None)

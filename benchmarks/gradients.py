@@ -1,0 +1,140 @@
+"""Cost of `jax.value_and_grad` through `sm.simulate` and `sm.simulate_batch`, relative to
+the forward pass, with the old default adjoint (`diffrax.RecursiveCheckpointAdjoint()`)
+and the new default (`adjoint=None`: forward-mode Jacobian for at most
+`FORWARD_COLUMNS` differentiated scalars, else the same checkpointed reverse mode).
+
+The loss is a weighted sum of the final positions of chain pendulums (unit masses,
+g = 9.81), differentiated with respect to the chain's n lengths. Cases: n = 2 and 8,
+float32 and float64, fixed-step `Projected(RK4())` at dt0 = 1e-3 and adaptive
+`Projected(Tsit5())` (default tolerances), one trajectory (`simulate`) and a batch
+(`simulate_batch`, B = 256 at n = 2, 64 at n = 8). Times: after compilation, minimum of
+repeats; the ratios are value_and_grad time / forward time, all measured in the same run.
+Prints a markdown table and writes benchmarks/results/gradients.{md,png}.
+
+    python benchmarks/gradients.py [--quick]
+"""
+
+import argparse
+import pathlib
+import platform
+import time
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import matplotlib
+import numpy as np
+
+jax.config.update("jax_enable_x64", True)
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+import sphere_mech as sm  # noqa: E402
+from sphere_mech._solve import FORWARD_COLUMNS  # noqa: E402
+
+RESULTS = pathlib.Path(__file__).parent / "results"
+OLD = diffrax.RecursiveCheckpointAdjoint()
+SOLVERS = {  # name: (solver, dt0, t1)
+    "RK4 (fixed, dt 1e-3)": (sm.Projected(sm.RK4()), 1e-3, 0.3),
+    "Tsit5 (adaptive)": (sm.Projected(diffrax.Tsit5()), 1e-2, 1.0),
+}
+BATCH = {2: 256, 8: 64}
+
+
+def min_time(fn, repeats):
+    jax.block_until_ready(fn())  # compile
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - start)
+    return min(times)
+
+
+def loss_fn(n, dtype, solver_name, batch):
+    """`loss(lengths, adjoint)` of one case, and its initial lengths."""
+    solver, dt0, t1 = SOLVERS[solver_name]
+    keys = jax.random.split(jax.random.PRNGKey(0), batch or 1)
+    q, v = jax.vmap(lambda k: sm.random_state(k, n, speed=0.5))(keys)
+    q, v = q.astype(dtype), v.astype(dtype)
+    weights = jnp.arange(1.0, 4.0, dtype=dtype)
+
+    def loss(lengths, adjoint):
+        chain = sm.chain_pendulum(jnp.ones(n, dtype), lengths, 9.81)
+        kw = dict(solver=solver, dt0=dt0, adjoint=adjoint)
+        if batch:
+            q1 = sm.simulate_batch(chain, (q, v), t1, **kw).ys[0][:, -1]
+            return jnp.sum(jax.vmap(chain.positions)(q1) @ weights)
+        q1 = sm.simulate(chain, (q[0], v[0]), t1, **kw).ys[0][-1]
+        return jnp.sum(chain.positions(q1) @ weights)
+
+    return loss, jnp.linspace(1.0, 0.7, n, dtype=dtype)
+
+
+def measure(n, dtype, solver_name, batch, repeats):
+    loss, lengths = loss_fn(n, dtype, solver_name, batch)
+    forward = eqx.filter_jit(lambda x: loss(x, None))
+    old = eqx.filter_jit(jax.value_and_grad(lambda x: loss(x, OLD)))
+    new = eqx.filter_jit(jax.value_and_grad(lambda x: loss(x, None)))
+    g_old, g_new = old(lengths)[1], new(lengths)[1]
+    tol = 1e-6 if dtype == jnp.float64 else 2e-2
+    assert np.allclose(g_old, g_new, rtol=tol, atol=tol), (g_old, g_new)
+    t_fwd = min_time(lambda: forward(lengths), repeats)
+    return t_fwd, min_time(lambda: old(lengths), repeats), min_time(lambda: new(lengths), repeats)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="n = 2, float64 only")
+    quick = parser.parse_args().quick
+    ns, dtypes = ((2,), (jnp.float64,)) if quick else ((2, 8), (jnp.float32, jnp.float64))
+    rows = []
+    for n in ns:
+        for dtype in dtypes:
+            for solver_name in SOLVERS:
+                for batch in (0, BATCH[n]):
+                    t_fwd, t_old, t_new = measure(n, dtype, solver_name, batch, 3)
+                    api = f"simulate_batch (B = {batch})" if batch else "simulate"
+                    rows.append((n, jnp.dtype(dtype).name, solver_name, api, t_fwd, t_old, t_new))
+                    print(f"  {rows[-1]}", flush=True)
+    head = (
+        "| n | dtype | solver | call | forward [ms] | value_and_grad / forward, old default "
+        "(RecursiveCheckpointAdjoint) | new default | old / new |\n" + "|---" * 8 + "|"
+    )
+    lines = [
+        f"| {n} | {dt} | {s} | {api} | {f * 1e3:.2f} | {o / f:.1f} | {w / f:.1f} | {o / w:.1f} |"
+        for n, dt, s, api, f, o, w in rows
+    ]
+    machine = f"{platform.processor() or platform.machine()}, {jax.devices()[0].platform}"
+    text = "\n".join([head, *lines])
+    print(text)
+    RESULTS.mkdir(exist_ok=True)
+    suffix = "_quick" if quick else ""
+    (RESULTS / f"gradients{suffix}.md").write_text(
+        f"# value_and_grad / forward time\n\nMachine: {machine} (2-core shared CPU when run "
+        f"by the project), `python benchmarks/gradients.py{' --quick' * quick}`.\n"
+        f"Forward-mode Jacobian when at most {FORWARD_COLUMNS} scalars are "
+        "differentiated (here the n lengths).\n\n" + text + "\n"
+    )
+    fig, ax = plt.subplots(figsize=(9, 3.8))
+    x = np.arange(len(rows))
+    ax.bar(x - 0.2, [o / f for *_, f, o, w in rows], 0.4, label="old default (checkpointed)")
+    ax.bar(x + 0.2, [w / f for *_, f, o, w in rows], 0.4, label="new default")
+    ax.axhline(4, color="k", ls="--", lw=0.8, label="target: fixed 4x, adaptive 6x")
+    ax.axhline(6, color="k", ls=":", lw=0.8)
+    labels = [
+        f"n={n} {dt[-2:]}\n{s.split()[0]} {'B' if 'batch' in api else '1'}"
+        for n, dt, s, api, *_ in rows
+    ]
+    ax.set_xticks(x, labels, fontsize=7)
+    ax.set_yscale("log")
+    ax.set_ylabel("value_and_grad / forward")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(RESULTS / f"gradients{suffix}.png", dpi=120)
+    print(f"wrote {RESULTS}/gradients{suffix}.md, .png")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,113 @@
+"""Derivatives of `simulate` and `simulate_batch` with the default adjoint (`adjoint=None`):
+against central finite differences, the checkpointed reverse-mode adjoint (the old
+default) and forward mode (`diffrax.ForwardMode`); and the adjoint it picks, with the
+memory that costs."""
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import sphere_mech as sm
+from sphere_mech._solve import FORWARD_COLUMNS, default_adjoint
+
+N, T1 = 2, 0.3
+LENGTHS = jnp.array([1.0, 0.7])
+SOLVERS = {
+    "fixed": dict(solver=sm.Projected(sm.RK4()), dt0=0.01),
+    "adaptive": dict(solver=sm.Projected(diffrax.Tsit5()), rtol=1e-10, atol=1e-12),
+}
+WEIGHTS = jnp.array([1.0, 2.0, 3.0])
+
+
+def _states(batch=3):
+    keys = jax.random.split(jax.random.PRNGKey(1), batch)
+    return jax.vmap(lambda k: sm.random_state(k, N, speed=0.5))(keys)
+
+
+def _loss(batch, kind, adjoint, **kw):
+    """A weighted sum of the final states, as a function of the chain's lengths."""
+    q, v = _states()
+
+    def loss(lengths):
+        chain = sm.chain_pendulum(jnp.ones(N), lengths, 9.81)
+        opts = dict(adjoint=adjoint, **SOLVERS[kind], **kw)
+        if batch:
+            q1 = sm.simulate_batch(chain, (q, v), T1, **opts).ys[0][:, -1]
+        else:
+            q1 = sm.simulate(chain, (q[0], v[0]), T1, **opts).ys[0][-1]
+        return jnp.sum(q1 @ WEIGHTS)
+
+    return loss
+
+
+def _central_differences(f, x, h=1e-5):
+    return np.array([(f(x.at[i].add(h)) - f(x.at[i].add(-h))) / (2 * h) for i in range(x.size)])
+
+
+def _compiled_value_and_grad(max_steps):
+    loss = _loss(False, "fixed", None, max_steps=max_steps)
+    return jax.jit(jax.value_and_grad(loss)).lower(LENGTHS).compile()
+
+
+@pytest.fixture(scope="module")
+def value_and_grad_default():
+    """`value_and_grad` of the loss of `simulate` with the default options, compiled."""
+    return _compiled_value_and_grad(100_000)
+
+
+def test_default_gradient_matches_differences_and_old_adjoint(value_and_grad_default):
+    loss = _loss(False, "fixed", None)
+    value, grad = value_and_grad_default(LENGTHS)
+    old = _loss(False, "fixed", diffrax.RecursiveCheckpointAdjoint())
+    value_old, grad_old = eqx.filter_jit(jax.value_and_grad(old))(LENGTHS)
+    assert value == pytest.approx(float(value_old), rel=1e-13)
+    np.testing.assert_allclose(grad, grad_old, rtol=1e-10, atol=1e-12)
+    fd = _central_differences(eqx.filter_jit(loss), LENGTHS)
+    np.testing.assert_allclose(grad, fd, rtol=1e-7, atol=1e-9)
+    assert np.all(np.abs(grad) > 1e-2)  # a gradient that could be wrong
+
+
+@pytest.mark.parametrize(("batch", "kind"), [(True, "fixed"), (False, "adaptive")],
+                         ids=["simulate_batch-fixed", "simulate-adaptive"])
+def test_default_gradient_matches_forward_mode_and_differences(batch, kind):
+    loss = _loss(batch, kind, None)
+    grad = eqx.filter_jit(jax.grad(loss))(LENGTHS)
+    forward = eqx.filter_jit(jax.jacfwd(_loss(batch, kind, diffrax.ForwardMode())))(LENGTHS)
+    np.testing.assert_allclose(grad, forward, rtol=1e-12, atol=1e-13)
+    fd = _central_differences(eqx.filter_jit(loss), LENGTHS)
+    np.testing.assert_allclose(grad, fd, rtol=1e-6, atol=1e-8)
+    assert np.all(np.abs(grad) > 1e-2)  # a gradient that could be wrong
+
+
+def test_many_columns_reverse_mode_matches_forward_mode():
+    """More than `FORWARD_COLUMNS` differentiated scalars (each trajectory's initial
+    state: 12) go through checkpointed reverse mode, here under `simulate_batch`'s
+    `vmap`; against diffrax's forward mode."""
+    y0 = _states(2)
+    chain = sm.chain_pendulum(jnp.ones(N), LENGTHS, 9.81)
+
+    def final(y0, adjoint):
+        sol = sm.simulate_batch(chain, y0, T1, adjoint=adjoint, **SOLVERS["fixed"])
+        return jnp.sum(sol.ys[0][:, -1] @ WEIGHTS) + jnp.sum(sol.ys[1][:, -1] ** 2)
+
+    rev = eqx.filter_jit(jax.grad(lambda y: final(y, None)))(y0)
+    fwd = eqx.filter_jit(jax.jacfwd(lambda y: final(y, diffrax.ForwardMode())))(y0)
+    for a, b in zip(rev, fwd, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12)
+
+
+def test_choice_and_memory_of_the_default_adjoint(value_and_grad_default):
+    """Forward mode (a Jacobian, no checkpoints) up to `FORWARD_COLUMNS` scalars, else
+    `RecursiveCheckpointAdjoint` with diffrax's `sqrt(2 max_steps)` checkpoints (as
+    documented in `sphere_mech._solve`); the gradient's working memory with respect to
+    two lengths does not grow with `max_steps` (447 checkpoints at 100 000 against 14
+    at 100 would)."""
+    assert isinstance(default_adjoint(FORWARD_COLUMNS), diffrax.ForwardMode)
+    reverse = default_adjoint(FORWARD_COLUMNS + 1)
+    assert isinstance(reverse, diffrax.RecursiveCheckpointAdjoint)
+    assert reverse.checkpoints is None  # diffrax's choice from max_steps
+    temp = lambda compiled: compiled.memory_analysis().temp_size_in_bytes
+    assert temp(value_and_grad_default) == temp(_compiled_value_and_grad(100))
