@@ -417,6 +417,12 @@ def main(argv=None):
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     rows = measure(ps, a.quick, out / f"{name}_partial.json")
+    report(rows, ps, out, name)
+    return rows
+
+
+def report(rows, ps, out, name):
+    """Print the tables and write `<out>/<name>.{md,json,png}`."""
 
     equal, summary = equal_error_table(rows, ps)
     lie = [m for m in summary if m.startswith("LieRK") and not math.isnan(summary[m][0])]
@@ -446,7 +452,6 @@ def main(argv=None):
     )
     figure(rows, ps, out / f"{name}.png")
     print(f"\nwrote {out / name}.{{md,json,png}}")
-    return rows
 
 
 if __name__ == "__main__":
