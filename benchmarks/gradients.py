@@ -112,7 +112,7 @@ def main():
     RESULTS.mkdir(exist_ok=True)
     suffix = "_quick" if quick else ""
     (RESULTS / f"gradients{suffix}.md").write_text(
-        f"# value_and_grad / forward time\n\nMachine: {machine} (2-core shared CPU when run "
+        f"value_and_grad time / forward time.\n\nMachine: {machine} (2-core shared CPU when run "
         f"by the project), `python benchmarks/gradients.py{' --quick' * quick}`.\n"
         f"Forward-mode Jacobian when at most {FORWARD_COLUMNS} scalars are "
         "differentiated (here the n lengths).\n\n" + text + "\n"
