@@ -194,6 +194,7 @@ sys.exit(status)
 """
 
 
+@pytest.mark.slow  # two fresh processes (about 1 min); --no-cache is in the default suite
 def test_compilation_cache_second_run_hits(tmp_path):
     """Two runs in fresh processes: the first writes the compiled programs to the cache
     (misses only), the second finds every one of them there (hits only, no new file)."""
