@@ -339,10 +339,11 @@ def pendulum_clean():
     return jax.vmap(system.chain.positions)(sol.ys[0])[:, 0]
 
 
-def _fit_pendulum(obs, **kwargs):
+def _fit_pendulum(obs, simulate_options=SIM, **kwargs):
     y0 = (Q_PENDULUM, V_PENDULUM)
     return sm.fit(
-        pendulum, START_PENDULUM, TS_PENDULUM, obs, bob, y0=y0, simulate_options=SIM, **kwargs
+        pendulum, START_PENDULUM, TS_PENDULUM, obs, bob, y0=y0,
+        simulate_options=simulate_options, **kwargs
     )
 
 
@@ -430,3 +431,15 @@ def test_fit_covariance_against_finite_differences(pendulum_clean, getkey):
     assert max_rel_error(covariance, expected) < 1e-6
     stderr = np.array([result.stderr[k] for k in ("c", "g", "l")])
     assert max_rel_error(stderr, np.sqrt(np.diag(expected))) < 1e-6
+
+
+def test_fit_through_a_lie_group_solver(pendulum_clean):
+    """`fit` differentiates through `LieRK` (adaptive, SE(3) action): noise-free data of the
+    damped pendulum give back its length."""
+    result = sm.fit(
+        lambda p: pendulum(dict(TRUE_PENDULUM, l=p)), 1.1 * TRUE_PENDULUM["l"], TS_PENDULUM,
+        pendulum_clean, bob, y0=(Q_PENDULUM, V_PENDULUM), max_steps=20,
+        simulate_options=dict(SIM, solver=sm.LieRK(diffrax.Bosh3())),
+    )
+    assert bool(result.converged)
+    assert abs(float(result.params / TRUE_PENDULUM["l"]) - 1.0) < 1e-4, result.params
