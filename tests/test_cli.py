@@ -186,35 +186,47 @@ CACHE_COUNTS = """import collections, sys
 import jax.monitoring
 counts = collections.Counter()
 jax.monitoring.register_event_listener(lambda event, **kw: counts.update([event]))
-from sphere_mech._cli import main
+from sphere_mech._cli import main, program
+load, loaded = program.load, []
+def counted_load(*args):  # was a stored program found, and was diffrax imported before?
+    found = load(*args)
+    loaded.append((found is not None, "diffrax" in sys.modules))
+    return found
+program.load = counted_load
 status = main(sys.argv[1:])
 print("cache", counts["/jax/compilation_cache/cache_hits"],
-      counts["/jax/compilation_cache/cache_misses"])
+      counts["/jax/compilation_cache/cache_misses"], *loaded[0])
 sys.exit(status)
 """
 
 
-@pytest.mark.slow  # two fresh processes (about 1 min); --no-cache is in the default suite
-def test_compilation_cache_second_run_hits(tmp_path):
-    """Two runs in fresh processes: the first writes the compiled programs to the cache
-    (misses only), the second finds every one of them there (hits only, no new file)."""
+def test_second_run_loads_the_stored_program(tmp_path):
+    """Two runs in fresh processes: the first compiles (JAX's cache misses only) and stores
+    the integration program; the second loads it before diffrax is imported, compiles
+    nothing (no miss, no new file) and writes the same trajectory."""
     cache, good = tmp_path / "cache", _bad(tmp_path, GOOD)
     env = {**os.environ, CACHE_ENV: str(cache),
            "PYTHONPATH": os.pathsep.join([str(Path(__file__).parents[1]),
                                           os.environ.get("PYTHONPATH", "")])}
-    argv = [sys.executable, "-c", CACHE_COUNTS, "run", str(good), "--out",
-            str(tmp_path / "out"), "--no-progress", "--no-animation"]
+    env.pop("EQX_ON_ERROR", None)
 
-    def run():
+    def run(out):
+        argv = [sys.executable, "-c", CACHE_COUNTS, "run", str(good), "--out",
+                str(tmp_path / out), "--no-progress", "--no-animation"]
         proc = subprocess.run(argv, capture_output=True, text=True, env=env, timeout=300)
         assert proc.returncode == 0, proc.stderr
-        hits, misses = map(int, proc.stdout.strip().splitlines()[-1].split()[1:])
-        return hits, misses, sorted(p.name for p in cache.rglob("*"))
+        hits, misses, found, diffrax = proc.stdout.strip().splitlines()[-1].split()[1:]
+        files = sorted(p.relative_to(cache).as_posix() for p in cache.rglob("*"))
+        data = np.load(tmp_path / out / "trajectory.npz")
+        return int(hits), int(misses), found == "True", diffrax == "True", files, data
 
-    hits, misses, files = run()
-    assert hits == 0 and misses > 0 and len(files) >= misses
-    hits2, misses2, files2 = run()
-    assert hits2 == misses and misses2 == 0 and files2 == files
+    _, misses, found, _, files, first = run("out1")
+    assert misses > 0 and not found
+    assert len([f for f in files if f.startswith("programs/")]) == 2  # program, inputs
+    hits2, misses2, found2, diffrax2, files2, second = run("out2")
+    assert found2 and not diffrax2 and misses2 == 0 and hits2 > 0 and files2 == files
+    for name in ("t", "q", "v"):
+        np.testing.assert_array_equal(second[name], first[name])
 
 
 def test_no_cache_writes_nothing(tmp_path, monkeypatch, capsys):
