@@ -221,9 +221,10 @@ def store(folder: Path, name: str, program: Program, compiled) -> bool:
             f, ts=program.ts, count=program.count, q0=program.q0, v0=program.v0,
             steps=[program.max_steps, program.max_steps_code, out_tree.num_leaves], **params)),
             (binary, lambda f: f.write(payload))):
-        with open(path.with_suffix(".tmp"), "wb") as f:
+        partial = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+        with open(partial, "wb") as f:
             write(f)
-        os.replace(path.with_suffix(".tmp"), path)
+        os.replace(partial, path)
     return True
 
 
@@ -239,10 +240,13 @@ def load(folder: Path, name: str) -> Program | None:
     arrays, binary = _files(folder, name)
     if not (arrays.exists() and binary.exists()):
         return None
-    with np.load(arrays) as data:
-        params = [data[f"param{i}"] for i in range(len(data.files) - 5)]
-        max_steps, max_steps_code, outputs = (int(x) for x in data["steps"])
-        program = Program(None, data["ts"], data["count"], data["q0"], data["v0"], params,
-                          max_steps, max_steps_code)
-    program.call = deserialize_and_load(binary.read_bytes(), *_trees(program, outputs))
+    try:
+        with np.load(arrays) as data:
+            params = [data[f"param{i}"] for i in range(len(data.files) - 5)]
+            max_steps, max_steps_code, outputs = (int(x) for x in data["steps"])
+            program = Program(None, data["ts"], data["count"], data["q0"], data["v0"],
+                              params, max_steps, max_steps_code)
+        program.call = deserialize_and_load(binary.read_bytes(), *_trees(program, outputs))
+    except Exception:  # unreadable (e.g. written by another jaxlib build): compile again
+        return None
     return program
