@@ -10,9 +10,11 @@ source and the versions of JAX and its libraries, and a later run of the same fi
 it and starts integrating before importing diffrax or tracing anything.
 
 Each segment is `simulate`'s core (`_solve.solve`) from the state the previous one
-reached, with the initial step chosen afresh (adaptive solvers) or `dt0` (fixed steps),
-so the steps differ from one `simulate` call over the whole interval by the segment
-ends; the error per step is controlled as there.
+reached. Adaptive solvers choose the segment's first step afresh, so their steps differ
+from one `simulate` call's at the segment ends (the error per step is controlled as
+there). Fixed steps divide each segment equally into as many steps as `dt0` fits: one
+`simulate` call's steps when a segment holds whole steps (`save_dt` a multiple of `dt0`),
+else steps slightly shorter than `dt0`.
 """
 
 import dataclasses
@@ -143,6 +145,7 @@ def build(spec, t1=None) -> tuple[Program, jax.stages.Compiled]:
     """
     import diffrax
     import equinox as eqx
+    import jax.numpy as jnp
 
     from .._results import RESULTS, code, failed
     from .._solve import as_arrays, initial_state, options, solve, times
@@ -163,6 +166,9 @@ def build(spec, t1=None) -> tuple[Program, jax.stages.Compiled]:
             saveat = diffrax.SaveAt(subs=[diffrax.SubSaveAt(ts=ts),
                                           diffrax.SubSaveAt(t0=True, steps=True)])
         t_start, t_end, dt0 = times(q.dtype, t_start, ts[-1], spec.dt0)
+        if isinstance(opts.controller, diffrax.ConstantStepSize):  # diffrax divides a
+            # segment into equal steps: as many as dt0 fits, the save times' rounding aside
+            dt0 = (t_end - t_start) / jnp.ceil((t_end - t_start) / dt0 * (1 - 1e-12))
         sol = solve(system, (q, v), t_start, t_end, dt0, None,
                     eqx.tree_at(lambda o: o.saveat, opts, saveat))
         result = code(sol.result)
