@@ -221,16 +221,19 @@ def store(folder: Path, name: str, program: Program, compiled) -> bool:
     if (in_tree, out_tree) != (inputs, outputs):
         return False
     arrays, binary = _files(folder, name)
-    arrays.parent.mkdir(parents=True, exist_ok=True)
     params = {f"param{i}": p for i, p in enumerate(program.params)}
-    for path, write in ((arrays, lambda f: np.savez(
-            f, ts=program.ts, count=program.count, q0=program.q0, v0=program.v0,
-            steps=[program.max_steps, program.max_steps_code, out_tree.num_leaves], **params)),
-            (binary, lambda f: f.write(payload))):
-        partial = path.with_name(f"{path.name}.{os.getpid()}.tmp")
-        with open(partial, "wb") as f:
-            write(f)
-        os.replace(partial, path)
+    try:  # a folder that cannot be written keeps nothing, as JAX's cache
+        arrays.parent.mkdir(parents=True, exist_ok=True)
+        for path, write in ((arrays, lambda f: np.savez(
+                f, ts=program.ts, count=program.count, q0=program.q0, v0=program.v0,
+                steps=[program.max_steps, program.max_steps_code, out_tree.num_leaves],
+                **params)), (binary, lambda f: f.write(payload))):
+            partial = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+            with open(partial, "wb") as f:
+                write(f)
+            os.replace(partial, path)
+    except OSError:
+        return False
     return True
 
 
