@@ -11,9 +11,9 @@ default `~/.cache/sphere_mech/jax`; macOS `~/Library/Caches/sphere_mech/jax`; Wi
 `%LOCALAPPDATA%\\sphere_mech\\jax`): the integration program, which calls nothing back in
 Python, compiled in `programs/` (see `program`), the others in JAX's persistent
 compilation cache. A second run of the same file loads the stored integration program
-and starts integrating before diffrax is imported: on the default scene 1.5 s from
-process start to the first step, against 10.6 s on the first run (2-core machine, load
-average about 7; `benchmarks/cli_startup.py`). `--no-cache` or the environment
+and starts integrating before diffrax is imported: on the default scene 1.2 s from
+process start to the first step, against 8.4 s on the first run (2-core machine, load
+average about 4; `benchmarks/cli_startup.py`). `--no-cache` or the environment
 variable `SPHERE_MECH_CACHE_DIR=off` turns it off; `SPHERE_MECH_CACHE_DIR=<dir>` puts it
 elsewhere. Deleting the folder is always safe. In a fresh process the command sets
 `EQX_ON_ERROR=nan` (unless set) before equinox is imported, so that its programs hold no
