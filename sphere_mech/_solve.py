@@ -22,14 +22,16 @@ DEFAULT_TOLERANCES = {np.dtype("float64"): (1e-8, 1e-10), np.dtype("float32"): (
 FORWARD_COLUMNS = 8
 """The default adjoint differentiates one trajectory (`simulate`) in forward mode when at
 most this many scalars are differentiated (e.g. the lengths of a chain of up to 8 links),
-else in reverse mode. On a 2-core CPU, forward mode measured 2.2x (float64) to 2.7x
-(float32) faster than reverse mode at 8 columns and about even at 16
-(`benchmarks/gradients.py`): one trajectory's arrays are small, its cost is per
-operation, and forward mode widens the operations instead of adding more."""
+else in reverse mode. On a 2-core CPU, forward mode measured 1.9x (float64) to 2.7x
+(float32) faster than reverse mode at 8 columns (`benchmarks/gradients.py`) and about
+even at 16 (1.4x faster in float64, 1.3x slower in float32): one trajectory's arrays
+are small, its cost is per operation, and forward mode widens the operations instead
+of adding more."""
 BATCH_FORWARD_COLUMNS = 2
 """The same threshold for a trajectory of `simulate_batch`: under `vmap` the arrays are
 wide already, forward mode's cost grows with every column and reverse mode's does not
-(at 8 columns reverse mode measured 3.5x faster; at 2 the two are even)."""
+(at 8 columns reverse mode measured 3.5x faster; at 2 forward mode 1.1x to 1.6x
+faster)."""
 
 
 def default_solver() -> diffrax.AbstractSolver:
