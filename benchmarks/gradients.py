@@ -1,20 +1,24 @@
 """Cost of `jax.value_and_grad` through `sm.simulate` and `sm.simulate_batch`, relative to
 the forward pass, with the old default adjoint (`diffrax.RecursiveCheckpointAdjoint()`)
 and the new default (`adjoint=None`: forward-mode Jacobian for at most
-`FORWARD_COLUMNS` differentiated scalars, else the same checkpointed reverse mode).
+`FORWARD_COLUMNS` differentiated scalars in `simulate`, `BATCH_FORWARD_COLUMNS` in
+`simulate_batch`, else the same checkpointed reverse mode).
 
 The loss is a weighted sum of the final positions of chain pendulums (unit masses,
 g = 9.81), differentiated with respect to the chain's n lengths. Cases: n = 2 and 8,
 float32 and float64, fixed-step `Projected(RK4())` at dt0 = 1e-3 and adaptive
 `Projected(Tsit5())` (default tolerances), one trajectory (`simulate`) and a batch
 (`simulate_batch`, B = 256 at n = 2, 64 at n = 8). Times: after compilation, minimum of
-repeats; the ratios are value_and_grad time / forward time, all measured in the same run.
+repeats, the three programs of a row taking turns (so that a burst of load from other
+processes hits all three); the ratios are value_and_grad time / forward time, all
+measured in the same run.
 Prints a markdown table and writes benchmarks/results/gradients.{md,png}.
 
     python benchmarks/gradients.py [--quick]
 """
 
 import argparse
+import os
 import pathlib
 import platform
 import time
@@ -31,7 +35,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 import sphere_mech as sm  # noqa: E402
-from sphere_mech._solve import FORWARD_COLUMNS  # noqa: E402
+from sphere_mech._solve import BATCH_FORWARD_COLUMNS, FORWARD_COLUMNS  # noqa: E402
 
 RESULTS = pathlib.Path(__file__).parent / "results"
 OLD = diffrax.RecursiveCheckpointAdjoint()
@@ -42,14 +46,17 @@ SOLVERS = {  # name: (solver, dt0, t1)
 BATCH = {2: 256, 8: 64}
 
 
-def min_time(fn, repeats):
-    jax.block_until_ready(fn())  # compile
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
+def min_times(fns, repeats):
+    """The minimum time of each of `fns` (compiled first), calling them in turn."""
+    for fn in fns:
         jax.block_until_ready(fn())
-        times.append(time.perf_counter() - start)
-    return min(times)
+    best = [np.inf] * len(fns)
+    for _ in range(repeats):
+        for i, fn in enumerate(fns):
+            start = time.perf_counter()
+            jax.block_until_ready(fn())
+            best[i] = min(best[i], time.perf_counter() - start)
+    return best
 
 
 def loss_fn(n, dtype, solver_name, batch):
@@ -80,8 +87,7 @@ def measure(n, dtype, solver_name, batch, repeats):
     g_old, g_new = old(lengths)[1], new(lengths)[1]
     tol = 1e-6 if dtype == jnp.float64 else 2e-2
     assert np.allclose(g_old, g_new, rtol=tol, atol=tol), (g_old, g_new)
-    t_fwd = min_time(lambda: forward(lengths), repeats)
-    return t_fwd, min_time(lambda: old(lengths), repeats), min_time(lambda: new(lengths), repeats)
+    return min_times([lambda f=f: f(lengths) for f in (forward, old, new)], repeats)
 
 
 def main():
@@ -89,12 +95,13 @@ def main():
     parser.add_argument("--quick", action="store_true", help="n = 2, float64 only")
     quick = parser.parse_args().quick
     ns, dtypes = ((2,), (jnp.float64,)) if quick else ((2, 8), (jnp.float32, jnp.float64))
-    rows = []
+    rows, loads = [], [os.getloadavg()[0]]
     for n in ns:
         for dtype in dtypes:
             for solver_name in SOLVERS:
                 for batch in (0, BATCH[n]):
-                    t_fwd, t_old, t_new = measure(n, dtype, solver_name, batch, 3)
+                    t_fwd, t_old, t_new = measure(n, dtype, solver_name, batch, 7)
+                    loads.append(os.getloadavg()[0])
                     api = f"simulate_batch (B = {batch})" if batch else "simulate"
                     rows.append((n, jnp.dtype(dtype).name, solver_name, api, t_fwd, t_old, t_new))
                     print(f"  {rows[-1]}", flush=True)
@@ -113,9 +120,11 @@ def main():
     suffix = "_quick" if quick else ""
     (RESULTS / f"gradients{suffix}.md").write_text(
         f"value_and_grad time / forward time.\n\nMachine: {machine} (2-core shared CPU when run "
-        f"by the project), `python benchmarks/gradients.py{' --quick' * quick}`.\n"
+        f"by the project), `python benchmarks/gradients.py{' --quick' * quick}`; load "
+        f"average (1 min) {min(loads):.1f} to {max(loads):.1f} during the run.\n"
         f"Forward-mode Jacobian when at most {FORWARD_COLUMNS} scalars are "
-        "differentiated (here the n lengths).\n\n" + text + "\n"
+        f"differentiated in `simulate`, {BATCH_FORWARD_COLUMNS} in `simulate_batch` "
+        "(here the n lengths).\n\n" + text + "\n"
     )
     fig, ax = plt.subplots(figsize=(9, 3.8))
     x = np.arange(len(rows))

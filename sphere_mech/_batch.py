@@ -111,7 +111,10 @@ def simulate_batch(
     **Arguments:**
     - `system`, `t1`, `t0`, `solver`, `dt0`, `rtol`, `atol`, `stepsize_controller`,
       `saveat`, `max_steps`, `adjoint`, `event`: as in `sphere_mech.simulate`
-      (shared by every trajectory; `system` too unless `batch_system=True`).
+      (shared by every trajectory; `system` too unless `batch_system=True`). The
+      default adjoint (`None`) uses forward mode for at most 2 differentiated scalars
+      here (8 in `simulate`): under `vmap` forward mode's cost grows with every column
+      and reverse mode's does not.
     - `y0`: `(q0, v0)`, arrays of shape `(batch, n, 3)`.
     - `args`: passed to the system; its array leaves have a leading batch axis (one value
       per trajectory: masses, gains, ...) unless `batch_args=False`.
@@ -154,7 +157,7 @@ def simulate_batch(
         _leading(eqx.filter(system, eqx.is_array), size, "system")
     system, args = as_arrays((system, args))
     opts = options(solver, dt0, rtol, atol, stepsize_controller, saveat, max_steps, adjoint,
-                   progress, event, q0.dtype)
+                   progress, event, q0.dtype, batched=True)
     t0, t1, dt0 = times(q0.dtype, t0, t1, dt0)  # values, not structure
     dynamic, static = eqx.partition((system, args, t0, t1, dt0, opts), eqx.is_array)
     mask = jax.tree.map(lambda _: False, dynamic)

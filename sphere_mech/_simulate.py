@@ -58,9 +58,9 @@ def simulate(
     - `progress`: show a tqdm progress bar (diffrax's `TqdmProgressMeter`).
     - `adjoint`: a diffrax adjoint for derivatives. Default (`None`): reverse mode
       (`jax.grad`, `jax.value_and_grad`) chosen per derivative from the number of
-      differentiated scalars (parameters, state entries, times): at most 4 (e.g. the
-      lengths of a double pendulum), their Jacobian computed during the run in forward
-      mode (memory independent of the number of steps); more,
+      differentiated scalars (parameters, state entries, times): at most 8 (e.g. the
+      lengths of a chain of up to 8 links), their Jacobian computed during the run in
+      forward mode (memory independent of the number of steps); more,
       `diffrax.RecursiveCheckpointAdjoint()` (memory: about `sqrt(2 max_steps)` copies
       of the solver's state, 447 for the default `max_steps`). For `jax.jvp` and
       `jax.jacfwd` pass `diffrax.ForwardMode()`. Costs: `benchmarks/gradients.py`.

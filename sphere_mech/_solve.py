@@ -19,9 +19,19 @@ DEFAULT_MAX_STEPS = 100_000
 before it fails with `RESULTS.max_steps_reached`."""
 DEFAULT_TOLERANCES = {np.dtype("float64"): (1e-8, 1e-10), np.dtype("float32"): (1e-5, 1e-6)}
 """Default `(rtol, atol)` of the adaptive step-size controller, by dtype of `q`."""
-FORWARD_COLUMNS = 4
-"""The default adjoint differentiates a run in forward mode when at most this many scalars
-are differentiated (e.g. the lengths of a 2- to 4-link chain), else in reverse mode."""
+FORWARD_COLUMNS = 8
+"""The default adjoint differentiates one trajectory (`simulate`) in forward mode when at
+most this many scalars are differentiated (e.g. the lengths of a chain of up to 8 links),
+else in reverse mode. On a 2-core CPU, forward mode measured 1.9x (float64) to 2.7x
+(float32) faster than reverse mode at 8 columns (`benchmarks/gradients.py`) and about
+even at 16 (1.4x faster in float64, 1.3x slower in float32): one trajectory's arrays
+are small, its cost is per operation, and forward mode widens the operations instead
+of adding more."""
+BATCH_FORWARD_COLUMNS = 2
+"""The same threshold for a trajectory of `simulate_batch`: under `vmap` the arrays are
+wide already, forward mode's cost grows with every column and reverse mode's does not
+(at 8 columns reverse mode measured 3.5x faster; at 2 forward mode 1.1x to 1.6x
+faster)."""
 
 
 def default_solver() -> diffrax.AbstractSolver:
@@ -42,11 +52,13 @@ class Options(eqx.Module):
     meter: diffrax.AbstractProgressMeter
     event: diffrax.Event | None
     max_steps: int | None = eqx.field(static=True)
+    batched: bool = eqx.field(static=True)  # one trajectory of `simulate_batch`'s vmap
 
 
 def options(solver, dt0, rtol, atol, stepsize_controller, saveat, max_steps, adjoint,
-            progress, event, dtype) -> Options:
-    """Check and complete the options of `simulate`/`simulate_batch` (static errors)."""
+            progress, event, dtype, batched=False) -> Options:
+    """Check and complete the options of `simulate` (`batched=False`) or
+    `simulate_batch` (`batched=True`) (static errors)."""
     solver = default_solver() if solver is None else solver
     if stepsize_controller is not None:
         if rtol is not None or atol is not None:
@@ -80,7 +92,7 @@ def options(solver, dt0, rtol, atol, stepsize_controller, saveat, max_steps, adj
         solver, controller, diffrax.SaveAt(t1=True) if saveat is None else saveat,
         adjoint,
         diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter(), event,
-        max_steps,
+        max_steps, batched,
     )
 
 
@@ -128,10 +140,12 @@ def solve(system, y0, t0, t1, dt0, args, opts: Options) -> diffrax.Solution:
 def _default_adjoint(inputs, *, opts: Options) -> diffrax.Solution:
     r"""`solve_with` differentiated in reverse mode by the default adjoint
     (`adjoint=None`), chosen at trace time by `default_adjoint` from the number $P$ of
-    differentiated scalars (the parameters, states and times being differentiated):
+    differentiated scalars (the parameters, states and times being differentiated) and
+    whether the run is one trajectory of `simulate_batch`:
 
-    - $P \le$ `FORWARD_COLUMNS` (4): the Jacobian of the run's outputs with respect to
-      those $P$ scalars is computed during the run in forward mode
+    - $P \le$ `FORWARD_COLUMNS` (8; `BATCH_FORWARD_COLUMNS`, 2, in a batch): the
+      Jacobian of the run's outputs with respect to those $P$ scalars is computed
+      during the run in forward mode
       (`diffrax.ForwardMode`, $P$ tangents carried along the steps) and the backward
       pass multiplies the cotangent by it. Memory: $P + 1$ copies of the solver's state
       during the run, and the $P \times$ (saved outputs) Jacobian kept for the backward
@@ -147,15 +161,16 @@ def _default_adjoint(inputs, *, opts: Options) -> diffrax.Solution:
     return solve_with(diffrax.RecursiveCheckpointAdjoint(), *inputs, opts)
 
 
-def _split(perturbed, inputs):
+def _split(perturbed, inputs, opts: Options):
     """The differentiated leaves of `inputs`, the rest, and the adjoint for them."""
     x, rest = eqx.partition(inputs, perturbed)
-    return x, rest, default_adjoint(sum(leaf.size for leaf in jax.tree.leaves(x)))
+    columns = sum(leaf.size for leaf in jax.tree.leaves(x))
+    return x, rest, default_adjoint(columns, opts.batched)
 
 
 @_default_adjoint.def_fwd
 def _default_adjoint_fwd(perturbed, inputs, *, opts: Options):
-    x, rest, adjoint = _split(perturbed, inputs)
+    x, rest, adjoint = _split(perturbed, inputs, opts)
 
     def outputs(x):
         sol = solve_with(adjoint, *eqx.combine(x, rest), opts)
@@ -176,7 +191,7 @@ def _default_adjoint_fwd(perturbed, inputs, *, opts: Options):
 
 @_default_adjoint.def_bwd
 def _default_adjoint_bwd(residuals, grad_sol, perturbed, inputs, *, opts: Options):
-    x, _, adjoint = _split(perturbed, inputs)
+    x, _, adjoint = _split(perturbed, inputs, opts)
     pullback_or_jacobian, out = residuals
     cotangent = fill_zeros(eqx.filter(grad_sol, eqx.is_inexact_array), out)
     if not isinstance(adjoint, diffrax.ForwardMode):
@@ -185,11 +200,12 @@ def _default_adjoint_bwd(residuals, grad_sol, perturbed, inputs, *, opts: Option
     return unravel(jacobian.T @ ravel_pytree(cotangent)[0].astype(jacobian.dtype))
 
 
-def default_adjoint(columns: int) -> diffrax.AbstractAdjoint:
+def default_adjoint(columns: int, batched: bool = False) -> diffrax.AbstractAdjoint:
     """The adjoint that `adjoint=None` differentiates a run with when `columns` scalars
-    are differentiated: `diffrax.ForwardMode()` for at most `FORWARD_COLUMNS`, else
+    are differentiated: `diffrax.ForwardMode()` for at most `FORWARD_COLUMNS` (one
+    trajectory) or `BATCH_FORWARD_COLUMNS` (`batched`: one of `simulate_batch`), else
     `diffrax.RecursiveCheckpointAdjoint()` (see `_default_adjoint`)."""
-    if columns <= FORWARD_COLUMNS:
+    if columns <= (BATCH_FORWARD_COLUMNS if batched else FORWARD_COLUMNS):
         return diffrax.ForwardMode()
     return diffrax.RecursiveCheckpointAdjoint()
 

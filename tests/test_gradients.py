@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 import sphere_mech as sm
-from sphere_mech._solve import FORWARD_COLUMNS, default_adjoint
+from sphere_mech._linalg import spd_solve, tridiagonal_spd_solve
+from sphere_mech._solve import BATCH_FORWARD_COLUMNS, FORWARD_COLUMNS, default_adjoint
 
 N, T1 = 2, 0.3
 LENGTHS = jnp.array([1.0, 0.7])
@@ -99,15 +100,71 @@ def test_many_columns_reverse_mode_matches_forward_mode():
         np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12)
 
 
+@pytest.mark.parametrize(
+    "batch", [False, pytest.param(True, marks=pytest.mark.slow)], ids=["simulate", "simulate_batch"]
+)
+def test_between_the_thresholds(batch):
+    """Four differentiated scalars (two masses, two lengths): forward mode for one
+    trajectory (at most `FORWARD_COLUMNS`), reverse mode for a trajectory of a batch
+    (more than `BATCH_FORWARD_COLUMNS`; slow: the same path as
+    `test_many_columns_reverse_mode_matches_forward_mode`); against central differences."""
+    q, v = _states()
+
+    def loss(x):
+        chain = sm.chain_pendulum(x[:N], x[N:], 9.81)
+        opts = dict(adjoint=None, **SOLVERS["fixed"])
+        if batch:
+            return jnp.sum(sm.simulate_batch(chain, (q, v), T1, **opts).ys[0][:, -1] @ WEIGHTS)
+        return jnp.sum(sm.simulate(chain, (q[0], v[0]), T1, **opts).ys[0][-1] @ WEIGHTS)
+
+    x = jnp.concatenate([jnp.array([1.0, 1.5]), LENGTHS])
+    grad = eqx.filter_jit(jax.grad(loss))(x)
+    fd = _central_differences(eqx.filter_jit(loss), x)
+    np.testing.assert_allclose(grad, fd, rtol=1e-6, atol=1e-8)
+    assert np.all(np.abs(grad) > 1e-3)  # a gradient that could be wrong
+
+
 def test_choice_and_memory_of_the_default_adjoint(value_and_grad_default):
     """Forward mode (a Jacobian, no checkpoints) up to `FORWARD_COLUMNS` scalars, else
     `RecursiveCheckpointAdjoint` with diffrax's `sqrt(2 max_steps)` checkpoints (as
     documented in `sphere_mech._solve`); the gradient's working memory with respect to
     two lengths does not grow with `max_steps` (447 checkpoints at 100 000 against 14
     at 100 would)."""
+    assert BATCH_FORWARD_COLUMNS < 4 <= FORWARD_COLUMNS  # test_between_the_thresholds
     assert isinstance(default_adjoint(FORWARD_COLUMNS), diffrax.ForwardMode)
+    assert isinstance(default_adjoint(BATCH_FORWARD_COLUMNS, True), diffrax.ForwardMode)
+    batched = default_adjoint(BATCH_FORWARD_COLUMNS + 1, True)
+    assert isinstance(batched, diffrax.RecursiveCheckpointAdjoint)
     reverse = default_adjoint(FORWARD_COLUMNS + 1)
     assert isinstance(reverse, diffrax.RecursiveCheckpointAdjoint)
     assert reverse.checkpoints is None  # diffrax's choice from max_steps
     temp = lambda compiled: compiled.memory_analysis().temp_size_in_bytes
     assert temp(value_and_grad_default) == temp(_compiled_value_and_grad(100))
+
+
+@pytest.mark.parametrize("kind", ["tridiagonal", "dense"])
+def test_symmetric_solves_differentiate_as_linear_solves(kind):
+    """The fast path's solves (`symmetric_solve`: derivatives by another solve, not
+    through the factorization's steps), forward and reverse mode, against
+    `jnp.linalg.solve` on the same dense matrix (differentiated by JAX's own rule)."""
+    n = 5
+    d = jnp.linspace(3.0, 4.0, n)
+    e = jnp.linspace(-1.0, 0.5, n - 1)
+    b = jnp.linspace(-1.0, 2.0, 3 * n).reshape(n, 3)
+
+    def dense(d, e):
+        return jnp.diag(d) + jnp.diag(e, 1) + jnp.diag(e, -1)
+
+    def ours(d, e, b):
+        if kind == "tridiagonal":
+            return tridiagonal_spd_solve(d, e, b)
+        return spd_solve(dense(d, e), b)
+
+    reference = lambda d, e, b: jnp.linalg.solve(dense(d, e), b)
+    np.testing.assert_allclose(ours(d, e, b), reference(d, e, b), rtol=1e-13, atol=1e-14)
+    for jac in (jax.jacfwd, jax.jacrev):
+        got = jax.jit(jac(ours, argnums=(0, 1, 2)))(d, e, b)
+        want = jax.jit(jac(reference, argnums=(0, 1, 2)))(d, e, b)
+        for g, w in zip(got, want, strict=True):
+            np.testing.assert_allclose(g, w, rtol=1e-12, atol=1e-13)
+        assert np.abs(got[1]).max() > 1e-2  # a derivative that could be wrong
