@@ -77,6 +77,7 @@ from ._solvers.liegroup import LieRK as LieRK, LieRK4 as LieRK4
 from ._solvers.projected import Projected as Projected
 from ._solvers.rk4 import RK4 as RK4
 from ._solvers.variational import Variational as Variational
+from ._spaces import Euclidean as Euclidean, Spheres as Spheres
 from ._system import (
     AbstractHamiltonianSystem as AbstractHamiltonianSystem,
     AbstractLagrangianSystem as AbstractLagrangianSystem,
