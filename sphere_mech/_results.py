@@ -68,10 +68,16 @@ def raise_on_failure(sol: diffrax.Solution, max_steps, what: str) -> diffrax.Sol
         prefixed = [f"{what}: {m}" for m in _messages(max_steps)]
         ys = eqx.branched_error_if(sol.ys, jnp.any(failed(values)), first, prefixed)
         return eqx.tree_at(lambda s: s.ys, sol, ys, is_leaf=lambda x: x is None)
-    values = np.asarray(values)
+    raise_on_codes(np.asarray(values), max_steps, what)
+    return sol
+
+
+def raise_on_codes(values: np.ndarray, max_steps, what: str) -> None:
+    """Raise a `RuntimeError` naming how many of the result code values `values` (a
+    flat array) failed, which and why; nothing if none did."""
     bad = np.flatnonzero(failed(values))
     if bad.size == 0:
-        return sol
+        return
     where = ""
     if values.size > 1:
         shown = ", ".join(map(str, bad[:10])) + (", ..." if bad.size > 10 else "")

@@ -27,7 +27,7 @@ from ._scene.potentials import Bending, Gravity, PairInteraction, Spring
 from ._scene.scene import Scene
 from ._simulate import simulate
 from ._solve import options
-from ._solvers.liegroup import LieRK4
+from ._solvers.liegroup import LieRK, LieRK4
 from ._solvers.projected import Projected
 from ._solvers.rk4 import RK4
 from ._solvers.variational import Variational
@@ -229,13 +229,26 @@ def parse_solver(text: str) -> diffrax.AbstractSolver:
     order = re.fullmatch(r"\s*(?:order\s*=\s*(\d+)\s*)?", inner)
     if name == "Projected" and inner:
         return Projected(parse_solver(inner))
+    if name == "LieRK" and inner:
+        solver, *options = inner.split(",")
+        return LieRK(parse_solver(solver), **dict(map(_lie_option, options)))
     if name == "Variational" and order:
         return Variational(order=int(order[1] or 2))
     if name in PLAIN_SOLVERS and not inner.strip():
         return PLAIN_SOLVERS[name]()
-    raise ValueError(f"a solver spelled as in Python: Projected(<solver>), RK4, LieRK4, "
-                     f"Variational, Variational(order=4) or a diffrax ODE solver "
+    raise ValueError(f"a solver spelled as in Python: Projected(<solver>), "
+                     f"LieRK(<solver>[, action='SE3'|'SO3xR3'][, error='state'|'algebra']), "
+                     f"RK4, LieRK4, Variational, Variational(order=4) or a diffrax ODE solver "
                      f"({', '.join(DIFFRAX_SOLVERS)}); got {text!r}")
+
+
+def _lie_option(text: str) -> tuple[str, str]:
+    """`action='SE3'` -> `("action", "SE3")`: a keyword argument of `LieRK` in a file."""
+    match = re.fullmatch(r"""\s*(action|error)\s*=\s*(['"])(\w+)\2\s*""", text)
+    if match is None:
+        raise ValueError(f"LieRK's options are action='SE3'|'SO3xR3' and "
+                         f"error='state'|'algebra'; got {text.strip()!r}")
+    return match[1], match[3]
 
 
 SIMULATE = {"solver": "a solver name", "t0": "a time in s", "t1": "a time in s after t0",

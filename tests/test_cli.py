@@ -14,6 +14,7 @@ import pytest
 
 from sphere_mech._cli import CACHE_ENV, cache_dir, main
 from sphere_mech._cli.figures import figure
+from sphere_mech._cli.program import SEGMENTS, build, segment_times, store
 from sphere_mech._cli.report import run_scene
 from sphere_mech._scene_files import load_scene
 
@@ -186,35 +187,47 @@ CACHE_COUNTS = """import collections, sys
 import jax.monitoring
 counts = collections.Counter()
 jax.monitoring.register_event_listener(lambda event, **kw: counts.update([event]))
-from sphere_mech._cli import main
+from sphere_mech._cli import main, program
+load, loaded = program.load, []
+def counted_load(*args):  # was a stored program found, and was diffrax imported before?
+    found = load(*args)
+    loaded.append((found is not None, "diffrax" in sys.modules))
+    return found
+program.load = counted_load
 status = main(sys.argv[1:])
 print("cache", counts["/jax/compilation_cache/cache_hits"],
-      counts["/jax/compilation_cache/cache_misses"])
+      counts["/jax/compilation_cache/cache_misses"], *loaded[0])
 sys.exit(status)
 """
 
 
-@pytest.mark.slow  # two fresh processes (about 1 min); --no-cache is in the default suite
-def test_compilation_cache_second_run_hits(tmp_path):
-    """Two runs in fresh processes: the first writes the compiled programs to the cache
-    (misses only), the second finds every one of them there (hits only, no new file)."""
+def test_second_run_loads_the_stored_program(tmp_path):
+    """Two runs in fresh processes: the first compiles (JAX's cache misses only) and stores
+    the integration program; the second loads it before diffrax is imported, compiles
+    nothing (no miss, no new file) and writes the same trajectory."""
     cache, good = tmp_path / "cache", _bad(tmp_path, GOOD)
     env = {**os.environ, CACHE_ENV: str(cache),
            "PYTHONPATH": os.pathsep.join([str(Path(__file__).parents[1]),
                                           os.environ.get("PYTHONPATH", "")])}
-    argv = [sys.executable, "-c", CACHE_COUNTS, "run", str(good), "--out",
-            str(tmp_path / "out"), "--no-progress", "--no-animation"]
+    env.pop("EQX_ON_ERROR", None)
 
-    def run():
+    def run(out):
+        argv = [sys.executable, "-c", CACHE_COUNTS, "run", str(good), "--out",
+                str(tmp_path / out), "--no-progress", "--no-animation"]
         proc = subprocess.run(argv, capture_output=True, text=True, env=env, timeout=300)
         assert proc.returncode == 0, proc.stderr
-        hits, misses = map(int, proc.stdout.strip().splitlines()[-1].split()[1:])
-        return hits, misses, sorted(p.name for p in cache.rglob("*"))
+        hits, misses, found, diffrax = proc.stdout.strip().splitlines()[-1].split()[1:]
+        files = sorted(p.relative_to(cache).as_posix() for p in cache.rglob("*"))
+        data = np.load(tmp_path / out / "trajectory.npz")
+        return int(hits), int(misses), found == "True", diffrax == "True", files, data
 
-    hits, misses, files = run()
-    assert hits == 0 and misses > 0 and len(files) >= misses
-    hits2, misses2, files2 = run()
-    assert hits2 == misses and misses2 == 0 and files2 == files
+    _, misses, found, _, files, first = run("out1")
+    assert misses > 0 and not found
+    assert len([f for f in files if f.startswith("programs/")]) == 2  # program, inputs
+    hits2, misses2, found2, diffrax2, files2, second = run("out2")
+    assert found2 and not diffrax2 and misses2 == 0 and hits2 > 0 and files2 == files
+    for name in ("t", "q", "v"):
+        np.testing.assert_array_equal(second[name], first[name])
 
 
 def test_no_cache_writes_nothing(tmp_path, monkeypatch, capsys):
@@ -253,3 +266,43 @@ def test_figure_is_equal_aspect_and_shows_the_constraint_only_above_rounding(
     assert labels == ["E = T + U", "kinetic T", "potential U"]
     drifting = dataclasses.replace(result, constraint=np.linspace(0, 1e-9, len(result.t)))
     assert len(figure(drifting, scene).axes) == 4  # now a panel
+
+
+def test_segments_cover_the_save_times_once():
+    for t1, save_dt in ((20.0, 0.01), (0.5, 0.5 / 1001), (1.0, 0.5)):
+        ts, count = segment_times(0.0, t1, save_dt)
+        n_out = max(2, round(t1 / save_dt) + 1)
+        assert len(ts) <= SEGMENTS and ts[0, 0] == 0.0 and ts[-1, -1] == t1
+        rows = enumerate(zip(ts, count, strict=True))
+        joined = np.concatenate([row[(k > 0):c] for k, (row, c) in rows])
+        np.testing.assert_array_equal(joined, np.linspace(0.0, t1, n_out))
+        np.testing.assert_array_equal(ts[1:, 0], ts[:-1, -1])  # each starts where one ends
+        assert np.all(np.diff(ts, axis=1) >= 0)  # padding repeats the end
+
+
+def test_segmented_run_matches_one_simulate_call(pendulum_result, tmp_path):
+    """The stitched segments against one `simulate` call over the whole interval: with
+    adaptive steps (they differ at the segment ends) to the tolerances, with fixed steps
+    (whole steps per segment) to rounding; in this process equinox's run-time checks call
+    back to Python, so the program is not stored."""
+    import diffrax
+
+    import sphere_mech as sm
+
+    result, scene = pendulum_result
+    spec = load_scene(_bad(tmp_path, GOOD))
+    sol = sm.simulate(scene, spec.y0, spec.t1, solver=spec.solver, saveat=diffrax.SaveAt(
+        ts=result.t))
+    np.testing.assert_allclose(result.q, sol.ys[0], atol=1e-7)  # measured 2e-9
+    np.testing.assert_allclose(result.v, sol.ys[1], atol=1e-6)  # measured 8e-8
+    fixed = load_scene(_bad(tmp_path, GOOD.replace('"Projected(Tsit5)"', '"Projected(RK4)"'
+                                                    "\ndt0 = 0.005") + "[output]\nsave_dt = 0.01"))
+    program, compiled = build(fixed)
+    run = program.integrate()
+    sol = sm.simulate(scene, fixed.y0, fixed.t1, solver=fixed.solver, dt0=fixed.dt0,
+                      saveat=diffrax.SaveAt(ts=run.t))
+    assert run.steps == sol.stats["num_steps"] == 100 and len(run.t) == 51
+    np.testing.assert_allclose(run.q, sol.ys[0], atol=1e-13)
+    np.testing.assert_allclose(run.v, sol.ys[1], atol=1e-12)
+    assert not store(tmp_path / "cache", "name", program, compiled)
+    assert not (tmp_path / "cache").exists()

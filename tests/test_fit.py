@@ -181,7 +181,7 @@ Q_CHAOS = sm.normalize(jnp.array([[1.0, 0.0, 0.3], [0.0, 1.0, 0.5]]))
 V_CHAOS = sm.project(Q_CHAOS, jnp.array([[0.0, 10.0, 0.0], [5.0, 0.0, 10.0]]))
 
 
-def _shooting(t1, segments, key):
+def _shooting(t1, segments, key, single_steps=30):
     ts, obs = _record((Q_CHAOS, V_CHAOS), t1, int(20 * t1) + 1, key, TRUE_CHAOS)
     q, v = _states_from_data(ts, obs)
     bounds = np.round(np.linspace(0, len(ts) - 1, segments + 1)).astype(int)
@@ -199,7 +199,7 @@ def _shooting(t1, segments, key):
         **options,
     )
     single = sm.fit(
-        damped_chain, START_CHAOS, ts, obs, mass_positions, y0=(q[0], v[0]), max_steps=30, **options
+        damped_chain, START_CHAOS, ts, obs, mass_positions, y0=(q[0], v[0]), max_steps=single_steps, **options
     )
     return multiple, single
 
@@ -213,7 +213,7 @@ def _check_shooting(multiple, single):
 
 
 def test_multiple_shooting_chaotic(getkey):
-    multiple, single = _shooting(8.0, 16, getkey())
+    multiple, single = _shooting(8.0, 16, getkey(), single_steps=12)
     _check_shooting(multiple, single)
     assert multiple.loss < 1e-5 * multiple.initial_loss
     # single shooting is still far off when it runs out of steps: reported, not raised
@@ -339,10 +339,11 @@ def pendulum_clean():
     return jax.vmap(system.chain.positions)(sol.ys[0])[:, 0]
 
 
-def _fit_pendulum(obs, **kwargs):
+def _fit_pendulum(obs, simulate_options=SIM, **kwargs):
     y0 = (Q_PENDULUM, V_PENDULUM)
     return sm.fit(
-        pendulum, START_PENDULUM, TS_PENDULUM, obs, bob, y0=y0, simulate_options=SIM, **kwargs
+        pendulum, START_PENDULUM, TS_PENDULUM, obs, bob, y0=y0,
+        simulate_options=simulate_options, **kwargs
     )
 
 
@@ -430,3 +431,15 @@ def test_fit_covariance_against_finite_differences(pendulum_clean, getkey):
     assert max_rel_error(covariance, expected) < 1e-6
     stderr = np.array([result.stderr[k] for k in ("c", "g", "l")])
     assert max_rel_error(stderr, np.sqrt(np.diag(expected))) < 1e-6
+
+
+def test_fit_through_a_lie_group_solver(pendulum_clean):
+    """`fit` differentiates through `LieRK` (adaptive, SE(3) action): noise-free data of the
+    damped pendulum give back its length."""
+    result = sm.fit(
+        lambda p: pendulum(dict(TRUE_PENDULUM, l=p)), 1.1 * TRUE_PENDULUM["l"], TS_PENDULUM,
+        pendulum_clean, bob, y0=(Q_PENDULUM, V_PENDULUM), max_steps=20,
+        simulate_options=dict(SIM, solver=sm.LieRK(diffrax.Bosh3())),
+    )
+    assert bool(result.converged)
+    assert abs(float(result.params / TRUE_PENDULUM["l"]) - 1.0) < 1e-4, result.params

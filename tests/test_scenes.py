@@ -516,6 +516,10 @@ SOLVERS = {
     "Tsit5": diffrax.Tsit5(),
     "RK4": sm.RK4(),
     "LieRK4": sm.LieRK4(),
+    "LieRK(Tsit5)": sm.LieRK(diffrax.Tsit5()),
+    "LieRK(RK4, action='SO3xR3')": sm.LieRK(sm.RK4(), action="SO3xR3"),
+    "LieRK( Dopri8 , error='algebra', action='SE3')": sm.LieRK(diffrax.Dopri8(),
+                                                               error="algebra"),
     "Variational": sm.Variational(),
     "Variational(order=4)": sm.Variational(order=4),
     " Variational( order = 2 ) ": sm.Variational(order=2),
@@ -533,7 +537,9 @@ def test_solver_spellings_build_the_python_solver(spelling, tmp_path):
 
 @pytest.mark.parametrize("spelling", ["tsit5", "rk4", "Projected()", "Projected(Tsit5",
                                       "Variational(order=3)", "KenCarp3", "RK4(1)",
-                                      "__import__('os')", "Projected(Tsit5) + 1"])
+                                      "__import__('os')", "Projected(Tsit5) + 1",
+                                      "LieRK(Kvaerno5)", "LieRK(Tsit5, action='SO3')",
+                                      "LieRK(Tsit5, order=2)", "LieRK()"])
 def test_bad_solver_spellings_are_rejected(spelling, tmp_path):
     with pytest.raises(sm.SceneFileError, match=r"simulate\.solver: "):
         sm.load_scene(_file(tmp_path, simulate=f'solver = "{spelling}"'))

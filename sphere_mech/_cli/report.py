@@ -4,7 +4,6 @@ solver's own steps by the corrected trapezoidal rule `h/2 (P_k + P_{k+1}) + h^2/
 P'_{k+1})` (fourth order; `P' = dP/dt` along the flow by `jax.jvp`)."""
 
 import dataclasses
-import time
 
 import diffrax
 import equinox as eqx
@@ -13,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._geometry import retract
-from .._simulate import simulate
+from .program import Integrated, build
 
 
 def power_and_rate(system, t, q, v, args):
@@ -93,17 +92,12 @@ class SceneResult:
     step_energy: np.ndarray | None = None  # with forces: E at `error_t`
 
 
-def _split(sol, forced):
-    if not forced:
-        return sol.ts, sol.ys, None, None
-    (ts, ys), (ts_s, ys_s) = (sol.ts[0], sol.ys[0]), (sol.ts[1], sol.ys[1])
-    keep = np.isfinite(np.asarray(ts_s))
-    ys_s = tuple(np.asarray(a)[keep] for a in ys_s)
-    return ts, retract(*ys), np.asarray(ts_s)[keep], ys_s
-
-
 def run_scene(spec, *, t1=None, progress=False) -> SceneResult:
     """Simulate a scene file's scene and report its energy bookkeeping.
+
+    The run is the command line's: segment by segment with one compiled program (see
+    `sphere_mech._cli.program`), each segment `simulate`'s core with the file's solver and
+    tolerances; a failure raises a `RuntimeError` with `simulate`'s message.
 
     **Arguments:**
     - `spec`: a `SceneSpec`, from `load_scene`.
@@ -112,22 +106,16 @@ def run_scene(spec, *, t1=None, progress=False) -> SceneResult:
 
     **Returns:** a `SceneResult`.
     """
-    scene, args = spec.scene, None
-    t1 = float(spec.t1 if t1 is None else t1)
-    n_out = max(2, int(round((t1 - spec.t0) / spec.save_dt)) + 1)
-    ts = jnp.linspace(spec.t0, t1, n_out)
-    forced = scene.has_forces
-    saveat = diffrax.SaveAt(ts=ts)
-    if forced:
-        saveat = diffrax.SaveAt(subs=[diffrax.SubSaveAt(ts=ts),
-                                      diffrax.SubSaveAt(t0=True, steps=True)])
-    start = time.perf_counter()
-    sol = simulate(scene, spec.y0, t1, t0=spec.t0, solver=spec.solver, dt0=spec.dt0,
-                   rtol=spec.rtol, atol=spec.atol, saveat=saveat, max_steps=spec.max_steps,
-                   progress=progress)
-    jax.block_until_ready(sol.ys)
-    wall = time.perf_counter() - start
-    ts, (q, v), ts_s, ys_s = _split(sol, forced)
+    return scene_result(spec, build(spec, t1)[0].integrate(progress), t1)
+
+
+def scene_result(spec, run: Integrated, t1=None) -> SceneResult:
+    """The energy bookkeeping and summary of a run of `spec` up to `t1` (default: the
+    file's), from `Program.integrate`."""
+    scene, args, forced = spec.scene, None, spec.scene.has_forces
+    t1, ts, wall = float(spec.t1 if t1 is None else t1), jnp.asarray(run.t), run.wall_time_s
+    q, v = retract(jnp.asarray(run.q), jnp.asarray(run.v)) if forced else (run.q, run.v)
+    ts_s, ys_s = run.step_t, (run.step_q, run.step_v)
     energy = np.asarray(jax.vmap(scene.energy, (0, 0, 0, None))(ts, q, v, args))
     potential = np.asarray(jax.vmap(scene.potential, (0, 0, None))(ts, q, args))
     e_s = W = None
@@ -150,8 +138,7 @@ def run_scene(spec, *, t1=None, progress=False) -> SceneResult:
         **({"rtol": spec.rtol, "atol": spec.atol}
            if isinstance(spec.solver, diffrax.AbstractAdaptiveSolver) else {"dt0": spec.dt0}),
         "n_spheres": scene.n, "effects": [type(e).__name__ for e in scene.effects],
-        "t0": spec.t0, "t1": t1, "steps": int(sol.stats["num_steps"]),
-        "rejected_steps": int(sol.stats["num_rejected_steps"]),
+        "t0": spec.t0, "t1": t1, "steps": run.steps, "rejected_steps": run.rejected_steps,
         "wall_time_s": wall, "max_constraint_error": float(constraint.max()), **report,
     }
     return SceneResult(np.asarray(ts), q, v, x, energy, np.asarray(error_t), np.asarray(error),

@@ -1,0 +1,89 @@
+"""Start-up of `sphere-mech run` on the default scene: the first run in a row (an empty
+cache folder: trace, compile, store) against the second (the stored integration program
+and JAX's compilation cache), each in a fresh process.
+
+Measured from just before the process is started to the first output of the progress
+bar (printed when the first segment of the integration is dispatched: "time to first
+step"), and to the process's exit (total, with plot.png and animation.html written).
+The pairs run alternately, each with a fresh cache folder; the table gives medians and
+the ratio second / first of the same pairs. Prints a markdown table and writes
+benchmarks/results/cli_startup.md.
+
+    python benchmarks/cli_startup.py [--repeats 5]
+"""
+
+import argparse
+import os
+import pathlib
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "results"
+COMMAND = "import sys; from sphere_mech._cli import main; sys.exit(main())"
+
+
+def timed_run(cache: pathlib.Path, out: pathlib.Path) -> tuple[float, float]:
+    """One `sphere-mech run` of the default scene: (time to first step, total) in s."""
+    env = {**os.environ, "SPHERE_MECH_CACHE_DIR": str(cache),
+           "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get(
+               "PYTHONPATH")]))}
+    env.pop("EQX_ON_ERROR", None)
+    first = []
+    start = time.perf_counter()
+    proc = subprocess.Popen([sys.executable, "-c", COMMAND, "run", "--out", str(out)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
+
+    def watch():  # the bar's first frame, "0.00%|", marks the first segment
+        seen = b""
+        while chunk := proc.stderr.read1(4096):
+            seen += chunk
+            if not first and b"%|" in seen:
+                first.append(time.perf_counter() - start)
+
+    reader = threading.Thread(target=watch)
+    reader.start()
+    status = proc.wait(timeout=600)
+    total = time.perf_counter() - start
+    reader.join()
+    if status != 0 or not first:
+        raise RuntimeError(f"sphere-mech run failed (status {status})")
+    return first[0], total
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=5)
+    repeats = parser.parse_args().repeats
+    rows = {"first": [], "second": []}
+    load = [os.getloadavg()[0]]
+    with tempfile.TemporaryDirectory() as tmp:
+        for k in range(repeats):
+            cache, out = pathlib.Path(tmp) / f"cache{k}", pathlib.Path(tmp) / f"out{k}"
+            for run in ("first", "second"):
+                rows[run].append(timed_run(cache, out))
+                print(f"repeat {k + 1}/{repeats} {run}: first step {rows[run][-1][0]:.2f} s, "
+                      f"total {rows[run][-1][1]:.2f} s", file=sys.stderr)
+            load.append(os.getloadavg()[0])
+    med = {run: [statistics.median(r[i] for r in rows[run]) for i in (0, 1)] for run in rows}
+    ratio = [statistics.median(b[i] / a[i] for a, b in zip(rows["first"], rows["second"],
+                                                            strict=True)) for i in (0, 1)]
+    machine = (f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+               f"load average {min(load):.1f}-{max(load):.1f} during the runs")
+    table = "\n".join([
+        f"`sphere-mech run` (default scene), medians of {repeats} pairs; {machine}.", "",
+        "| run | time to first step (s) | total (s) |", "|---|---|---|",
+        *(f"| {run} | {med[run][0]:.2f} | {med[run][1]:.2f} |" for run in rows),
+        f"| second / first | {ratio[0]:.2f} | {ratio[1]:.2f} |", ""])
+    print(table)
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / "cli_startup.md").write_text(table)
+
+
+if __name__ == "__main__":
+    main()

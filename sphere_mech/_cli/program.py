@@ -1,0 +1,261 @@
+"""The integration program of `sphere-mech run`, and where it is kept.
+
+A run integrates the scene segment by segment (at most `SEGMENTS`, each a whole number of
+save intervals) with one compiled program that calls nothing back in Python: the
+progress bar moves between segments, and a failure comes back as a result code that is
+raised after the run with `simulate`'s message. Such a program can be stored: with a
+cache folder the compiled program is written to `<folder>/programs/<key>.bin` (with its
+inputs in `<key>.npz`), `key` a hash of the scene file's bytes, `--t1`, the package's
+source and the versions of JAX and its libraries, and a later run of the same file loads
+it and starts integrating before importing diffrax or tracing anything.
+
+Each segment is `simulate`'s core (`_solve.solve`) from the state the previous one
+reached. Adaptive solvers choose the segment's first step afresh, so their steps differ
+from one `simulate` call's at the segment ends (the error per step is controlled as
+there). Fixed steps divide each segment equally into as many steps as `dt0` fits: one
+`simulate` call's steps when a segment holds whole steps (`save_dt` a multiple of `dt0`),
+else steps slightly shorter than `dt0`.
+"""
+
+import dataclasses
+import hashlib
+import importlib.metadata
+import math
+import os
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import jax
+import numpy as np
+
+SEGMENTS = 100
+"""The most segments a run is cut into: the steps of the progress bar."""
+LIBRARIES = ("jax", "jaxlib", "diffrax", "equinox", "optimistix", "lineax", "numpy")
+"""The libraries whose versions are part of a stored program's key."""
+_BAR = "{percentage:.2f}%|{bar}| [{elapsed}<{remaining}, {rate_fmt}{postfix}]"  # diffrax's
+
+
+@dataclasses.dataclass
+class Integrated:
+    """What a run returns: the saved trajectory (numpy) and the solver's counts.
+
+    **Attributes:**
+    - `t`, `q`, `v`: the save times `(T,)` and states `(T, n, 3)`.
+    - `steps`, `rejected_steps`: the solver's steps (all segments).
+    - `wall_time_s`: the time the segments took.
+    - `step_t`, `step_q`, `step_v`: with forces, the solver's own steps (else `None`).
+    """
+
+    t: np.ndarray
+    q: np.ndarray
+    v: np.ndarray
+    steps: int
+    rejected_steps: int
+    wall_time_s: float
+    step_t: np.ndarray | None = None
+    step_q: np.ndarray | None = None
+    step_v: np.ndarray | None = None
+
+
+@dataclasses.dataclass
+class Program:
+    """A compiled segment program and its inputs.
+
+    `call(t_start, ts, q, v, params)` integrates from `(q, v)` at `t_start = ts[0]` to
+    `ts[-1]`, saving at `ts`, and returns `(q_saved, v_saved, failed, code, steps,
+    rejected)` plus, with forces, the steps `(t, q, v)` padded with `inf`.
+
+    **Attributes:**
+    - `call`: the compiled program.
+    - `ts`: the save times of each segment, `(segments, m + 1)`, padded with its end.
+    - `count`: how many save times each row holds before the padding.
+    - `q0`, `v0`: the initial state; `params`: the scene's arrays.
+    - `max_steps`: `[simulate] max_steps`, for all segments together, and
+      `max_steps_code`, the result code of exceeding it.
+    """
+
+    call: Callable
+    ts: np.ndarray
+    count: np.ndarray
+    q0: np.ndarray
+    v0: np.ndarray
+    params: list
+    max_steps: int
+    max_steps_code: int
+
+    def integrate(self, progress: bool = False) -> Integrated:
+        """Run every segment (a progress bar on stderr with `progress`); raises a
+        `RuntimeError` with `simulate`'s message if the run fails."""
+        bar = _bar() if progress else None
+        start, (t0, t1) = time.perf_counter(), (self.ts[0, 0], self.ts[-1, -1])
+        q, v, parts, steps, rejected, code = self.q0, self.v0, [], 0, 0, None
+        for k, (ts, count) in enumerate(zip(self.ts, self.count, strict=True)):
+            out = [np.asarray(x) for x in self.call(ts[0], ts, q, v, self.params)]
+            steps, rejected = steps + int(out[4]), rejected + int(out[5])
+            if out[2] or steps > self.max_steps:
+                code = int(out[3]) if out[2] else self.max_steps_code
+                break
+            first = 0 if k == 0 else 1  # a segment starts where the last one saved
+            parts.append([out[0][first:count], out[1][first:count]]
+                         + [x[first:][np.isfinite(out[6][first:])] for x in out[6:]])
+            q, v = out[0][count - 1], out[1][count - 1]
+            if bar is not None:
+                bar.n = round(100 * float((ts[-1] - t0) / (t1 - t0)), 2)
+                bar.refresh()
+        if bar is not None:
+            bar.close()
+        if code is not None:
+            from .._results import raise_on_codes
+
+            raise_on_codes(np.array([code]), self.max_steps, "simulate")
+        t = np.concatenate([ts[(k > 0):c] for k, (ts, c) in
+                            enumerate(zip(self.ts, self.count, strict=True))])
+        joined = [np.concatenate(x) for x in zip(*parts, strict=True)]
+        return Integrated(t, *joined[:2], steps, rejected, time.perf_counter() - start,
+                          *(joined[2:] or [None] * 3))
+
+
+def _bar():
+    import tqdm
+
+    return tqdm.tqdm(total=100, unit="%", bar_format=_BAR)
+
+
+def segment_times(t0: float, t1: float, save_dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """The save times `linspace(t0, t1, T)` (`T - 1` intervals of about `save_dt`, at
+    least one) cut into at most `SEGMENTS` rows of `m + 1` (a row starts where the
+    previous one ends; the last is padded with `t1`), and the count of each row."""
+    import jax.numpy as jnp
+
+    n_out = max(2, int(round((t1 - t0) / save_dt)) + 1)
+    ts = np.asarray(jnp.linspace(t0, t1, n_out))
+    m = math.ceil((n_out - 1) / SEGMENTS)
+    starts = range(0, n_out - 1, m)
+    rows = [np.pad(ts[s:s + m + 1], (0, max(0, s + m + 1 - n_out)), mode="edge")
+            for s in starts]
+    return np.stack(rows), np.array([min(m + 1, n_out - s) for s in starts])
+
+
+def build(spec, t1=None) -> tuple[Program, jax.stages.Compiled]:
+    """Trace and compile the segment program of a scene file (`load_scene`'s
+    `SceneSpec`), optionally up to another end time `t1`.
+
+    **Returns:** the `Program` and the compiled program (for `store`).
+    """
+    import diffrax
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    from .._results import RESULTS, code, failed
+    from .._solve import as_arrays, initial_state, options, solve, times
+
+    scene = as_arrays(spec.scene)
+    scene.check_size(np.asarray(spec.y0[0]))
+    q0, v0 = initial_state(scene.state_name, spec.y0)
+    dynamic, static = eqx.partition(scene, eqx.is_array)
+    params, treedef = jax.tree.flatten(dynamic)
+    ts, count = segment_times(spec.t0, float(spec.t1 if t1 is None else t1), spec.save_dt)
+    opts = options(spec.solver, spec.dt0, spec.rtol, spec.atol, None, None, spec.max_steps,
+                   None, False, None, q0.dtype)
+
+    def segment(t_start, ts, q, v, params):
+        system = eqx.combine(jax.tree.unflatten(treedef, params), static)
+        saveat = diffrax.SaveAt(ts=ts)
+        if system.has_forces:  # the work-energy balance is integrated over the steps
+            saveat = diffrax.SaveAt(subs=[diffrax.SubSaveAt(ts=ts),
+                                          diffrax.SubSaveAt(t0=True, steps=True)])
+        t_start, t_end, dt0 = times(q.dtype, t_start, ts[-1], spec.dt0)
+        if isinstance(opts.controller, diffrax.ConstantStepSize):  # diffrax divides a
+            # segment into equal steps: as many as dt0 fits, the save times' rounding aside
+            dt0 = (t_end - t_start) / jnp.ceil((t_end - t_start) / dt0 * (1 - 1e-12))
+        sol = solve(system, (q, v), t_start, t_end, dt0, None,
+                    eqx.tree_at(lambda o: o.saveat, opts, saveat))
+        result = code(sol.result)
+        ys, steps = (sol.ys, ()) if not system.has_forces else (sol.ys[0], (sol.ts[1],
+                                                                          *sol.ys[1]))
+        return (*ys, failed(result), result, sol.stats["num_steps"],
+                sol.stats["num_rejected_steps"], *steps)
+
+    inputs = (ts[0, 0], ts[0], np.asarray(q0), np.asarray(v0), [np.asarray(p) for p in params])
+    compiled = jax.jit(segment).lower(*inputs).compile()
+    program = Program(compiled, ts, count, *inputs[2:], spec.max_steps,
+                      int(code(RESULTS.max_steps_reached)))
+    return program, compiled
+
+
+def key(path, t1=None) -> str | None:
+    """The name of a scene file's stored program: a hash of the file's bytes, `t1`, the
+    package's source, the libraries' versions and the device; `None` if the file
+    cannot be read (`load_scene` then says why)."""
+    try:
+        digest = hashlib.sha256(Path(path).read_bytes())
+    except OSError:
+        return None
+    package = Path(__file__).resolve().parents[1]
+    for file in sorted(package.rglob("*.py")):
+        digest.update(f"{file.relative_to(package)}\0".encode() + file.read_bytes())
+    versions = [f"{lib}={importlib.metadata.version(lib)}" for lib in LIBRARIES]
+    device = jax.devices()[0]
+    digest.update(repr((t1, versions, device.platform, device.device_kind,
+                        jax.config.jax_enable_x64)).encode())
+    return digest.hexdigest()[:32]
+
+
+def _files(folder: Path, name: str) -> tuple[Path, Path]:
+    return folder / "programs" / f"{name}.npz", folder / "programs" / f"{name}.bin"
+
+
+def store(folder: Path, name: str, program: Program, compiled) -> bool:
+    """Write a program for `load` (not one that calls back to Python, e.g. with
+    `EQX_ON_ERROR=raise`: such a program only runs in the process that compiled it).
+
+    **Returns:** whether it was written.
+    """
+    from jax.experimental.serialize_executable import serialize
+
+    if "callback" in compiled.as_text():
+        return False
+    payload, in_tree, out_tree = serialize(compiled)
+    inputs, outputs = _trees(program, out_tree.num_leaves)
+    if (in_tree, out_tree) != (inputs, outputs):
+        return False
+    arrays, binary = _files(folder, name)
+    params = {f"param{i}": p for i, p in enumerate(program.params)}
+    try:  # a folder that cannot be written keeps nothing, as JAX's cache
+        arrays.parent.mkdir(parents=True, exist_ok=True)
+        for path, write in ((arrays, lambda f: np.savez(
+                f, ts=program.ts, count=program.count, q0=program.q0, v0=program.v0,
+                steps=[program.max_steps, program.max_steps_code, out_tree.num_leaves],
+                **params)), (binary, lambda f: f.write(payload))):
+            partial = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+            with open(partial, "wb") as f:
+                write(f)
+            os.replace(partial, path)
+    except OSError:
+        return False
+    return True
+
+
+def _trees(program: Program, outputs: int):
+    inputs = (program.ts[0, 0], program.ts[0], program.q0, program.v0, program.params)
+    return jax.tree.structure((inputs, {})), jax.tree.structure((0,) * outputs)
+
+
+def load(folder: Path, name: str) -> Program | None:
+    """The program `store` wrote under `name`, ready to run; `None` if there is none."""
+    from jax.experimental.serialize_executable import deserialize_and_load
+
+    arrays, binary = _files(folder, name)
+    if not (arrays.exists() and binary.exists()):
+        return None
+    try:
+        with np.load(arrays) as data:
+            params = [data[f"param{i}"] for i in range(len(data.files) - 5)]
+            max_steps, max_steps_code, outputs = (int(x) for x in data["steps"])
+            program = Program(None, data["ts"], data["count"], data["q0"], data["v0"],
+                              params, max_steps, max_steps_code)
+        program.call = deserialize_and_load(binary.read_bytes(), *_trees(program, outputs))
+    except Exception:  # unreadable (e.g. written by another jaxlib build): compile again
+        return None
+    return program
