@@ -10,7 +10,15 @@ import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 
 from ._results import raise_on_failure
-from ._solve import DEFAULT_MAX_STEPS, as_arrays, initial_state, options, solve, times
+from ._solve import (
+    DEFAULT_MAX_STEPS,
+    as_arrays,
+    initial_state,
+    options,
+    solve,
+    state_dtype,
+    times,
+)
 from ._system import AbstractSystem
 
 BATCH_AXIS = "batch"
@@ -49,16 +57,16 @@ def _local_solve(static, chunk, shared, batched, y0):
         system, args, t0, t1, dt0, opts = eqx.combine(inputs[0], shared, static)
         return solve(system, inputs[1], t0, t1, dt0, args, opts)
 
-    if chunk >= y0[0].shape[0]:
+    if chunk >= jax.tree.leaves(y0)[0].shape[0]:
         return jax.vmap(block)((batched, y0))
     return jax.lax.map(block, (batched, y0), batch_size=chunk)
 
 
 @eqx.filter_jit
-def _initial_states(state_name, y0):
+def _initial_states(space, state_name, y0):
     """Validate and retract the initial states, outside the sharded program (its checks
     are host callbacks, which should not run inside `shard_map`)."""
-    return jax.vmap(lambda y: initial_state(state_name, y))(y0)
+    return jax.vmap(lambda y: initial_state(space, state_name, y))(y0)
 
 
 @eqx.filter_jit
@@ -115,7 +123,8 @@ def simulate_batch(
       default adjoint (`None`) uses forward mode for at most 2 differentiated scalars
       here (8 in `simulate`): under `vmap` forward mode's cost grows with every column
       and reverse mode's does not.
-    - `y0`: `(q0, v0)`, arrays of shape `(batch, n, 3)`.
+    - `y0`: `(q0, v0)`, arrays of shape `(batch, n, 3)` (on a mixed space, dicts of
+      arrays, each with the leading batch axis).
     - `args`: passed to the system; its array leaves have a leading batch axis (one value
       per trajectory: masses, gains, ...) unless `batch_args=False`.
     - `batch_args`: `False` shares `args` between all trajectories (no batch axis).
@@ -147,18 +156,24 @@ def simulate_batch(
     """
     if not (isinstance(y0, tuple | list) and len(y0) == 2):
         raise ValueError("y0 must be a pair (q0, v0) of (batch, n, 3) arrays.")
-    q0, v0 = (jnp.asarray(x) for x in y0)
-    if q0.ndim != 3 or q0.shape[-1] != 3 or q0.shape[0] == 0:
-        raise ValueError(f"q0 must have shape (batch, n, 3) with batch >= 1, got {q0.shape}.")
-    size, n = q0.shape[:2]
+    q0, v0 = jax.tree.map(jnp.asarray, tuple(y0))
+    leading = {jnp.shape(x)[:1] for x in jax.tree.leaves((q0, v0))}
+    if len(leading) != 1 or leading == {()} or leading == {(0,)}:
+        raise ValueError("y0 must have a leading batch axis (batch >= 1), the same on every "
+                         f"array, got shapes {jax.tree.map(jnp.shape, (q0, v0))}.")
+    size = leading.pop()[0]
+    one_state = jax.tree.map(lambda x: x[0], (q0, v0))
+    system.space.check_shapes(*one_state, system.state_name)
+    n = system.space.rows(one_state[0])
+    dtype = state_dtype((q0, v0))
     if batch_args and args is not None:
         _leading(args, size, "args")
     if batch_system:
         _leading(eqx.filter(system, eqx.is_array), size, "system")
     system, args = as_arrays((system, args))
     opts = options(solver, dt0, rtol, atol, stepsize_controller, saveat, max_steps, adjoint,
-                   progress, event, q0.dtype, batched=True)
-    t0, t1, dt0 = times(q0.dtype, t0, t1, dt0)  # values, not structure
+                   progress, event, dtype, batched=True)
+    t0, t1, dt0 = times(dtype, t0, t1, dt0)  # values, not structure
     dynamic, static = eqx.partition((system, args, t0, t1, dt0, opts), eqx.is_array)
     mask = jax.tree.map(lambda _: False, dynamic)
     mask = (batch_system, batch_args) + mask[2:]  # prefixes: all of system / args or none
@@ -171,7 +186,8 @@ def simulate_batch(
     chunk = _chunk_size(chunk_size, n, per_device, devices[0].platform)
     padded = -(-size // (chunk * len(devices))) * chunk * len(devices)
     one = jax.tree.map(lambda x: x[0] if eqx.is_array(x) else x, system) if batch_system else system
-    one.check_size(q0[0])
-    y0 = _initial_states(system.state_name, (q0, v0))
+    if one.n is not None:
+        one.check_size(one_state[0])
+    y0 = _initial_states(system.space, system.state_name, (q0, v0))
     sol = _solve_batch(static, chunk, mesh, shared, batched, y0, size, padded)
     return raise_on_failure(sol, max_steps, "simulate_batch") if throw else sol

@@ -7,7 +7,10 @@ velocity or momentum when
 `max_i |q_i . v_i| <= unit_tolerance(dtype) * (1 + max_i |v_i|)`.
 """
 
+import functools
+
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -28,37 +31,40 @@ def unit_tolerance(dtype) -> float:
     return UNIT_TOLERANCE.get(np.dtype(dtype), 1e-4)
 
 
-def check_shapes(q, v, v_name: str = "v") -> None:
+def check_shapes(q, v, v_name: str = "v", q_name: str = "q") -> None:
     """Static checks: `q` is `(n, 3)` and `v` has the same shape."""
     q_shape, v_shape = jnp.shape(q), jnp.shape(v)
     if len(q_shape) != 2 or q_shape[-1] != 3:
-        raise ValueError(f"q must have shape (n, 3) (one unit vector per sphere), got {q_shape}.")
+        raise ValueError(
+            f"{q_name} must have shape (n, 3) (one unit vector per sphere), got {q_shape}."
+        )
     if q_shape[0] == 0:
-        raise ValueError("q must hold at least one point (n >= 1), got shape (0, 3).")
+        raise ValueError(f"{q_name} must hold at least one point (n >= 1), got shape (0, 3).")
     if v_shape != q_shape:
         raise ValueError(
-            f"{v_name} must have the same shape as q, {q_shape}, got {v_shape} "
-            "(q and the velocity or momentum must describe the same number of spheres)."
+            f"{v_name} must have the same shape as {q_name}, {q_shape}, got {v_shape} "
+            f"({q_name} and the velocity or momentum must describe the same number of "
+            "spheres)."
         )
-    for name, x in (("q", q), (v_name, v)):
+    for name, x in ((q_name, q), (v_name, v)):
         if not jnp.issubdtype(jnp.result_type(x), jnp.floating):
             raise ValueError(f"{name} must be a floating-point array, got {jnp.result_type(x)}.")
 
 
-def _check_all_finite(x, name: str):
+def check_finite_named(x, name: str):
     return eqx.error_if(x, ~jnp.all(jnp.isfinite(x)), f"{name} contains NaN or infinite values.")
 
 
-def check_unit(q):
+def check_unit(q, q_name: str = "q"):
     """Error (at run time) unless every row of `q` is a finite unit vector within
     tolerance."""
-    q = _check_all_finite(q, "q")
+    q = check_finite_named(q, q_name)
     tol = unit_tolerance(jnp.result_type(q))
     err = jnp.max(jnp.abs(jnp.linalg.norm(q, axis=-1) - 1.0))
     return eqx.error_if(
         q,
         err > tol,
-        f"q is not on the spheres: some |q_i| differs from 1 by more than {tol:g} "
+        f"{q_name} is not on the spheres: some |q_i| differs from 1 by more than {tol:g} "
         "(normalize q, e.g. with sphere_mech.normalize).",
     )
 
@@ -66,7 +72,7 @@ def check_unit(q):
 def check_tangent(q, v, v_name: str = "v"):
     """Error (at run time) unless every `v_i` is finite and orthogonal to `q_i` within
     tolerance."""
-    v = _check_all_finite(v, v_name)
+    v = check_finite_named(v, v_name)
     tol = unit_tolerance(jnp.result_type(q))
     normal = jnp.max(jnp.abs(jnp.sum(q * v, axis=-1)))
     scale = 1.0 + jnp.max(jnp.linalg.norm(v, axis=-1))
@@ -78,14 +84,6 @@ def check_tangent(q, v, v_name: str = "v"):
     )
 
 
-def check_state(q, v, v_name: str = "v"):
-    """All checks of a state `(q, v)`; returns the (unchanged) arrays, tied to the checks."""
-    check_shapes(q, v, v_name)
-    q = check_unit(q)
-    v = check_tangent(q, v, v_name)
-    return q, v
-
-
 def check_scalar(value, what: str):
     """Static check that a user function returned a scalar."""
     shape = jnp.shape(value)
@@ -94,16 +92,9 @@ def check_scalar(value, what: str):
     return value
 
 
-def check_forces(f, q_shape):
-    """Static check of the output of a user's `forces` function."""
-    if jnp.shape(f) != tuple(q_shape):
-        raise ValueError(
-            f"forces(t, q, v, args) must return an array of shape {tuple(q_shape)} "
-            f"(one generalized force per sphere), got {jnp.shape(f)}."
-        )
-    return f
-
-
 def check_finite(x, message: str):
-    """Error (at run time) when `x` has a NaN or infinity; `message` names the cause."""
-    return eqx.error_if(x, ~jnp.all(jnp.isfinite(x)), message)
+    """Error (at run time) when `x` (an array or a dict of arrays) has a NaN or infinity;
+    `message` names the cause."""
+    finite = functools.reduce(jnp.logical_and, [jnp.all(jnp.isfinite(a))
+                                                for a in jax.tree.leaves(x)])
+    return eqx.error_if(x, ~finite, message)

@@ -1,13 +1,15 @@
 """Hamiltonian systems: form 3 in `(q, mu)` (Proposition 3) and form 4 in `(q, pi)`
 (Proposition 4). They need gradients of `H` only, no linear solve."""
 
+import operator
 from collections.abc import Callable
 from typing import ClassVar
 
-import jax.numpy as jnp
+import equinox as eqx
+import jax
 
 from ._custom_types import ForceFn
-from ._geometry import project
+from ._spaces import AbstractSpace, Spheres, as_space, tree_add, tree_sub
 from ._system import AbstractHamiltonianSystem
 
 
@@ -22,20 +24,27 @@ class Hamiltonian(AbstractHamiltonianSystem):
       (`(n, 3)` tangent) and `args`.
     - `forces`: optional `forces(t, q, mu, args) -> (n, 3)`, generalized forces with
       virtual work `sum_i f_i . delta q_i`.
+    - `space`: the configuration space: `Spheres()` (default: plain `(n, 3)` arrays) or
+      a dict of factors (`sm.Spheres(n)`, `sm.Euclidean(m)`); states and forces are
+      then dicts with its keys. A Euclidean factor's momentum is `dL/dxdot`, with
+      `xdot = dH/dp_x`, `p_x' = -dH/dx + f_x`.
     """
 
     H: Callable
     forces: ForceFn | None = None
+    space: AbstractSpace = eqx.field(default_factory=Spheres, converter=as_space)
     state_name: ClassVar[str] = "mu"
     angular: ClassVar[bool] = False
 
     def rates(self, t, y, args):
         q, mu = y
+        space = self.space
         dH_dq, dH_dmu = self._gradients(t, q, mu, args)
         f = self.generalized_force(t, q, mu, args)
-        force = dH_dq if f is None else dH_dq - f
-        mudot = -project(q, force) + jnp.cross(dH_dmu, jnp.cross(mu, q))
-        return project(q, dH_dmu), mudot
+        force = dH_dq if f is None else tree_sub(dH_dq, f)
+        transport = space.bracket(dH_dmu, space.to_linear(q, mu))
+        mudot = tree_sub(transport, space.project(q, force))
+        return space.project(q, dH_dmu), mudot
 
 
 class AngularHamiltonian(AbstractHamiltonianSystem):
@@ -48,16 +57,21 @@ class AngularHamiltonian(AbstractHamiltonianSystem):
       (`(n, 3)` tangent) and `args`.
     - `forces`: optional `forces(t, q, pi, args) -> (n, 3)`, generalized forces with
       virtual work `sum_i f_i . delta q_i`.
+    - `space`: the configuration space, as in `Hamiltonian`; only the sphere factors
+      have angular momenta, Euclidean factors keep `p_x = dL/dxdot`.
     """
 
     H: Callable
     forces: ForceFn | None = None
+    space: AbstractSpace = eqx.field(default_factory=Spheres, converter=as_space)
     state_name: ClassVar[str] = "pi"
     angular: ClassVar[bool] = True
 
     def rates(self, t, y, args):
         q, pi = y
+        space = self.space
         dH_dq, dH_dpi = self._gradients(t, q, pi, args)
         f = self.generalized_force(t, q, pi, args)
-        torque = -dH_dq if f is None else f - dH_dq
-        return jnp.cross(dH_dpi, q), jnp.cross(q, torque) + jnp.cross(dH_dpi, pi)
+        torque = jax.tree.map(operator.neg, dH_dq) if f is None else tree_sub(f, dH_dq)
+        pidot = tree_add(space.from_linear(q, torque), space.bracket(dH_dpi, pi))
+        return space.to_linear(q, dH_dpi), pidot

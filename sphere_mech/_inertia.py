@@ -23,6 +23,7 @@ from ._checks import check_scalar
 from ._custom_types import Args, ForceFn, Points, Scalar
 from ._geometry import normalize
 from ._linalg import spd_solve, tridiagonal_matvec, tridiagonal_spd_solve
+from ._spaces import AbstractSpace, Spheres
 from ._system import AbstractLagrangianSystem, as_time
 
 
@@ -33,6 +34,7 @@ class AbstractConstantInertiaLagrangian(AbstractLagrangianSystem):
     solves) and `kinetic_energy` (a cheaper formula than the dense one)."""
 
     quadratic_in_velocity: ClassVar[bool] = True
+    space: ClassVar[AbstractSpace] = Spheres()
     state_name: ClassVar[str] = "qdot"
     angular: ClassVar[bool] = False
 

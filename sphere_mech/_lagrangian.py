@@ -10,8 +10,7 @@ import jax.numpy as jnp
 
 from ._checks import check_finite, check_scalar
 from ._custom_types import Args, ForceFn, Points, Tangents
-from ._geometry import dot, project, tangent_basis
-from ._linalg import from_tangent, reduced_matrix, to_tangent
+from ._spaces import AbstractSpace, Spheres, as_space, tree_add, tree_scale, tree_sub
 from ._system import SINGULAR_MESSAGE, AbstractLagrangianSystem, as_time
 
 
@@ -31,10 +30,16 @@ def _lagrangian_terms(L, t, q, v, args, direction):
     return p, dL_dq, mixed, hvp
 
 
-def _tangent_solve(hvp, q, rhs):
-    """The tangent `x` with `P H x = P rhs`, solved as `(T^T H T) a = T^T rhs`."""
-    T = tangent_basis(q)
-    return from_tangent(T, jnp.linalg.solve(reduced_matrix(hvp, T), to_tangent(T, rhs)))
+def _tangent_solve(space, hvp, q, rhs):
+    """The tangent `x` with `P H x = P rhs`, solved as `(T^T H T) a = T^T rhs` (`T` the
+    space's tangent basis: `blockdiag(I_m, T_S)` on a mixed space)."""
+    T = space.tangent_basis(q)
+    a = jnp.linalg.solve(space.reduced_matrix(hvp, T), space.to_tangent(T, rhs))
+    return space.from_tangent(T, a)
+
+
+def _space_field():
+    return eqx.field(default_factory=Spheres, converter=as_space)
 
 
 class Lagrangian(AbstractLagrangianSystem):
@@ -48,6 +53,10 @@ class Lagrangian(AbstractLagrangianSystem):
       virtual work `sum_i f_i . delta q_i`.
     - `quadratic_in_velocity`: declare that `L` is (at most) quadratic in `qdot`; then
       `legendre` inverts the momentum map by one linear solve instead of Newton.
+    - `space`: the configuration space: `Spheres()` (default: `q` a plain `(n, 3)`
+      array, any `n`) or a dict of factors, e.g. `{"cart": sm.Euclidean(1), "pendulum":
+      sm.Spheres(1)}`; then `q`, `qdot` and the forces are dicts with its keys (one
+      array per factor) and the virtual work is `f_x . delta x + sum_i f_i . delta q_i`.
 
     Accelerations solve `(P H_vv + Q) qddot = P b - c` in tangent coordinates (2n x 2n),
     with `H_vv = d^2L/dqdot^2` applied by forward-over-reverse autodiff.
@@ -56,6 +65,7 @@ class Lagrangian(AbstractLagrangianSystem):
     L: Callable
     forces: ForceFn | None = None
     quadratic_in_velocity: bool = eqx.field(default=False, static=True)
+    space: AbstractSpace = _space_field()
     state_name: ClassVar[str] = "qdot"
     angular: ClassVar[bool] = False
 
@@ -64,11 +74,10 @@ class Lagrangian(AbstractLagrangianSystem):
 
     def _vdot(self, t, q, qdot, args):
         _, dL_dq, mixed, hvp = _lagrangian_terms(self.L, t, q, qdot, args, qdot)
-        c = dot(qdot, qdot) * q  # keeps q_i . qddot_i = -|qdot_i|^2
+        c = self.space.normal_acceleration(q, qdot)  # keeps q_i . qddot_i = -|qdot_i|^2
         f = self.generalized_force(t, q, qdot, args)
-        b = dL_dq - mixed if f is None else dL_dq - mixed + f
-        return _tangent_solve(hvp, q, b + hvp(c)) - c
-
+        b = tree_sub(dL_dq, mixed) if f is None else tree_add(tree_sub(dL_dq, mixed), f)
+        return tree_sub(_tangent_solve(self.space, hvp, q, tree_add(b, hvp(c))), c)
 
 
 class AngularLagrangian(AbstractLagrangianSystem):
@@ -84,11 +93,14 @@ class AngularLagrangian(AbstractLagrangianSystem):
       virtual work `sum_i f_i . delta q_i` (the same convention as everywhere).
     - `quadratic_in_velocity`: declare that `L` is (at most) quadratic in `omega`; then
       `legendre` inverts the momentum map by one linear solve instead of Newton.
+    - `space`: the configuration space, as in `Lagrangian`; only the sphere factors have
+      angular velocities, Euclidean factors keep `xdot`.
     """
 
     L: Callable
     forces: ForceFn | None = None
     quadratic_in_velocity: bool = eqx.field(default=False, static=True)
+    space: AbstractSpace = _space_field()
     state_name: ClassVar[str] = "omega"
     angular: ClassVar[bool] = True
 
@@ -96,12 +108,14 @@ class AngularLagrangian(AbstractLagrangianSystem):
         return self.L(t, q, omega, args)
 
     def _vdot(self, t, q, omega, args):
-        qdot = jnp.cross(omega, q)
+        space = self.space
+        qdot = space.to_linear(q, omega)
         p, dL_dq, mixed, hvp = _lagrangian_terms(self.L, t, q, omega, args, qdot)
         f = self.generalized_force(t, q, omega, args)
-        force = dL_dq if f is None else dL_dq + f
-        rhs = -project(q, mixed - 2.0 * jnp.cross(omega, p)) + jnp.cross(q, force)
-        return _tangent_solve(hvp, q, rhs)
+        force = dL_dq if f is None else tree_add(dL_dq, f)
+        turning = tree_sub(mixed, tree_scale(2.0, space.bracket(omega, p)))
+        rhs = tree_sub(space.from_linear(q, force), space.project(q, turning))
+        return _tangent_solve(space, hvp, q, rhs)
 
     def angular_acceleration(self, t, q: Points, omega: Tangents, args: Args = None):
         """`omegadot` from the Euler-Lagrange equations in `(q, omega)` (Proposition 2),

@@ -12,6 +12,7 @@ from diffrax import RESULTS
 
 from ._hamiltonian import AngularHamiltonian, Hamiltonian
 from ._lagrangian import AngularLagrangian
+from ._spaces import AbstractSpace, tree_sub, tree_vdot
 from ._system import AbstractHamiltonianSystem, AbstractLagrangianSystem, AbstractSystem
 
 
@@ -66,12 +67,14 @@ def mu_from_pi(q, pi):
 
 class _Reparametrized(eqx.Module):
     """`fn(t, q, w x q, args)`: a function of `qdot` (or `mu`) read as a function of
-    `omega` (or `pi`). A Module, so the wrapped system's arrays stay pytree leaves."""
+    `omega` (or `pi`) (on the sphere factors of `space`; Euclidean factors keep their
+    variable). A Module, so the wrapped system's arrays stay pytree leaves."""
 
     fn: Callable
+    space: AbstractSpace
 
     def __call__(self, t, q, w, args):
-        return self.fn(t, q, jnp.cross(w, q), args)
+        return self.fn(t, q, self.space.to_linear(q, w), args)
 
 
 def angular(system: AbstractSystem) -> AbstractSystem:
@@ -91,12 +94,13 @@ def angular(system: AbstractSystem) -> AbstractSystem:
     if system.angular:
         raise TypeError(f"angular() takes a form-1 or form-3 system; {type(system).__name__} "
                         "is in angular variables already.")
-    forces = _Reparametrized(system.generalized_force) if system.has_forces else None
+    space = system.space
+    forces = _Reparametrized(system.generalized_force, space) if system.has_forces else None
     if isinstance(system, AbstractLagrangianSystem):
-        return AngularLagrangian(_Reparametrized(system.lagrangian), forces,
-                                 system.quadratic_in_velocity)
+        return AngularLagrangian(_Reparametrized(system.lagrangian, space), forces,
+                                 system.quadratic_in_velocity, space)
     if isinstance(system, AbstractHamiltonianSystem):
-        return AngularHamiltonian(_Reparametrized(system.H), forces)
+        return AngularHamiltonian(_Reparametrized(system.H, space), forces, space)
     raise TypeError(f"angular() takes a Lagrangian or Hamiltonian system, got {type(system)}.")
 
 
@@ -104,7 +108,7 @@ def _velocity(system, t, q, p, args, quadratic):
     """The inverse Legendre map, NaN where it failed (never raised here: inside a run
     that is a result code; the checked `vector_field` raises, naming the transform)."""
     v, result = system.velocity_from_momentum(t, q, p, args, quadratic=quadratic)
-    return jnp.where(result == RESULTS.successful, v, jnp.nan)
+    return jax.tree.map(lambda x: jnp.where(result == RESULTS.successful, x, jnp.nan), v)
 
 
 def _materialize(primal, tangent):
@@ -117,7 +121,7 @@ def _materialize(primal, tangent):
 def _legendre_value(system, t, q, p, args, *, quadratic):
     """`H(t, q, p) = p . v - L(t, q, v)` with `v` the inverse Legendre map of `p`."""
     v = _velocity(system, t, q, p, args, quadratic)
-    return jnp.sum(p * v) - system.lagrangian(t, q, v, args)
+    return tree_vdot(p, v) - system.lagrangian(t, q, v, args)
 
 
 @_legendre_value.def_jvp
@@ -138,14 +142,15 @@ def _legendre_jvp(primals, tangents, *, quadratic):
         return system_.lagrangian(t_, q_, v, args_)
 
     L, dL = eqx.filter_jvp(L_fixed_v, (system, t, q, args), (t_system, t_t, t_q, t_args))
-    r = p - jax.grad(lambda v_: system.lagrangian(t, q, v_, args))(v)
-    rho = jnp.sum(q * r, axis=-1) / jnp.sum(q * q, axis=-1)
+    r = tree_sub(p, jax.grad(lambda v_: system.lagrangian(t, q, v_, args))(v))
+    rho = system.space.normal_multiplier(q, r)  # r = rho q on the spheres, 0 elsewhere
     dH = -dL
     if t_p is not None:
-        dH = dH + jnp.sum(v * t_p)
+        dH = dH + tree_vdot(v, t_p)
     if t_q is not None:
-        dH = dH - jnp.sum(rho * jnp.sum(v * t_q, axis=-1))
-    return jnp.sum(p * v) - L, dH
+        rho_v = jax.tree.map(jnp.multiply, rho, v)
+        dH = dH - tree_vdot(rho_v, t_q)
+    return tree_vdot(p, v) - L, dH
 
 
 class _LegendreH(eqx.Module):
@@ -197,4 +202,4 @@ def legendre(system: AbstractSystem, *, quadratic: bool | None = None) -> Abstra
         raise TypeError(f"legendre() takes a Lagrangian system, got {type(system)}.")
     H = _LegendreH(system, quadratic)
     forces = _LegendreForces(H) if system.has_forces else None
-    return (AngularHamiltonian if system.angular else Hamiltonian)(H, forces)
+    return (AngularHamiltonian if system.angular else Hamiltonian)(H, forces, system.space)

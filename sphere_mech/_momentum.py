@@ -9,8 +9,7 @@ from diffrax import RESULTS
 from jax import lax
 
 from ._checks import check_scalar
-from ._geometry import tangent_basis
-from ._linalg import from_tangent, reduced_matrix, to_tangent
+from ._spaces import tree_max_abs, tree_sub, tree_vdot
 
 
 def newton_tolerance(dtype) -> float:
@@ -26,11 +25,11 @@ def newton(tol) -> optx.Newton:
 
 def residual_scale(*terms) -> jax.Array:
     """The size of the largest of `terms`: what a residual built from them rounds at."""
-    size = sum(jnp.max(jnp.abs(x)) for x in terms)
+    size = sum(tree_max_abs(x) for x in terms)
     return jnp.maximum(size, jnp.finfo(size.dtype).tiny)
 
 
-def invert_momentum(L, t, q, p, args, *, guess, quadratic: bool, tol, max_steps: int):
+def invert_momentum(L, space, t, q, p, args, *, guess, quadratic: bool, tol, max_steps: int):
     """The tangent `v` with `P dL/dv(t, q, v) = p`, and a result code.
 
     One linear solve around `guess` (exact when `L` is quadratic in `v`), then, unless
@@ -42,20 +41,22 @@ def invert_momentum(L, t, q, p, args, *, guess, quadratic: bool, tol, max_steps:
     where `L` is not finite) approaches from `guess`, and Newton then finishes. Failures
     are reported as diffrax's codes, never raised (`singular` for a singular linear
     solve). Solved in a tangent basis, so `v` stays tangent as `q` varies."""
-    T = tangent_basis(q)
+    T = space.tangent_basis(q)
+    to_tangent = space.to_tangent
+    from_tangent = space.from_tangent
 
     def dL_dv(v):
         return jax.grad(lambda v_: check_scalar(L(t, q, v_, args), "L(t, q, v, args)"))(v)
 
     p_guess, hvp = jax.linearize(dL_dv, guess)
     a = to_tangent(T, guess) + jnp.linalg.solve(
-        reduced_matrix(hvp, T), to_tangent(T, p - p_guess)
+        space.reduced_matrix(hvp, T), to_tangent(T, tree_sub(p, p_guess))
     )
     finite = jnp.all(jnp.isfinite(a))
     if quadratic:
         return from_tangent(T, a), RESULTS.where(finite, RESULTS.successful, RESULTS.singular)
     scale = lax.stop_gradient(residual_scale(p_guess, p))
-    residual = lambda a_, _: to_tangent(T, dL_dv(from_tangent(T, a_)) - p) / scale
+    residual = lambda a_, _: to_tangent(T, tree_sub(dL_dv(from_tangent(T, a_)), p)) / scale
 
     def polish(a0):
         sol = optx.root_find(residual, newton(tol), a0, max_steps=max_steps, throw=False)
@@ -65,7 +66,7 @@ def invert_momentum(L, t, q, p, args, *, guess, quadratic: bool, tol, max_steps:
     def globalized(start):
         def objective(a_, _):
             v = from_tangent(T, a_)
-            return (L(t, q, v, args) - jnp.sum(p * v)) / scale
+            return (L(t, q, v, args) - tree_vdot(p, v)) / scale
 
         bfgs = optx.BFGS(rtol=tol, atol=tol)
         sol = optx.minimise(objective, bfgs, start, max_steps=8 * max_steps, throw=False)

@@ -5,7 +5,15 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from ._results import raise_on_failure
-from ._solve import DEFAULT_MAX_STEPS, as_arrays, initial_state, options, solve, times
+from ._solve import (
+    DEFAULT_MAX_STEPS,
+    as_arrays,
+    initial_state,
+    options,
+    solve,
+    state_dtype,
+    times,
+)
 from ._system import AbstractSystem
 
 _solve = eqx.filter_jit(solve)
@@ -35,7 +43,8 @@ def simulate(
     **Arguments:**
     - `system`: any sphere_mech system (`Lagrangian`, `AngularLagrangian`, `Hamiltonian`,
       `AngularHamiltonian`, `ConstantInertiaLagrangian`, a `Scene`, ...).
-    - `y0`: `(q0, v0)`, `(n, 3)` arrays; `v0` is the system's second state variable.
+    - `y0`: `(q0, v0)`, `(n, 3)` arrays (on a mixed space, dicts with the keys of
+      `system.space`, one array per factor); `v0` is the system's second state variable.
       A state within `unit_tolerance(dtype)` of the tangent bundle is normalized;
       farther ones raise.
     - `t1`, `t0`: end and start times (any floats or scalar arrays; changing their values
@@ -80,14 +89,17 @@ def simulate(
       `SaveAt(ts=...)` entries are `inf`). Invalid input (shapes, a `q0` off the
       spheres, bad options) raises in both cases.
 
-    **Returns:** a `diffrax.Solution` whose `ys` is `(q, v)` with a leading time axis
+    **Returns:** a `diffrax.Solution` whose `ys` is `(q, v)` (dicts of arrays on a mixed
+    space) with a leading time axis
     and whose `result` is an `sm.RESULTS` code.
     """
     system, args = as_arrays((system, args))
-    system.check_size(jnp.asarray(y0[0]))
-    y0 = initial_state(system.state_name, y0)
+    if system.n is not None:
+        system.check_size(jnp.asarray(y0[0]))
+    y0 = initial_state(system.space, system.state_name, y0)
+    dtype = state_dtype(y0)
     opts = options(solver, dt0, rtol, atol, stepsize_controller, saveat, max_steps, adjoint,
-                   progress, event, y0[0].dtype)
-    t0, t1, dt0 = times(y0[0].dtype, t0, t1, dt0)
+                   progress, event, dtype)
+    t0, t1, dt0 = times(dtype, t0, t1, dt0)
     sol = _solve(system, y0, t0, t1, dt0, args, opts)
     return raise_on_failure(sol, max_steps, "simulate") if throw else sol

@@ -8,8 +8,6 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from ._checks import check_shapes, check_state
-from ._geometry import retract
 from ._results import RESULTS
 from ._solvers.projected import Projected
 from ._term import MechanicsTerm
@@ -110,18 +108,25 @@ def times(dtype, *ts):
     return tuple(None if t is None else jnp.asarray(t, dtype=dtype) for t in ts)
 
 
-def initial_state(state_name: str, y0):
-    """Check an initial state `(q0, v0)` (`v0` named `state_name`) and put it exactly on
-    the tangent bundle.
+def initial_state(space, state_name: str, y0):
+    """Check an initial state `(q0, v0)` of `space` (`v0` named `state_name`) and put it
+    exactly on the tangent bundle.
 
     States within `unit_tolerance(dtype)` of the spheres (and of tangency) are accepted
     and corrected (`q_i / |q_i|`, normal part of `v_i` removed); farther ones raise."""
     if not (isinstance(y0, tuple | list) and len(y0) == 2):
-        raise ValueError("y0 must be a pair (q0, v0) of (n, 3) arrays.")
-    q0, v0 = (jnp.asarray(x) for x in y0)
-    check_shapes(q0, v0, state_name)
-    dtype = jnp.result_type(q0, v0)  # one floating dtype for the whole state
-    return retract(*check_state(q0.astype(dtype), v0.astype(dtype), state_name))
+        raise ValueError("y0 must be a pair (q0, v0) of (n, 3) arrays (dicts of arrays on "
+                         "a mixed space).")
+    q0, v0 = jax.tree.map(jnp.asarray, tuple(y0))
+    space.check_shapes(q0, v0, state_name)
+    dtype = state_dtype((q0, v0))  # one floating dtype for the whole state
+    q0, v0 = jax.tree.map(lambda x: x.astype(dtype), (q0, v0))
+    return space.retract(*space.check_values(q0, v0, state_name))
+
+
+def state_dtype(y):
+    """The floating dtype of a state (all its arrays together)."""
+    return jnp.result_type(*jax.tree.leaves(y))
 
 
 def _all_finite(tree) -> jax.Array:
@@ -241,7 +246,7 @@ def solve_with(adjoint, system, y0, t0, t1, dt0, args, opts: Options) -> diffrax
     result = RESULTS.where((result == RESULTS.successful) & has_nan, RESULTS.nonfinite, result)
     result = RESULTS.where(ok, result, RESULTS.nonfinite_initial)
     ts, ys = jax.tree.map(lambda x: jnp.where(ok, x, jnp.inf),
-                          (sol.ts, _retract_saved(opts.saveat, sol.ys)))
+                          (sol.ts, _retract_saved(system.space, opts.saveat, sol.ys)))
     return eqx.tree_at(lambda s: (s.result, s.ts, s.ys), sol, (result, ts, ys),
                        is_leaf=lambda x: x is None)
 
@@ -255,23 +260,24 @@ def _save_times(saveat: diffrax.SaveAt) -> list:
 _DEFAULT_SAVE_FN = diffrax.SubSaveAt(t1=True).fn
 
 
-def _retract_saved(saveat: diffrax.SaveAt, ys):
+def _retract_saved(space, saveat: diffrax.SaveAt, ys):
     """Dense output between steps (`SaveAt(ts=...)`) is a polynomial that leaves the
     spheres by the local error: put saved states back on the tangent bundle. Only
     states saved by diffrax's default `fn` are touched, and only finite entries (diffrax
     pads unreached save times with `inf`)."""
     subs = saveat.subs
     if isinstance(subs, diffrax.SubSaveAt):
-        return _retract_if_state(subs, ys)
+        return _retract_if_state(space, subs, ys)
     if isinstance(subs, list | tuple) and isinstance(ys, list | tuple):
-        return type(ys)(_retract_if_state(s, y) for s, y in zip(subs, ys, strict=True))
+        return type(ys)(_retract_if_state(space, s, y) for s, y in zip(subs, ys, strict=True))
     return ys
 
 
-def _retract_if_state(sub, ys):
+def _retract_if_state(space, sub, ys):
     if not (isinstance(sub, diffrax.SubSaveAt) and sub.fn is _DEFAULT_SAVE_FN):
         return ys
     q, v = ys
-    q_r, v_r = retract(q, v)
-    finite = jnp.all(jnp.isfinite(q), axis=-1, keepdims=True)
-    return jnp.where(finite, q_r, q), jnp.where(finite, v_r, v)
+    q_r, v_r = space.retract(q, v)
+    finite = jax.tree.map(lambda x: jnp.all(jnp.isfinite(x), axis=-1, keepdims=True), q)
+    keep = lambda new, old, ok: jnp.where(ok, new, old)
+    return jax.tree.map(keep, q_r, q, finite), jax.tree.map(keep, v_r, v, finite)

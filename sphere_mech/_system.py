@@ -8,10 +8,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._checks import check_finite, check_forces, check_scalar, check_state
+from ._checks import check_finite, check_scalar
 from ._custom_types import Args, ForceFn, Points, Scalar, State, Tangents
-from ._geometry import project
 from ._momentum import invert_momentum, newton_tolerance
+from ._spaces import AbstractSpace, tree_dtype, tree_vdot, tree_zeros_like
 
 SINGULAR_MESSAGE = (
     "the reduced mass matrix T^T (d^2 L / d v^2) T is singular or not finite: the "
@@ -21,7 +21,7 @@ SINGULAR_MESSAGE = (
 
 def as_time(t, like: jax.Array) -> jax.Array:
     """`t` as a scalar array of `like`'s floating dtype (so it can be differentiated)."""
-    return jnp.asarray(t, dtype=jnp.result_type(like))
+    return jnp.asarray(t, dtype=tree_dtype(like))
 
 
 class AbstractSystem(eqx.Module):
@@ -35,9 +35,15 @@ class AbstractSystem(eqx.Module):
     virtual work `sum_i f_i . delta q_i`. Concrete systems implement `rates` (the
     unchecked time derivative of the state, the vector field handed to diffrax),
     `energy` and `velocity` (the `qdot` of a state).
+
+    `space` is the configuration space (`Spheres()` for plain `(n, 3)` arrays; a
+    `Product` of factors for mixed spaces, whose states, velocities and forces are dicts
+    with one array per factor): every form, check and solver asks it for projections,
+    tangent bases and angular variables.
     """
 
     forces: eqx.AbstractVar[ForceFn | None]
+    space: eqx.AbstractVar[AbstractSpace]
     state_name: eqx.AbstractClassVar[str]
     angular: eqx.AbstractClassVar[bool]
 
@@ -93,7 +99,9 @@ class AbstractSystem(eqx.Module):
         """
         if self.forces is None:
             return None
-        return check_forces(self.forces(t, q, v, args), jnp.shape(q))
+        f = self.forces(t, q, v, args)
+        self.space.check_forces(f, q)
+        return f
 
     def power(self, t, q: Points, v: Tangents, args: Args = None) -> Scalar:
         """Power of the generalized forces, `sum_i f_i . qdot_i`.
@@ -105,8 +113,8 @@ class AbstractSystem(eqx.Module):
         """
         f = self.generalized_force(t, q, v, args)
         if f is None:
-            return jnp.zeros((), dtype=jnp.result_type(q))
-        return jnp.sum(f * self.velocity(t, q, v, args))
+            return jnp.zeros((), dtype=tree_dtype(q))
+        return tree_vdot(f, self.velocity(t, q, v, args))
 
     @property
     def n(self) -> int | None:
@@ -137,7 +145,8 @@ class AbstractSystem(eqx.Module):
         **Returns:** the unchanged state `(q, v)`.
         """
         self.check_size(q)
-        return check_state(q, v, self.state_name)
+        self.space.check_shapes(q, v, self.state_name)
+        return self.space.check_values(q, v, self.state_name)
 
     def to_linear(self, q: Points, v: Tangents) -> Tangents:
         """The linear variable (`qdot` or `mu`) of the state variable `v`.
@@ -148,7 +157,7 @@ class AbstractSystem(eqx.Module):
 
         **Returns:** `(n, 3)`.
         """
-        return jnp.cross(v, q) if self.angular else v
+        return self.space.to_linear(q, v) if self.angular else v
 
     def from_linear(self, q: Points, x: Tangents) -> Tangents:
         """The state variable of the linear variable `x` (`qdot` or `mu`).
@@ -159,7 +168,7 @@ class AbstractSystem(eqx.Module):
 
         **Returns:** `q x x` for angular forms, `x` otherwise.
         """
-        return jnp.cross(q, x) if self.angular else x
+        return self.space.from_linear(q, x) if self.angular else x
 
 
 class AbstractLagrangianSystem(AbstractSystem):
@@ -237,7 +246,7 @@ class AbstractLagrangianSystem(AbstractSystem):
 
         **Returns:** the momentum, `(n, 3)`, tangent at `q`.
         """
-        return project(q, self._dL_dv(t, q, v, args))
+        return self.space.project(q, self._dL_dv(t, q, v, args))
 
     def energy(self, t, q, v, args=None):
         """The energy `E = sum_i v_i . dL/dv_i - L`.
@@ -247,7 +256,7 @@ class AbstractLagrangianSystem(AbstractSystem):
 
         **Returns:** a scalar.
         """
-        return jnp.sum(v * self._dL_dv(t, q, v, args)) - self.lagrangian(t, q, v, args)
+        return tree_vdot(v, self._dL_dv(t, q, v, args)) - self.lagrangian(t, q, v, args)
 
     def velocity_from_momentum(self, t, q: Points, p: Tangents, args: Args = None, *,
                                guess=None, quadratic: bool | None = None, tol=None,
@@ -270,10 +279,10 @@ class AbstractLagrangianSystem(AbstractSystem):
         here).
         """
         return invert_momentum(
-            self.lagrangian, t, q, p, args,
-            guess=jnp.zeros_like(q) if guess is None else guess,
+            self.lagrangian, self.space, t, q, p, args,
+            guess=tree_zeros_like(q) if guess is None else guess,
             quadratic=self.quadratic_in_velocity if quadratic is None else quadratic,
-            tol=newton_tolerance(q.dtype) if tol is None else tol, max_steps=max_steps,
+            tol=newton_tolerance(tree_dtype(q)) if tol is None else tol, max_steps=max_steps,
         )
 
 
@@ -311,7 +320,7 @@ class AbstractHamiltonianSystem(AbstractSystem):
         **Returns:** `qdot`, `(n, 3)`.
         """
         dH_dp = self._gradients(t, q, p, args)[1]
-        return self.to_linear(q, dH_dp) if self.angular else project(q, dH_dp)
+        return self.to_linear(q, dH_dp) if self.angular else self.space.project(q, dH_dp)
 
     def vector_field(self, t, q: Points, p: Tangents, args: Args = None) -> State:
         """`(qdot, pdot)` from Hamilton's equations, after checking the state.

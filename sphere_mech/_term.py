@@ -3,6 +3,7 @@
 import diffrax
 import jax
 
+from ._spaces import AbstractSpace, Spheres
 from ._system import AbstractSystem
 
 
@@ -51,3 +52,11 @@ def physical_time(terms, t):
     """The physical time of diffrax's time `t`: diffrax integrates `t1 < t0` in the
     reversed time `-t` through wrapped terms, whose `contr` maps intervals back."""
     return terms.contr(0 * t, t)
+
+
+def space_of(terms) -> AbstractSpace:
+    """The configuration space of the system of the `MechanicsTerm` among `terms`;
+    `Spheres()` (plain `(n, 3)` arrays) for other diffrax terms, which the solvers that
+    only need a vector field (`Projected`, `LieRK(..., action="SO3xR3")`) accept."""
+    found = [x for x in jax.tree.leaves(terms, is_leaf=_is_mechanics) if _is_mechanics(x)]
+    return found[0].system.space if len(found) == 1 else Spheres()

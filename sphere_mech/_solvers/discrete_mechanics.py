@@ -27,10 +27,9 @@ from diffrax import RESULTS
 from jax import lax
 
 from .._anderson import Anderson
-from .._geometry import normalize, project, sphere_exp, tangent_basis
 from .._inertia import AbstractConstantInertiaLagrangian
-from .._linalg import from_tangent, to_tangent
 from .._momentum import newton, residual_scale
+from .._spaces import tree_add, tree_scale
 from .._system import AbstractLagrangianSystem
 
 
@@ -51,11 +50,17 @@ def discrete_lagrangian(system, t0, h, q0, q1, args):
 
     The chord velocity `c` is projected on each tangent plane, so `L` is only ever
     evaluated on the tangent bundle: the discrete flow does not depend on how `L` is
-    written off it (e.g. `|q x qdot|^2` or `|qdot|^2`), and forms 1 and 2 step alike."""
-    c = (q1 - q0) / h
-    L0 = system.lagrangian_qdot(t0, q0, project(q0, c), args)
-    L1 = system.lagrangian_qdot(t0 + h, q1, project(q1, c), args)
+    written off it (e.g. `|q x qdot|^2` or `|qdot|^2`), and forms 1 and 2 step alike.
+    On a mixed space only the sphere factors are projected."""
+    c = chord(q0, q1, h)
+    L0 = system.lagrangian_qdot(t0, q0, system.space.project(q0, c), args)
+    L1 = system.lagrangian_qdot(t0 + h, q1, system.space.project(q1, c), args)
     return 0.5 * h * (L0 + L1)
+
+
+def chord(q0, q1, h):
+    """The chord velocity `(q1 - q0) / h`."""
+    return jax.tree.map(lambda a, b: (b - a) / h, q0, q1)
 
 
 def _force(system, t, q, qdot, args):
@@ -66,10 +71,10 @@ def discrete_forces(system, t0, h, q0, q1, args):
     """`(f0, f1) = h/2 (f(t0, q0, P(q0) c), f(t1, q1, P(q1) c))`, or `None`."""
     if not system.has_forces:
         return None
-    c = (q1 - q0) / h
+    c, project = chord(q0, q1, h), system.space.project
     f0 = _force(system, t0, q0, project(q0, c), args)
     f1 = _force(system, t0 + h, q1, project(q1, c), args)
-    return 0.5 * h * f0, 0.5 * h * f1
+    return tree_scale(0.5 * h, f0), tree_scale(0.5 * h, f1)
 
 
 def solve_position(system, t0, h, q0, mu0, scale, guess, args, tol, max_steps, fast_path=True):
@@ -89,18 +94,24 @@ def solve_position(system, t0, h, q0, mu0, scale, guess, args, tol, max_steps, f
     directions. It solves the same equations, so the step is the same to the
     tolerance; steps too coarse for it to converge are reported like a failed Newton.
 
+    On a mixed space `q1 = (x0 + h a_x, exp_q0(h T0 a_q))`: the multipliers act on the
+    sphere factors only.
+
     Returns the map `a -> q1` and the optimistix solution (implicit differentiation)."""
-    T0 = tangent_basis(q0)
+    space = system.space
+    to_tangent, from_tangent = space.to_tangent, space.from_tangent
+    T0 = space.tangent_basis(q0)
     a0 = to_tangent(T0, guess)
 
     def position(a):
-        return sphere_exp(q0, h * from_tangent(T0, a))
+        return space.exp(q0, tree_scale(h, from_tangent(T0, a)))
 
     def momentum_residual(a):
         q1 = position(a)
         d1 = jax.grad(discrete_lagrangian, argnums=3)(system, t0, h, q0, q1, args)
         forces = discrete_forces(system, t0, h, q0, q1, args)
-        return mu0 + d1 if forces is None else mu0 + d1 + forces[0]
+        r = tree_add(mu0, d1)
+        return r if forces is None else tree_add(r, forces[0])
 
     if fast_path and isinstance(system, AbstractConstantInertiaLagrangian):
         solve = system.multiplier_solver(q0, args)
@@ -119,29 +130,30 @@ def substep(system, t0, h, q0, v0, rates0, args, tol, max_steps, fast_path=True)
     (`fast_path`: see `solve_position`).
 
     Returns the new state, the system's rates there, and a result code."""
+    space = system.space
     qdot0, qddot0 = jax.jvp(system.to_linear, (q0, v0), rates0)
     dL_dq, dL_dv = jax.grad(system.lagrangian_qdot, argnums=(1, 2))(t0, q0, qdot0, args)
-    mu0 = project(q0, dL_dv)
+    mu0 = space.project(q0, dL_dv)
     # The residual is a sum of momenta (dL/dqdot) and impulses (h dL/dq): its rounding
     # floor is eps times this scale, which makes the Newton tolerance relative.
-    scale = lax.stop_gradient(residual_scale(dL_dv, h * dL_dq))
+    scale = lax.stop_gradient(residual_scale(dL_dv, tree_scale(h, dL_dq)))
     # Predictor: the geodesic with velocity qdot0 + h/2 P qddot0 matches the Taylor
     # expansion of q(t0 + h) to O(h^3); Newton then needs about two iterations.
-    guess = qdot0 + 0.5 * h * qddot0
+    guess = tree_add(qdot0, tree_scale(0.5 * h, qddot0))
     position, sol = solve_position(system, t0, h, q0, mu0, scale, guess, args, tol, max_steps,
                                    fast_path)
     # exp keeps |q1_i| = 1 to rounding; renormalizing stops rounding errors from
     # accumulating over millions of steps (a change far below the Newton tolerance).
-    q1 = normalize(position(sol.value))
+    q1 = space.normalize(position(sol.value))
     d2 = jax.grad(discrete_lagrangian, argnums=4)(system, t0, h, q0, q1, args)
     forces = discrete_forces(system, t0, h, q0, q1, args)
     if forces is not None:
-        d2 = d2 + forces[1]
+        d2 = tree_add(d2, forces[1])
     t1 = t0 + h
-    chord = project(q1, (q1 - q0) / h)
+    c1 = space.project(q1, chord(q0, q1, h))
     v1, vel_result = system.velocity_from_momentum(
-        t1, q1, system.from_linear(q1, project(q1, d2)), args,
-        guess=system.from_linear(q1, chord), tol=tol, max_steps=max_steps,
+        t1, q1, system.from_linear(q1, space.project(q1, d2)), args,
+        guess=system.from_linear(q1, c1), tol=tol, max_steps=max_steps,
     )
     y1 = (q1, v1)
     result = RESULTS.where(

@@ -105,3 +105,54 @@ class SpecialEuclidean(AbstractLieAction):
 
     def finish(self, y):
         return y
+
+
+class Translate(AbstractLieAction):
+    """`R^m x R^m` acting on the tangent bundle of a Euclidean factor by translation:
+    `exp(a, b) . (x, v) = (x + a, v + b)`; abelian, nothing to finish."""
+
+    def algebra(self, y, dy):
+        return dy
+
+    def act(self, u, y):
+        return y[0] + u[0], y[1] + u[1]
+
+    def dexpinv(self, u, k):
+        return k
+
+    def finish(self, y):
+        return y
+
+
+def _split(pair, keys):
+    """A pair of dicts `(a, b)` as a dict of pairs."""
+    return {k: (pair[0][k], pair[1][k]) for k in keys}
+
+
+def _join(pairs):
+    """A dict of pairs as a pair of dicts."""
+    return {k: p[0] for k, p in pairs.items()}, {k: p[1] for k, p in pairs.items()}
+
+
+class ProductAction(AbstractLieAction):
+    """The product of one action per factor of a mixed space (states and algebra
+    elements are pairs of dicts with the factors' keys): each factor's action moves its
+    own part of the state (`Translate` on Euclidean factors, a rotation on spheres)."""
+
+    actions: dict[str, AbstractLieAction]
+
+    def algebra(self, y, dy):
+        y, dy = _split(y, self.actions), _split(dy, self.actions)
+        return _join({k: a.algebra(y[k], dy[k]) for k, a in self.actions.items()})
+
+    def act(self, u, y):
+        u, y = _split(u, self.actions), _split(y, self.actions)
+        return _join({k: a.act(u[k], y[k]) for k, a in self.actions.items()})
+
+    def dexpinv(self, u, k):
+        u, k = _split(u, self.actions), _split(k, self.actions)
+        return _join({key: a.dexpinv(u[key], k[key]) for key, a in self.actions.items()})
+
+    def finish(self, y):
+        y = _split(y, self.actions)
+        return _join({k: a.finish(y[k]) for k, a in self.actions.items()})

@@ -16,22 +16,22 @@ from diffrax import (
     ThirdOrderHermitePolynomialInterpolation,
 )
 
-from .._term import system_of
-from .lie_actions import AbstractLieAction, RotateTranslate, SpecialEuclidean
+from .._term import space_of, system_of
+from .lie_actions import AbstractLieAction
 from .rk4 import RK4
 
 ACTIONS = ("SE3", "SO3xR3")
 ERROR_ESTIMATES = ("state", "algebra")
 
 
-def _check_state_structure(y0):
-    ok = isinstance(y0, tuple) and len(y0) == 2
-    ok = ok and all(jnp.ndim(x) >= 1 and jnp.shape(x)[-1] == 3 for x in y0)
-    if not ok or jnp.shape(y0[0]) != jnp.shape(y0[1]):
+def _check_state_structure(space, y0):
+    if not (isinstance(y0, tuple) and len(y0) == 2):
         raise ValueError(
             "LieRK integrates states y = (q, v) of two arrays of shape (n, 3) (points on "
-            f"(S^2)^n and a tangent vector), got {jtu.tree_map(jnp.shape, y0)}."
+            "(S^2)^n and a tangent vector; dicts of arrays on a mixed space), got "
+            f"{jtu.tree_map(jnp.shape, y0)}."
         )
+    space.check_shapes(*y0)
 
 
 def _combine(coeffs, ks):
@@ -76,7 +76,9 @@ class LieRK(AbstractAdaptiveSolver):
     - `solver`: an explicit Runge-Kutta solver whose `tableau` is used: any
       `diffrax.AbstractERK` (`Bosh3`, `Dopri5`, `Tsit5`, `Dopri8`, `Heun`, ...) or
       `sphere_mech.RK4()`. Only its tableau and order are read.
-    - `action`: the group acting on $T(S^2)^n$, one copy per sphere:
+    - `action`: the group acting on $T(S^2)^n$, one copy per sphere (on a mixed space
+      the sphere factors; Euclidean factors are translated, $(x, v) \mapsto (x + a,
+      v + b)$, by either):
         - `"SE3"` (default): $SE(3)$ acting by
           $(A, b) \cdot (q, \omega) = (A q, A \omega + b \times A q)$ on the angular form
           (Celledoni, Cokaj, Leone, Murari, Owren 2022); states in a linear variable
@@ -137,8 +139,9 @@ class LieRK(AbstractAdaptiveSolver):
     def _group(self, terms) -> AbstractLieAction:
         """The group action this solver moves states with (for the system of `terms`)."""
         if self.action == "SO3xR3":
-            return RotateTranslate()
-        return SpecialEuclidean(system_of(terms).angular)
+            return space_of(terms).lie_action(self.action, False)
+        system = system_of(terms)
+        return system.space.lie_action(self.action, system.angular)
 
     def _stage_rows(self, dtype):
         """`(i, a_i, c_i)` for the stages `i = 2..s` computed inside a step (0-based `i`;
@@ -153,12 +156,12 @@ class LieRK(AbstractAdaptiveSolver):
         return index, jnp.asarray(a, dtype), jnp.asarray(tableau.c[: len(rows)], dtype)
 
     def init(self, terms, t0, t1, y0, args):
-        _check_state_structure(y0)
+        _check_state_structure(space_of(terms), y0)
         self._group(terms)  # a static error now, if the action cannot work with `terms`
         return terms.vf(t0, y0, args)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
-        _check_state_structure(y0)
+        _check_state_structure(space_of(terms), y0)
         tableau, group = self.solver.tableau, self._group(terms)
         h = terms.contr(t0, t1)
         f0 = solver_state

@@ -2,7 +2,7 @@
 
 from diffrax import AbstractSolver, AbstractWrappedSolver
 
-from .._geometry import retract
+from .._term import space_of
 
 
 class Projected(AbstractWrappedSolver):
@@ -19,7 +19,10 @@ class Projected(AbstractWrappedSolver):
     at the unprojected end point; it differs from the one at the projected point by the
     local error times a Lipschitz constant, which does not change the order.
 
-    The state must be the pair `(q, v)` of `(n, 3)` arrays used throughout sphere_mech.
+    The state must be the pair `(q, v)` of `(n, 3)` arrays used throughout sphere_mech,
+    or, for a system on a mixed space (integrated through its `MechanicsTerm`, as
+    `simulate` does), the pair of dicts of its factors: only the sphere factors are
+    retracted; Euclidean factors are left as the wrapped solver stepped them.
 
     **Arguments:**
     - `solver`: any diffrax solver, e.g. `diffrax.Tsit5()` (the default of `simulate`),
@@ -78,7 +81,7 @@ class Projected(AbstractWrappedSolver):
         y1, y_error, dense_info, solver_state, result = self.solver.step(
             terms, t0, t1, y0, args, solver_state, made_jump
         )
-        return retract(*y1), y_error, dense_info, solver_state, result
+        return space_of(terms).retract(*y1), y_error, dense_info, solver_state, result
 
     def func(self, terms, t0, y0, args):
         return self.solver.func(terms, t0, y0, args)

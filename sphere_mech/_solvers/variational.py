@@ -12,6 +12,7 @@ from diffrax import RESULTS, AbstractSolver, ThirdOrderHermitePolynomialInterpol
 from jax import lax
 
 from .._momentum import newton_tolerance
+from .._spaces import tree_dtype
 from .._term import MechanicsTerm, physical_time, system_of
 from .discrete_mechanics import check_lagrangian, substep
 
@@ -61,6 +62,9 @@ class Variational(AbstractSolver):
     the forced Lagrange-d'Alembert integrator (discrete forces `h/2 f` at both ends of
     the step): reversible in form and of the same order, no longer symplectic.
     Hamiltonian systems are refused with a `ValueError`: simulate their Lagrangian form.
+    On a mixed space (`space={"base": Euclidean(m), ...}`) the multipliers act on the
+    sphere factors only: a Euclidean factor steps by `x1 = x0 + h a` with its momentum
+    `dL/dxdot` unprojected, and the step stays symplectic (tests/test_mixed.py).
 
     Fixed steps only (no error estimate): `sphere_mech.simulate(system, y0, t1,
     solver=Variational(), dt0=h)`, or `diffrax.diffeqsolve(sphere_mech.MechanicsTerm(
@@ -122,16 +126,16 @@ class Variational(AbstractSolver):
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         system = check_lagrangian(system_of(terms))
-        q0 = y0[0]
-        tol = self.root_find_tol or newton_tolerance(q0.dtype)
-        start = jnp.asarray(physical_time(terms, t0), dtype=q0.dtype)
+        dtype = tree_dtype(y0)
+        tol = self.root_find_tol or newton_tolerance(dtype)
+        start = jnp.asarray(physical_time(terms, t0), dtype=dtype)
         rates0 = solver_state
         if made_jump is not False:
             rates0 = lax.cond(made_jump, lambda: system.rates(start, y0, args),
                               lambda: solver_state)
         # diffrax integrates backwards in a reversed time with wrapped terms: the step in
         # physical time is the term's control (and the Hermite data below is in it too).
-        h = jnp.asarray(terms.contr(t0, t1), dtype=q0.dtype)
+        h = jnp.asarray(terms.contr(t0, t1), dtype=dtype)
         h_safe = jnp.where(h == 0, jnp.ones_like(h), h)  # a zero-length step changes nothing
 
         def one(carry, gamma):
@@ -146,9 +150,9 @@ class Variational(AbstractSolver):
 
         carry = (start, y0, rates0, RESULTS.successful)
         if len(self.gammas) == 1:
-            carry, _ = one(carry, jnp.asarray(1.0, dtype=q0.dtype))
+            carry, _ = one(carry, jnp.asarray(1.0, dtype=dtype))
         else:
-            carry, _ = lax.scan(one, carry, jnp.asarray(np.array(self.gammas), q0.dtype))
+            carry, _ = lax.scan(one, carry, jnp.asarray(np.array(self.gammas), dtype))
         _, y1, rates1, result = carry
         # On failure keep the last good state, so `throw=False` trajectories stay sane.
         keep = (result == RESULTS.successful) & (h != 0)

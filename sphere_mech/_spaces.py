@@ -1,0 +1,464 @@
+"""Configuration spaces: the factors `Spheres(n)` ((S^2)^n, `(n, 3)` arrays of unit
+vectors) and `Euclidean(m)` (R^m, `(m,)` arrays), and `Product`, a dict of factors whose
+states are dicts of arrays with the same keys (DESIGN.md section 7).
+
+Every form, check and solver asks the space, never `_geometry` directly: each factor
+owns its projection, retraction, tangent basis, angular variables and group action. The
+plain (S^2)^n case is the factor `Spheres()` (any `n`), which calls exactly the
+operations the library always used, so it costs nothing extra.
+
+Tangent coordinates of a product are the factors' coordinates concatenated in the
+space's key order: `T = blockdiag(I_m, T_S)`.
+"""
+
+import abc
+import functools
+import operator
+from collections.abc import Mapping
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ._checks import check_finite_named, check_shapes, check_tangent, check_unit
+from ._geometry import dot, normalize, project, sphere_exp, tangent_basis
+from ._linalg import basis_directions, from_tangent, reduced_matrix, to_tangent
+from ._solvers.lie_actions import (
+    AbstractLieAction,
+    ProductAction,
+    RotateTranslate,
+    SpecialEuclidean,
+    Translate,
+)
+
+# --- arithmetic on states (arrays or dicts of arrays) -------------------------------
+
+
+def tree_add(a, b):
+    """`a + b` leaf by leaf."""
+    return jax.tree.map(operator.add, a, b)
+
+
+def tree_sub(a, b):
+    """`a - b` leaf by leaf."""
+    return jax.tree.map(operator.sub, a, b)
+
+
+def tree_scale(s, a):
+    """`s * a` for a scalar `s`, leaf by leaf."""
+    return jax.tree.map(lambda x: s * x, a)
+
+
+def tree_vdot(a, b):
+    """`sum a * b` over every leaf: the pairing of a force (or momentum) with a velocity."""
+    return functools.reduce(
+        operator.add,
+        [jnp.sum(x * y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True)],
+    )
+
+
+def tree_dtype(tree):
+    """The floating dtype of a state (every leaf together)."""
+    return jnp.result_type(*jax.tree.leaves(tree))
+
+
+def tree_zeros_like(tree):
+    """Zeros of the state's structure."""
+    return jax.tree.map(jnp.zeros_like, tree)
+
+
+def tree_max_abs(tree):
+    """`max |x|` over every leaf."""
+    return functools.reduce(jnp.maximum, [jnp.max(jnp.abs(x)) for x in jax.tree.leaves(tree)])
+
+
+# --- spaces -------------------------------------------------------------------------
+
+
+class AbstractSpace(eqx.Module):
+    """A configuration space `Q` and what the library needs of its tangent bundle. A
+    state `(q, v)` holds a point `q` and a vector `v` tangent at it (a velocity, angular
+    velocity or momentum). Subclasses: the factors `Spheres` and `Euclidean`, and their
+    `Product`."""
+
+    @abc.abstractmethod
+    def check_shapes(self, q, v, v_name: str = "v", q_name: str = "q") -> None:
+        """Static checks (`ValueError`): `q` and `v` have this space's structure and
+        shapes and a floating dtype."""
+
+    @abc.abstractmethod
+    def check_values(self, q, v, v_name: str = "v", q_name: str = "q"):
+        """Run-time checks (`eqx.error_if`): `q` on the space and `v` tangent at it, within
+        `unit_tolerance`; returns the (unchanged) `(q, v)`, tied to the checks."""
+
+    @abc.abstractmethod
+    def check_forces(self, f, q, q_name: str = "q") -> None:
+        """Static check that a generalized force `f` has the structure of `q`."""
+
+    @abc.abstractmethod
+    def normalize(self, q):
+        """The nearest point of the space."""
+
+    @abc.abstractmethod
+    def project(self, q, v):
+        """The tangent part of `v` at `q`."""
+
+    @abc.abstractmethod
+    def to_linear(self, q, w):
+        """The linear variable (`qdot`, `mu`) of an angular one (`omega`, `pi`)."""
+
+    @abc.abstractmethod
+    def from_linear(self, q, x):
+        """The angular variable (`omega`, `pi`) of a linear one (`qdot`, `mu`)."""
+
+    @abc.abstractmethod
+    def bracket(self, a, b):
+        """`a x b` on the spheres (the Lie bracket of so(3)), zero on Euclidean factors:
+        the term the angular and Hamiltonian forms add for the curvature of the sphere."""
+
+    @abc.abstractmethod
+    def normal_acceleration(self, q, qdot):
+        """`c` with `q_i . qddot_i = -|qdot_i|^2` written `qddot = (tangent) - c`:
+        `|qdot_i|^2 q_i` on the spheres, zero on Euclidean factors."""
+
+    @abc.abstractmethod
+    def normal_multiplier(self, q, r):
+        """`rho` with `r = rho q` for the normal part `r` of a covector (the constraint
+        force; broadcasts against `q`); zero on Euclidean factors."""
+
+    @abc.abstractmethod
+    def exp(self, q, v):
+        """The exponential map: the geodesic from `q` with velocity `v` at unit time."""
+
+    @abc.abstractmethod
+    def tangent_basis(self, q):
+        """An orthonormal basis of the tangent space at `q` (a pytree of arrays)."""
+
+    @abc.abstractmethod
+    def to_tangent(self, T, v) -> jax.Array:
+        """The coordinates of the tangent vector `v` in the basis `T`, flat."""
+
+    @abc.abstractmethod
+    def from_tangent(self, T, a):
+        """The tangent vector with flat coordinates `a` in the basis `T`."""
+
+    @abc.abstractmethod
+    def reduced_matrix(self, hvp, T) -> jax.Array:
+        """`T^T H T` for a linear map `hvp` applying `H` to tangent vectors."""
+
+    @abc.abstractmethod
+    def lie_action(self, kind: str, angular: bool) -> AbstractLieAction:
+        """The group action `LieRK` moves states with: `kind` is `"SE3"` or `"SO3xR3"`
+        (for the spheres); `angular`, whether `v` is an angular variable."""
+
+    @abc.abstractmethod
+    def rows(self, q) -> int:
+        """The number of rows (points) of a configuration: the batch chunking measure."""
+
+    def retract(self, q, v):
+        """Put a state back on the tangent bundle: `q` normalized, `v` made tangent."""
+        q = self.normalize(q)
+        return q, self.project(q, v)
+
+
+class AbstractFactor(AbstractSpace):
+    """A factor of a configuration space: one array of the state."""
+
+    @abc.abstractmethod
+    def directions(self, T) -> jax.Array:
+        """The tangent basis vectors as a stack `(dim, *shape)`."""
+
+    @abc.abstractmethod
+    def dim(self, T) -> int:
+        """The dimension of the tangent space with basis `T` (static)."""
+
+
+class Spheres(AbstractFactor):
+    """The factor `(S^2)^n`: its values are `(n, 3)` arrays of unit vectors, its
+    velocities `(n, 3)` arrays tangent to them (`q_i . v_i = 0`).
+
+    The space of a system built without `space=` is `Spheres()` (any `n`: the shape of
+    `q` decides), so a plain `(n, 3)` array is exactly this factor. Unit length and
+    tangency are checked on the sphere factors only; the solvers retract them, `LieRK`
+    rotates them and `Variational` imposes `|q_i| = 1` on them by multipliers.
+
+    **Arguments:**
+    - `n`: the number of spheres (a positive int), or `None` (default) for any number.
+    """
+
+    n: int | None = eqx.field(default=None, static=True)
+
+    def __check_init__(self):
+        if self.n is not None and (not isinstance(self.n, int) or self.n < 1):
+            raise ValueError(f"Spheres(n): n must be a positive int, got {self.n!r}.")
+
+    def check_shapes(self, q, v, v_name="v", q_name="q"):
+        if self.n is not None and jnp.ndim(q) == 2 and jnp.shape(q)[0] != self.n:
+            raise ValueError(
+                f"{q_name} must have shape ({self.n}, 3) (Spheres({self.n})), got {jnp.shape(q)}."
+            )
+        check_shapes(q, v, v_name, q_name)
+
+    def check_values(self, q, v, v_name="v", q_name="q"):
+        q = check_unit(q, q_name)
+        return q, check_tangent(q, v, v_name)
+
+    def check_forces(self, f, q, q_name="q"):
+        if jnp.shape(f) != jnp.shape(q):
+            what = "an array" if q_name == "q" else f"for {q_name} an array"
+            raise ValueError(
+                f"forces(t, q, v, args) must return {what} of shape {jnp.shape(q)} "
+                f"(one generalized force per sphere), got {jnp.shape(f)}."
+            )
+
+    def normalize(self, q):
+        return normalize(q)
+
+    def project(self, q, v):
+        return project(q, v)
+
+    def to_linear(self, q, w):
+        return jnp.cross(w, q)
+
+    def from_linear(self, q, x):
+        return jnp.cross(q, x)
+
+    def bracket(self, a, b):
+        return jnp.cross(a, b)
+
+    def normal_acceleration(self, q, qdot):
+        return dot(qdot, qdot) * q
+
+    def normal_multiplier(self, q, r):
+        return dot(q, r) / dot(q, q)
+
+    def exp(self, q, v):
+        return sphere_exp(q, v)
+
+    def tangent_basis(self, q):
+        return tangent_basis(q)
+
+    def to_tangent(self, T, v):
+        return to_tangent(T, v)
+
+    def from_tangent(self, T, a):
+        return from_tangent(T, a)
+
+    def reduced_matrix(self, hvp, T):
+        return reduced_matrix(hvp, T)
+
+    def directions(self, T):
+        return basis_directions(T)
+
+    def dim(self, T):
+        return 2 * T.shape[0]
+
+    def lie_action(self, kind, angular):
+        return RotateTranslate() if kind == "SO3xR3" else SpecialEuclidean(angular)
+
+    def rows(self, q):
+        return jnp.shape(q)[-2]
+
+
+class Euclidean(AbstractFactor):
+    """The factor `R^m`: its values and velocities are `(m,)` arrays (a cart's position
+    on a line, `m = 1`; a point in space, `m = 3`).
+
+    Its momentum is `dL/dxdot`, unprojected; angular and Hamiltonian forms keep `xdot`
+    and `p_x` on it (only the sphere factors change variables); `LieRK` translates it;
+    nothing is retracted or constrained.
+
+    **Arguments:**
+    - `m`: the dimension (a positive int).
+    """
+
+    m: int = eqx.field(static=True)
+
+    def __check_init__(self):
+        if not isinstance(self.m, int) or self.m < 1:
+            raise ValueError(f"Euclidean(m): m must be a positive int, got {self.m!r}.")
+
+    def check_shapes(self, q, v, v_name="v", q_name="q"):
+        for name, x in ((q_name, q), (v_name, v)):
+            if jnp.shape(x) != (self.m,):
+                raise ValueError(
+                    f"{name} must have shape ({self.m},) (Euclidean({self.m})), got {jnp.shape(x)}."
+                )
+            if not jnp.issubdtype(jnp.result_type(x), jnp.floating):
+                raise ValueError(
+                    f"{name} must be a floating-point array, got {jnp.result_type(x)}."
+                )
+
+    def check_values(self, q, v, v_name="v", q_name="q"):
+        return check_finite_named(q, q_name), check_finite_named(v, v_name)
+
+    def check_forces(self, f, q, q_name="q"):
+        if jnp.shape(f) != jnp.shape(q):
+            raise ValueError(
+                f"forces(t, q, v, args) must return for {q_name} an array of "
+                f"shape {jnp.shape(q)}, got {jnp.shape(f)}."
+            )
+
+    def normalize(self, q):
+        return q
+
+    def project(self, q, v):
+        return v
+
+    def to_linear(self, q, w):
+        return w
+
+    def from_linear(self, q, x):
+        return x
+
+    def bracket(self, a, b):
+        return jnp.zeros_like(b)
+
+    def normal_acceleration(self, q, qdot):
+        return jnp.zeros_like(qdot)
+
+    def normal_multiplier(self, q, r):
+        return jnp.zeros((), dtype=jnp.result_type(r))
+
+    def exp(self, q, v):
+        return q + v
+
+    def tangent_basis(self, q):
+        return jnp.eye(self.m, dtype=jnp.result_type(q))
+
+    def to_tangent(self, T, v):
+        return v
+
+    def from_tangent(self, T, a):
+        return a
+
+    def reduced_matrix(self, hvp, T):
+        return jax.vmap(hvp, out_axes=1)(T)
+
+    def directions(self, T):
+        return T
+
+    def dim(self, T):
+        return self.m
+
+    def lie_action(self, kind, angular):
+        return Translate()
+
+    def rows(self, q):
+        return 1
+
+
+def _check_keys(tree, keys, name):
+    if not isinstance(tree, Mapping):
+        raise ValueError(
+            f"{name} must be a dict with the keys of the space, {list(keys)}, "
+            f"got a {type(tree).__name__}."
+        )
+    missing = [k for k in keys if k not in tree]
+    extra = [k for k in tree if k not in keys]
+    if missing or extra:
+        raise ValueError(
+            f"{name} must have the keys of the space, {list(keys)}: "
+            f"missing {missing}, unexpected {extra}."
+        )
+
+
+class Product(AbstractSpace):
+    """The product of the factors of a dict: states are dicts with the same keys, one
+    array per factor. Built by `as_space` from a system's `space=` dict."""
+
+    factors: dict[str, AbstractFactor]
+
+    def _map(self, fn, *trees):
+        return {k: fn(f, *(t[k] for t in trees)) for k, f in self.factors.items()}
+
+    def check_shapes(self, q, v, v_name="v", q_name="q"):
+        _check_keys(q, self.factors, q_name)
+        _check_keys(v, self.factors, v_name)
+        for k, f in self.factors.items():
+            f.check_shapes(q[k], v[k], f"{v_name}[{k!r}]", f"{q_name}[{k!r}]")
+
+    def check_values(self, q, v, v_name="v", q_name="q"):
+        checked = {
+            k: f.check_values(q[k], v[k], f"{v_name}[{k!r}]", f"{q_name}[{k!r}]")
+            for k, f in self.factors.items()
+        }
+        return {k: c[0] for k, c in checked.items()}, {k: c[1] for k, c in checked.items()}
+
+    def check_forces(self, f, q, q_name="q"):
+        _check_keys(f, self.factors, "forces(t, q, v, args)")
+        for k, factor in self.factors.items():
+            factor.check_forces(f[k], q[k], f"{q_name}[{k!r}]")
+
+    def normalize(self, q):
+        return self._map(lambda f, q: f.normalize(q), q)
+
+    def project(self, q, v):
+        return self._map(lambda f, q, v: f.project(q, v), q, v)
+
+    def to_linear(self, q, w):
+        return self._map(lambda f, q, w: f.to_linear(q, w), q, w)
+
+    def from_linear(self, q, x):
+        return self._map(lambda f, q, x: f.from_linear(q, x), q, x)
+
+    def bracket(self, a, b):
+        return self._map(lambda f, a, b: f.bracket(a, b), a, b)
+
+    def normal_acceleration(self, q, qdot):
+        return self._map(lambda f, q, v: f.normal_acceleration(q, v), q, qdot)
+
+    def normal_multiplier(self, q, r):
+        return self._map(lambda f, q, r: f.normal_multiplier(q, r), q, r)
+
+    def exp(self, q, v):
+        return self._map(lambda f, q, v: f.exp(q, v), q, v)
+
+    def tangent_basis(self, q):
+        return self._map(lambda f, q: f.tangent_basis(q), q)
+
+    def to_tangent(self, T, v):
+        return jnp.concatenate([f.to_tangent(T[k], v[k]) for k, f in self.factors.items()])
+
+    def from_tangent(self, T, a):
+        out, start = {}, 0
+        for k, f in self.factors.items():
+            size = f.dim(T[k])
+            out[k] = f.from_tangent(T[k], a[start : start + size])
+            start += size
+        return out
+
+    def reduced_matrix(self, hvp, T):
+        D = {k: f.directions(T[k]) for k, f in self.factors.items()}
+        columns = []
+        for k in self.factors:  # H applied to the basis vectors of factor k
+            dirs = {
+                j: D[k] if j == k else jnp.zeros(D[k].shape[:1] + D[j].shape[1:], D[k].dtype)
+                for j in self.factors
+            }
+            columns.append(jax.vmap(lambda d: self.to_tangent(T, hvp(d)))(dirs))
+        return jnp.concatenate(columns, axis=0).T
+
+    def lie_action(self, kind, angular):
+        return ProductAction({k: f.lie_action(kind, angular) for k, f in self.factors.items()})
+
+    def rows(self, q):
+        return sum(f.rows(q[k]) for k, f in self.factors.items())
+
+
+def as_space(space) -> AbstractSpace:
+    """A system's `space=` argument as a space: a factor stays itself, a dict of factors
+    becomes their `Product`; anything else raises `ValueError`."""
+    if isinstance(space, AbstractSpace):
+        return space
+    if (
+        isinstance(space, Mapping)
+        and space
+        and all(isinstance(k, str) and isinstance(f, AbstractFactor) for k, f in space.items())
+    ):
+        return Product(dict(sorted(space.items())))
+    raise ValueError(
+        "space must be a factor (sphere_mech.Spheres(n), sphere_mech.Euclidean(m)) or a "
+        'non-empty dict of them with string keys, e.g. {"base": sm.Euclidean(3), '
+        f'"cable": sm.Spheres(4)}}; got {space!r}.'
+    )

@@ -1,0 +1,508 @@
+"""Mixed configuration spaces R^m x (S^2)^n: a point-mass base (a cart on a line, a point
+in space) carrying a chain of point masses, against an independent reference written
+here: Cartesian coordinates with the link lengths imposed by Lagrange multipliers (the
+index-1 DAE reduced to an ODE by solving for the multipliers), integrated by scipy's
+DOP853 at tight tolerances."""
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import test_forms as forms
+from jax.flatten_util import ravel_pytree
+from scipy.integrate import solve_ivp
+
+import sphere_mech as sm
+from sphere_mech._solvers.discrete_mechanics import substep
+
+G = 9.81
+T1 = 2.0
+TS = np.linspace(0.0, T1, 11)
+
+
+# ----------------------------------------------------------------------------------------
+# The model: a base of mass M at E x (E: 3 x m, orthonormal columns), links of lengths
+# l_i with point masses m_i at r_i = E x + sum_{j <= i} l_j q_j, gravity -g e3 on every
+# mass, and an optional force F(t) on the base (virtual work F . delta x).
+# ----------------------------------------------------------------------------------------
+
+
+class Model:
+    def __init__(self, M, masses, lengths, E, drive):
+        self.M, self.masses, self.lengths = M, np.asarray(masses), np.asarray(lengths)
+        self.E, self.drive = np.asarray(E, dtype=float), drive
+        self.m, self.n = self.E.shape[1], len(masses)
+        self.space = {"base": sm.Euclidean(self.m), "chain": sm.Spheres(self.n)}
+
+    # --- sphere_mech: L on R^m x (S^2)^n ---------------------------------------------
+
+    def positions(self, q):
+        E, lengths = jnp.asarray(self.E), jnp.asarray(self.lengths)
+        return E @ q["base"] + jnp.cumsum(lengths[:, None] * q["chain"], axis=0)
+
+    def lagrangian(self, t, q, qdot, args):
+        E, masses, e3 = jnp.asarray(self.E), jnp.asarray(self.masses), jnp.array([0, 0, 1.0])
+        vb = E @ qdot["base"]
+        kinetic = 0.5 * self.M * vb @ vb
+        kinetic += 0.5 * jnp.sum(masses * jnp.sum(self.positions(qdot) ** 2, axis=-1))
+        potential = self.M * G * (E @ q["base"]) @ e3 + G * masses @ (self.positions(q) @ e3)
+        return kinetic - potential
+
+    def forces(self, t, q, qdot, args):
+        return {"base": self.drive(t), "chain": jnp.zeros_like(q["chain"])}
+
+    def system(self, forced):
+        return sm.Lagrangian(
+            self.lagrangian, forces=self.forces if forced else None, space=self.space
+        )
+
+    # --- reference: Cartesian coordinates X = (x, r_1, ..., r_n) with multipliers ------
+
+    def reference(self, q0, v0, forced, ts=TS):
+        m, n, E = self.m, self.n, self.E
+        inv_mass = np.concatenate([np.full(m, 1 / self.M), np.repeat(1 / self.masses, 3)])
+
+        def rhs(t, y):
+            X, V = y[: m + 3 * n], y[m + 3 * n :]
+            r = X[m:].reshape(n, 3)
+            rv = V[m:].reshape(n, 3)
+            prev = np.vstack([E @ X[:m], r[:-1]])
+            prev_v = np.vstack([E @ V[:m], rv[:-1]])
+            d, dv = r - prev, rv - prev_v
+            J = np.zeros((n, m + 3 * n))  # rows: gradients of |r_i - r_{i-1}|^2 / 2
+            for i in range(n):
+                J[i, m + 3 * i : m + 3 * i + 3] = d[i]
+                if i == 0:
+                    J[i, :m] = -E.T @ d[i]
+                else:
+                    J[i, m + 3 * i - 3 : m + 3 * i] = -d[i]
+            F = np.zeros(m + 3 * n)
+            F[:m] = -self.M * G * E.T @ np.array([0, 0, 1.0])
+            if forced:
+                F[:m] += np.asarray(self.drive(t))
+            F[m:] = (-G * self.masses[:, None] * np.array([0, 0, 1.0])).reshape(-1)
+            # d^2/dt^2 of the constraints = J A + |dv_i|^2 = 0, A = inv_mass (F - J^T lam)
+            JM = J * inv_mass
+            lam = np.linalg.solve(JM @ J.T, JM @ F + np.sum(dv**2, axis=1))
+            return np.concatenate([V, inv_mass * (F - J.T @ lam)])
+
+        x0, xd0 = np.asarray(q0["base"]), np.asarray(v0["base"])
+        r0 = E @ x0 + np.cumsum(self.lengths[:, None] * np.asarray(q0["chain"]), axis=0)
+        rd0 = E @ xd0 + np.cumsum(self.lengths[:, None] * np.asarray(v0["chain"]), axis=0)
+        y0 = np.concatenate([x0, r0.reshape(-1), xd0, rd0.reshape(-1)])
+        sol = solve_ivp(
+            rhs, (ts[0], ts[-1]), y0, method="DOP853", t_eval=ts, rtol=1e-13, atol=1e-13
+        )
+        assert sol.success
+        X = sol.y[: m + 3 * n].T
+        return X[:, :m], X[:, m:].reshape(len(ts), n, 3)
+
+
+def cart_pendulum():
+    """A spherical pendulum on a cart on the x axis, driven by F(t) = 2 sin(3 t)."""
+    drive = lambda t: 2.0 * jnp.sin(3.0 * t) * jnp.ones(1)
+    return Model(1.5, [0.7], [0.8], [[1.0], [0.0], [0.0]], drive)
+
+
+def flying_chain():
+    """A point mass in 3-D carrying a 2-link chain, pushed by a constant force."""
+    drive = lambda t: jnp.array([0.4, -0.2, 1.5 * 1.0 * G])
+    return Model(1.0, [0.3, 0.2], [0.6, 0.4], np.eye(3), drive)
+
+
+def initial_state(model, seed=0):
+    q_s, v_s = sm.random_state(jax.random.PRNGKey(seed), model.n, speed=1.5)
+    rng = np.random.default_rng(seed)
+    q0 = {"base": jnp.asarray(rng.normal(size=model.m)), "chain": q_s}
+    v0 = {"base": jnp.asarray(rng.normal(size=model.m)), "chain": v_s}
+    return q0, v0
+
+
+SAVE = diffrax.SaveAt(ts=jnp.asarray(TS))
+TIGHT = dict(solver=sm.Projected(diffrax.Dopri8()), rtol=1e-12, atol=1e-12, saveat=SAVE)
+
+
+@pytest.fixture(scope="module")
+def tight_runs():
+    """The forced cart pendulum and the unforced flying chain, at tight tolerances
+    (each compiled once; the Lie-group tests run the forced flying chain and cart)."""
+    out = {}
+    for make, forced in ((cart_pendulum, True), (flying_chain, False)):
+        model = make()
+        y0 = initial_state(model, seed=int(forced))
+        system = model.system(forced=forced)
+        out[make.__name__] = (model, system, forced, y0, sm.simulate(system, y0, T1, **TIGHT))
+    return out
+
+
+@pytest.mark.parametrize("name", ["cart_pendulum", "flying_chain"])
+def test_against_cartesian_reference(tight_runs, name):
+    """Positions of the base and of every mass agree to 1e-8 over 2 s (the cart driven,
+    the flying chain free)."""
+    model, _, forced, (q0, v0), sol = tight_runs[name]
+    q, v = sol.ys
+    assert set(q) == {"base", "chain"} and q["chain"].shape == (len(TS), model.n, 3)
+    x_ref, r_ref = model.reference(q0, v0, forced=forced)
+    r = jax.vmap(model.positions)(q)
+    assert np.max(np.abs(q["base"] - x_ref)) < 1e-8
+    assert np.max(np.abs(r - r_ref)) < 1e-8
+    assert sm.constraint_error(q["chain"]) < 1e-12
+
+
+def test_energy_conserved_without_forces(tight_runs):
+    model, system, _, (q0, v0), sol = tight_runs["flying_chain"]
+    energy = jax.vmap(lambda q, v: system.energy(0.0, q, v))(*sol.ys)
+    assert np.ptp(energy) < 1e-9 * (1 + abs(float(energy[0])))
+    # Independent energy: kinetic plus potential of the Cartesian positions.
+    q, v = q0, v0
+    r, rd = model.positions(q), model.positions(v)
+    xb, vb = model.E @ q["base"], model.E @ v["base"]
+    masses = model.masses
+    T = 0.5 * model.M * vb @ vb + 0.5 * np.sum(masses * np.sum(rd**2, axis=-1))
+    U = G * (model.M * xb[2] + masses @ r[:, 2])
+    assert abs(float(system.energy(0.0, q, v)) - float(T + U)) < 1e-12 * (1 + abs(T + U))
+
+
+def test_momentum_and_forces_per_factor():
+    """The Euclidean momentum is dL/dxdot unprojected (the cart's: the total linear
+    momentum along the line); the sphere momentum is projected; forces and power."""
+    model = cart_pendulum()
+    system = model.system(forced=True)
+    q, v = initial_state(model, seed=2)
+    mu = system.momentum(0.0, q, v)
+    m, M, length = model.masses[0], model.M, model.lengths[0]
+    expected = (M + m) * v["base"][0] + m * length * v["chain"][0, 0]
+    assert abs(float(mu["base"][0]) - expected) < 1e-13 * (1 + abs(expected))
+    assert abs(float(jnp.sum(mu["chain"] * q["chain"]))) < 1e-13
+    t = 0.3
+    f = system.generalized_force(t, q, v)
+    assert float(system.power(t, q, v)) == pytest.approx(
+        float(f["base"][0] * v["base"][0]), rel=1e-14
+    )
+
+
+def test_simulate_batch_matches_simulate():
+    model = cart_pendulum()
+    system = model.system(forced=True)
+    states = [initial_state(model, seed=s) for s in range(3)]
+    y0 = jax.tree.map(lambda *xs: jnp.stack(xs), *states)
+    opts = dict(solver=sm.Projected(sm.RK4()), dt0=0.01)
+    batch = sm.simulate_batch(system, y0, 0.5, **opts)
+    for i, s in enumerate(states):
+        one = sm.simulate(system, s, 0.5, **opts)
+        for a, b in zip(jax.tree.leaves(one.ys), jax.tree.leaves(batch.ys), strict=True):
+            np.testing.assert_allclose(b[i], a, rtol=0, atol=1e-13)
+
+
+# ----------------------------------------------------------------------------------------
+# The four forms agree on a random configuration-dependent, time-dependent Lagrangian
+# with forces on R^3 x (S^2)^2: test_forms' random L and forces, read on the stacked
+# rows (x, q_1, q_2).
+# ----------------------------------------------------------------------------------------
+
+N_CHAIN = 2
+MIXED = {"base": sm.Euclidean(3), "chain": sm.Spheres(N_CHAIN)}
+TOL = 1e-12
+
+
+def pack(q):
+    return jnp.concatenate([q["base"][None], q["chain"]])
+
+
+def unpack(rows):
+    return {"base": rows[0], "chain": rows[1:]}
+
+
+def mixed_lagrangian(t, q, qdot, p):
+    return forms.lagrangian(t, pack(q), pack(qdot), p)
+
+
+def mixed_forces(t, q, qdot, p):
+    return unpack(forms.forces(t, pack(q), pack(qdot), p))
+
+
+MIXED_LAG = sm.Lagrangian(
+    mixed_lagrangian, forces=mixed_forces, quadratic_in_velocity=True, space=MIXED
+)
+MIXED_FORMS = dict(
+    lag=MIXED_LAG,
+    ang=sm.angular(MIXED_LAG),
+    ham=sm.legendre(MIXED_LAG),
+    ang_ham=sm.legendre(sm.angular(MIXED_LAG)),
+    ham_ang=sm.angular(sm.legendre(MIXED_LAG)),
+    ham_newton=sm.legendre(MIXED_LAG, quadratic=False),
+)
+SECOND = dict(
+    lag="qddot", ang="omegadot", ham="mudot", ang_ham="pidot", ham_ang="pidot", ham_newton="mudot"
+)
+
+
+def on_chain(fn, a, b):
+    """`fn` on the chain factor, `b` unchanged on the base: the angular variables."""
+    return {"base": b["base"], "chain": fn(a["chain"], b["chain"])}
+
+
+@eqx.filter_jit
+def evaluate_forms(systems, t, q, qdot, p):
+    lag = systems["lag"]
+    qddot = lag.acceleration(t, q, qdot, p)
+    mu = lag.momentum(t, q, qdot, p)
+    _, mudot = jax.jvp(
+        lambda t_, q_, v_: lag.momentum(t_, q_, v_, p),
+        (t, q, qdot),
+        (jnp.ones_like(t), qdot, qddot),
+    )
+    pi = on_chain(jnp.cross, q, mu)
+    pidot = on_chain(jnp.cross, q, mudot)
+    pidot["chain"] = pidot["chain"] + jnp.cross(qdot["chain"], mu["chain"])
+    ref = dict(
+        qddot=qddot,
+        omegadot=on_chain(jnp.cross, q, qddot),
+        mudot=mudot,
+        pidot=pidot,
+        pi=pi,
+        dL_dt=jax.grad(lambda t_: lag.lagrangian(t_, q, qdot, p))(t),
+    )
+    variables = dict(
+        lag=qdot, ang=on_chain(jnp.cross, q, qdot), ham=mu, ang_ham=pi, ham_ang=pi, ham_newton=mu
+    )
+    out = {}
+    for name, system in systems.items():
+        v = variables[name]
+        if name == "lag":
+            rates = (qdot, qddot)
+        elif name == "ang":
+            rates = (system.to_linear(q, v), system.angular_acceleration(t, q, v, p))
+        else:
+            rates = system.vector_field(t, q, v, p)
+        energy_fn = lambda t_, q_, v_, system=system: system.energy(t_, q_, v_, p)
+        energy, dE = jax.jvp(energy_fn, (t, q, v), (jnp.ones_like(t), *rates))
+        f = system.generalized_force(t, q, v, p)
+        power = sum(
+            jnp.sum(a * b)
+            for a, b in zip(jax.tree.leaves(f), jax.tree.leaves(rates[0]), strict=True)
+        )
+        out[name] = dict(rates=rates, energy=energy, dE=dE, power=power)
+    out["ang"]["momentum"] = systems["ang"].momentum(t, q, variables["ang"], p)
+    return ref, out
+
+
+def rel(x, y):
+    x, y = ravel_pytree(x)[0], ravel_pytree(y)[0]
+    return float(jnp.max(jnp.abs(x - y)) / jnp.max(jnp.abs(y)))
+
+
+@pytest.mark.parametrize("seed,t", [(0, 0.3), (1, -1.2), (2, 1.7)])
+def test_four_forms_agree_on_mixed_space(seed, t):
+    q0, v0 = initial_state(Model(1.0, [1.0] * N_CHAIN, [1.0] * N_CHAIN, np.eye(3), None), seed=seed)
+    p = forms.random_params(seed, N_CHAIN + 1)
+    t = jnp.asarray(t, dtype=jnp.float64)
+    ref, out = evaluate_forms(MIXED_FORMS, t, q0, v0, p)
+    energy, dL_dt = out["lag"]["energy"], float(ref["dL_dt"])
+    assert abs(float(out["lag"]["power"])) > 1e-3 and abs(dL_dt) > 1e-3  # not vacuous
+    for name, o in out.items():
+        qdot_k, vdot_k = o["rates"]
+        assert rel(qdot_k, v0) < TOL, name
+        assert rel(vdot_k, ref[SECOND[name]]) < TOL, name
+        assert abs(float(o["energy"] - energy)) < TOL * (1 + abs(float(energy))), name
+        power = float(o["power"])  # dE/dt = power - dL/dt in every form
+        assert abs(float(o["dE"]) - (power - dL_dt)) < TOL * (1 + abs(power) + abs(dL_dt))
+    assert rel(out["ang"]["momentum"], ref["pi"]) < TOL
+    # the Euclidean momentum is dL/dxdot, unprojected
+    dL_dv = jax.grad(mixed_lagrangian, argnums=2)(t, q0, v0, p)
+    assert rel(MIXED_LAG.momentum(t, q0, v0, p)["base"], dL_dv["base"]) < 1e-15
+
+
+# ----------------------------------------------------------------------------------------
+# Solvers: LieRK translates the base and rotates the spheres; Variational imposes
+# multipliers on the spheres only.
+# ----------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "make,solver", [(cart_pendulum, sm.LieRK4()), (flying_chain, sm.LieRK(diffrax.Dopri8()))]
+)
+def test_lie_group_solvers_against_reference(make, solver):
+    """LieRK4 (SO(3) x R^3 on the spheres) and LieRK(Dopri8) (SE(3)): positions to 1e-8,
+    |q_i| = 1 to rounding without any projection of q."""
+    model = make()
+    q0, v0 = initial_state(model)
+    sol = sm.simulate(
+        model.system(forced=True),
+        (q0, v0),
+        T1,
+        solver=solver,
+        rtol=1e-12,
+        atol=1e-12,
+        saveat=diffrax.SaveAt(steps=True),
+    )
+    keep = np.isfinite(np.asarray(sol.ts))  # the accepted steps
+    q = jax.tree.map(lambda x: x[keep], sol.ys[0])
+    ts = np.asarray(sol.ts)[keep]
+    x_ref, r_ref = model.reference(q0, v0, forced=True, ts=np.concatenate([[0.0], ts]))
+    assert np.max(np.abs(q["base"] - x_ref[1:])) < 1e-8
+    assert np.max(np.abs(jax.vmap(model.positions)(q) - r_ref[1:])) < 1e-8
+    assert sm.constraint_error(q["chain"]) < 1e-13
+
+
+def variational_run(system, y0, h, t1, t0=0.0, **kwargs):
+    return sm.simulate(
+        system,
+        y0,
+        jnp.asarray(t1),
+        t0=jnp.asarray(t0),
+        dt0=jnp.asarray(h),
+        solver=sm.Variational(),
+        **kwargs,
+    )
+
+
+def test_variational_energy_bounded_and_reversible():
+    """The unforced cart pendulum: 2000 steps of h = 0.02 keep the energy error bounded
+    and O(h^2) (no drift), |q| = 1 to rounding; stepping back returns the initial state.
+    With the drive, the forced integrator converges to the reference at order 2."""
+    model = cart_pendulum()
+    system = model.system(forced=False)
+    y0 = initial_state(model, seed=3)
+    sol = variational_run(system, y0, 0.02, 40.0, saveat=diffrax.SaveAt(steps=True))
+    k = int(sol.stats["num_steps"])
+    assert k == 2000
+    q, v = jax.tree.map(lambda x: x[:k], sol.ys)
+    energy = np.asarray(jax.vmap(lambda q, v: system.energy(0.0, q, v))(q, v))
+    error = energy - float(system.energy(0.0, *y0))
+    t = np.asarray(sol.ts[:k])
+    assert np.max(np.abs(error)) < 1e-2 * abs(float(energy[0]))
+    slope = np.polyfit(t, error, 1)[0]
+    assert abs(slope * t[-1]) < 0.1 * np.max(np.abs(error))
+    assert sm.constraint_error(q["chain"]) < 1e-14
+    end = jax.tree.map(lambda x: x[int(0.5 / 0.02) - 1], sol.ys)  # t = 0.5
+    back = variational_run(system, end, -0.02, 0.0, t0=0.5)
+    for a, b in zip(jax.tree.leaves(back.ys), jax.tree.leaves(y0), strict=True):
+        np.testing.assert_allclose(a[-1], b, rtol=0, atol=1e-12)
+
+
+def test_variational_forced_converges_to_reference():
+    model = cart_pendulum()
+    y0 = initial_state(model, seed=4)
+    x_ref, r_ref = model.reference(*y0, forced=True, ts=np.array([0.0, 0.5]))
+    errors = []
+    for h in (0.01, 0.005):
+        q = variational_run(model.system(forced=True), y0, h, 0.5).ys[0]
+        errors.append(np.max(np.abs(model.positions(jax.tree.map(lambda x: x[-1], q)) - r_ref[-1])))
+    assert errors[1] < 1e-3
+    assert 3.5 < errors[0] / errors[1] < 4.5  # order 2
+
+
+def test_variational_symplectic_on_mixed_space():
+    """The pullback of dx ^ dp_x + sum dq_i ^ dmu_i is preserved by a step."""
+    model = cart_pendulum()
+    system = model.system(forced=False)
+    q, qdot = initial_state(model, seed=5)
+    mu = system.momentum(0.0, q, qdot)
+
+    def flow(q, mu):
+        t = jnp.asarray(0.0)
+        v, _ = system.velocity_from_momentum(t, q, mu, None, tol=1e-12, max_steps=16)
+        y = (q, v)
+        y, _, _ = substep(system, t, 0.1, *y, system.rates(t, y, None), None, 1e-12, 16)
+        return y[0], system.momentum(t, y[0], y[1])
+
+    zero = jax.tree.map(jnp.zeros_like, q)
+    T = sm.tangent_basis(q["chain"][0])
+    vectors = [({**zero, "base": jnp.ones(1)}, zero), (zero, {**zero, "base": jnp.ones(1)})]
+    for b in range(2):
+        dq = T[:, b][None]
+        dmu = -jnp.dot(T[:, b], mu["chain"][0]) * q["chain"]
+        vectors.append(({**zero, "chain": dq}, {**zero, "chain": dmu}))
+        vectors.append((zero, {**zero, "chain": dq}))
+    eps = 1e-6
+    points = [
+        jax.tree.map(lambda a, d, s=s: a + s * eps * d, (q, mu), u)
+        for s in (1.0, -1.0)
+        for u in vectors
+    ]
+    moved = jax.jit(jax.vmap(flow))(*jax.tree.map(lambda *x: jnp.stack(x), *points))
+    m = len(vectors)
+    pushed = [jax.tree.map(lambda x, i=i: (x[i] - x[m + i]) / (2 * eps), moved) for i in range(m)]
+
+    def omega(u, w):
+        return sum(
+            jnp.sum(a * b)
+            for a, b in zip(jax.tree.leaves(u[0]), jax.tree.leaves(w[1]), strict=True)
+        ) - sum(
+            jnp.sum(a * b)
+            for a, b in zip(jax.tree.leaves(u[1]), jax.tree.leaves(w[0]), strict=True)
+        )
+
+    before = np.array([[omega(a, b) for b in vectors] for a in vectors])
+    after = np.array([[omega(a, b) for b in pushed] for a in pushed])
+    assert np.max(np.abs(before)) > 0.5
+    assert np.max(np.abs(after - before)) < 1e-7
+
+
+# ----------------------------------------------------------------------------------------
+# Gradients through simulate on a mixed system, against finite differences.
+# ----------------------------------------------------------------------------------------
+
+
+def cart_lagrangian(t, q, qdot, args):
+    M, m, length = args
+    x, xd, p, pd = q["cart"][0], qdot["cart"][0], q["bob"][0], qdot["bob"][0]
+    bob_v = jnp.array([xd, 0.0, 0.0]) + length * pd
+    bob_z = length * p[2]
+    return 0.5 * M * xd**2 + 0.5 * m * bob_v @ bob_v - m * G * bob_z + 0.0 * x
+
+
+def test_gradient_through_simulate_matches_finite_differences():
+    system = sm.Lagrangian(cart_lagrangian, space={"cart": sm.Euclidean(1), "bob": sm.Spheres(1)})
+    q0 = {"cart": jnp.zeros(1), "bob": sm.normalize(jnp.array([[1.0, 0.0, -1.0]]))}
+    v0 = {"cart": jnp.array([0.3]), "bob": jnp.zeros((1, 3))}
+
+    def final_x(args):
+        sol = sm.simulate(system, (q0, v0), 1.0, args=args, solver=sm.Projected(sm.RK4()), dt0=0.01)
+        return sol.ys[0]["cart"][-1, 0]
+
+    args = jnp.array([1.5, 0.7, 0.8])
+    grad = jax.grad(final_x)(args)
+    eps = 1e-6
+    fd = [
+        (final_x(args.at[i].add(eps)) - final_x(args.at[i].add(-eps))) / (2 * eps) for i in range(3)
+    ]
+    np.testing.assert_allclose(grad, np.array(fd), rtol=1e-6, atol=1e-9)
+    assert np.min(np.abs(np.array(fd))) > 1e-3
+
+
+# ----------------------------------------------------------------------------------------
+# Bad input raises a clear error.
+# ----------------------------------------------------------------------------------------
+
+
+def test_bad_mixed_input_raises():
+    model = cart_pendulum()
+    system = model.system(forced=False)
+    q0, v0 = initial_state(model)
+    acc = lambda q, v: system.acceleration(0.0, q, v)
+    with pytest.raises(eqx.EquinoxRuntimeError, match=r"q\['chain'\] is not on the spheres"):
+        acc({**q0, "chain": 1.1 * q0["chain"]}, v0)
+    with pytest.raises(eqx.EquinoxRuntimeError, match=r"qdot\['chain'\] is not tangent"):
+        sm.simulate(system, (q0, {**v0, "chain": v0["chain"] + 0.1 * q0["chain"]}), 0.1)
+    with pytest.raises(ValueError, match=r"q must have the keys of the space.*missing \['base'\]"):
+        acc({"chain": q0["chain"]}, v0)
+    with pytest.raises(ValueError, match=r"q\['base'\] must have shape \(1,\) \(Euclidean\(1\)\)"):
+        sm.simulate(system, ({**q0, "base": jnp.zeros(2)}, v0), 0.1)
+    with pytest.raises(ValueError, match=r"q\['chain'\] must have shape \(1, 3\) \(Spheres\(1\)\)"):
+        acc({**q0, "chain": sm.random_points(jax.random.PRNGKey(0), 2)}, v0)
+    with pytest.raises(ValueError, match=r"q must be a dict with the keys of the space"):
+        acc(q0["chain"], v0["chain"])
+    with pytest.raises(ValueError, match="space must be a factor"):
+        sm.Lagrangian(model.lagrangian, space={"base": 3})
+    with pytest.raises(ValueError, match="space must be a factor"):
+        sm.Hamiltonian(model.lagrangian, space=[sm.Euclidean(1)])
+    with pytest.raises(ValueError, match="Euclidean\\(m\\): m must be a positive int"):
+        sm.Euclidean(0)
+    bad_forces = lambda t, q, v, args: {"base": jnp.zeros(1)}
+    forced = sm.Lagrangian(model.lagrangian, bad_forces, space=model.space)
+    with pytest.raises(ValueError, match=r"forces\(t, q, v, args\) must have the keys"):
+        forced.acceleration(0.0, q0, v0)
