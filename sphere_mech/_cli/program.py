@@ -152,7 +152,7 @@ def build(spec, t1=None) -> tuple[Program, jax.stages.Compiled]:
 
     scene = as_arrays(spec.scene)
     scene.check_size(np.asarray(spec.y0[0]))
-    q0, v0 = initial_state(scene.state_name, spec.y0)
+    q0, v0 = initial_state(scene.space, scene.state_name, spec.y0)
     dynamic, static = eqx.partition(scene, eqx.is_array)
     params, treedef = jax.tree.flatten(dynamic)
     ts, count = segment_times(spec.t0, float(spec.t1 if t1 is None else t1), spec.save_dt)
