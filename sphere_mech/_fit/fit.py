@@ -318,22 +318,26 @@ def fit(
     (Levenberg-Marquardt by default).
 
     **Arguments:**
-    - `model`: `model(params) -> system` or `(system, args)`; any sphere_mech system.
+    - `model`: `model(params) -> system` or `(system, args)`; any sphere_mech system,
+      on (S^2)^n or on a mixed space (`space=`, states dicts of arrays).
     - `params0`: initial parameters, any pytree (dict, tuple, equinox Module such as an
       `eqx.nn.MLP`); its floating-point array leaves are fitted, other leaves kept.
     - `ts`: observation times `(T,)` (or `(B, T)`, one row per record), increasing;
       the simulation starts at `ts[0]`.
     - `observations`: `(T, ...)`, or `(B, T, ...)` for a batch of `B` records.
     - `observe`: `observe(system, t, q, v) -> array` of the shape of one observation
-      (e.g. the tip position).
+      (e.g. the tip position); `q`, `v` are one state (dicts on a mixed space).
     - `y0`: initial state `(q0, v0)` at `ts[0]`, `(n, 3)` arrays, or `(B, n, 3)` for a
-      batch of records (the batch is given by `y0`).
+      batch of records (the batch is given by `y0`); on a mixed space, dicts of arrays
+      (`{"cart": (1,), "bob": (1, 3)}`), with a leading axis `B` on every array for a
+      batch.
     - `segments`: number of shooting segments `K` (1: single shooting). Each segment
       after the first starts from its own state, fitted as an extra unknown and kept
-      on the tangent bundle by `retract` of an ambient `(a, b)`; a penalty
+      on the tangent bundle by the space's `retract` of an ambient `(a, b)`; a penalty
       `continuity * |y_end(k) - y_start(k + 1)|^2` ties the segments together.
     - `segment_states`: initial guesses `(q, v)` for the starts of segments 2..K,
-      `([B,] K - 1, n, 3)` (e.g. estimated from the data); default: a simulation of
+      `([B,] K - 1, n, 3)` (dicts of arrays with leading axes `([B,] K - 1)` on a mixed
+      space; e.g. estimated from the data); default: a simulation of
       `model(params0)` from `y0`.
     - `fit_initial_state`: also fit `y0` (taken then as the initial guess).
     - `positive`: `True`, or a pytree of bools matching `params0`: those parameters are
