@@ -155,6 +155,11 @@ class AbstractSpace(eqx.Module):
     def rows(self, q) -> int:
         """The number of rows (points) of a configuration: the batch chunking measure."""
 
+    @abc.abstractmethod
+    def batch_shape(self, q) -> tuple[int, ...]:
+        """The leading axes of `q` before those of one point (`()` for one point, `(B,)`
+        for a batch of `B`); static, from the shapes only."""
+
     def retract(self, q, v):
         """Put a state back on the tangent bundle: `q` normalized, `v` made tangent."""
         q = self.normalize(q)
@@ -259,6 +264,9 @@ class Spheres(AbstractFactor):
     def rows(self, q):
         return jnp.shape(q)[-2]
 
+    def batch_shape(self, q):
+        return jnp.shape(q)[:-2]
+
 
 class Euclidean(AbstractFactor):
     """The factor `R^m`: its values and velocities are `(m,)` arrays (a cart's position
@@ -346,6 +354,9 @@ class Euclidean(AbstractFactor):
 
     def rows(self, q):
         return 1
+
+    def batch_shape(self, q):
+        return jnp.shape(q)[:-1]
 
 
 def _check_keys(tree, keys, name):
@@ -444,6 +455,16 @@ class Product(AbstractSpace):
 
     def rows(self, q):
         return sum(f.rows(q[k]) for k, f in self.factors.items())
+
+    def batch_shape(self, q):
+        _check_keys(q, self.factors, "q")
+        shapes = {f.batch_shape(q[k]) for k, f in self.factors.items()}
+        if len(shapes) != 1:
+            raise ValueError(
+                "the arrays of a state must have the same leading (batch) axes, got "
+                f"{ {k: jnp.shape(x) for k, x in q.items()} }."
+            )
+        return shapes.pop()
 
 
 def as_space(space) -> AbstractSpace:

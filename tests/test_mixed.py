@@ -9,6 +9,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 import pytest
 import test_forms as forms
 from jax.flatten_util import ravel_pytree
@@ -472,6 +473,102 @@ def test_gradient_through_simulate_matches_finite_differences():
     ]
     np.testing.assert_allclose(grad, np.array(fd), rtol=1e-6, atol=1e-9)
     assert np.min(np.abs(np.array(fd))) > 1e-3
+
+
+# ----------------------------------------------------------------------------------------
+# Events and fit on a mixed space, against the Cartesian reference.
+# ----------------------------------------------------------------------------------------
+
+
+def test_event_stops_at_cart_position(tight_runs):
+    """The forced cart stops where it reaches the position it had at t = 0.5 (`q` a dict
+    in the event function); at the event time the reference cart is there and the bob
+    agrees with the reference."""
+    model, system, forced, (q0, v0), sol = tight_runs["cart_pendulum"]
+    target = float(sol.ys[0]["base"][5, 0])  # TS[5] = 1.0
+    hit = lambda t, y, args, **kw: y[0]["base"][0] - target
+    newton = optx.Newton(rtol=1e-13, atol=1e-13)
+    out = sm.simulate(
+        system,
+        (q0, v0),
+        T1,
+        solver=TIGHT["solver"],
+        rtol=1e-12,
+        atol=1e-12,
+        event=diffrax.Event(hit, root_finder=newton),
+    )
+    assert out.result == sm.RESULTS.event_occurred
+    t_event = float(out.ts[-1])
+    assert 0.0 < t_event <= 1.0 + 1e-9
+    x_ref, r_ref = model.reference(q0, v0, forced=forced, ts=np.array([0.0, t_event]))
+    assert abs(x_ref[-1, 0] - target) < 1e-8
+    q_end = jax.tree.map(lambda x: x[-1], out.ys[0])
+    assert abs(float(q_end["base"][0]) - target) < 1e-10
+    assert np.max(np.abs(model.positions(q_end) - r_ref[-1])) < 1e-8
+
+
+CART_LENGTH = 0.8
+FIT_TS = np.linspace(0.0, 1.5, 16)
+
+
+def cart_system(params):
+    """The driven cart pendulum of `cart_pendulum()` with the cart mass `M` and the bob
+    mass `m` as parameters (written out: the cart on the x axis, the bob at
+    `x e_x + l q`)."""
+
+    def lagrangian(t, q, qdot, args):
+        u, ud = q["chain"][0], qdot["chain"][0]
+        bob_v = qdot["base"][0] * jnp.array([1.0, 0.0, 0.0]) + CART_LENGTH * ud
+        kinetic = 0.5 * params["M"] * qdot["base"][0] ** 2 + 0.5 * params["m"] * bob_v @ bob_v
+        return kinetic - params["m"] * G * CART_LENGTH * u[2]
+
+    forces = lambda t, q, qdot, args: {
+        "base": 2.0 * jnp.sin(3.0 * t) * jnp.ones(1),
+        "chain": jnp.zeros_like(q["chain"]),
+    }
+    return sm.Lagrangian(lagrangian, forces, space=cart_pendulum().space)
+
+
+def observe_cart(system, t, q, v):
+    """The cart's position and the bob's position."""
+    bob = q["base"][0] * jnp.array([1.0, 0.0, 0.0]) + CART_LENGTH * q["chain"][0]
+    return jnp.concatenate([q["base"], bob])
+
+
+@pytest.fixture(scope="module")
+def cart_data():
+    """Noise-free observations of the cart pendulum (M = 1.5, m = 0.7) from the Cartesian
+    reference."""
+    model = cart_pendulum()
+    y0 = initial_state(model, seed=3)
+    x_ref, r_ref = model.reference(*y0, forced=True, ts=FIT_TS)
+    return y0, np.concatenate([x_ref, r_ref[:, 0]], axis=1)
+
+
+@pytest.mark.parametrize("segments", [1, 2])
+def test_fit_recovers_masses_on_mixed_space(cart_data, segments):
+    """`fit` recovers the cart and bob masses (started 30-40 % off) from the observed cart
+    and bob positions, single and multiple shooting."""
+    y0, obs = cart_data
+    result = sm.fit(
+        cart_system,
+        {"M": 1.0, "m": 1.0},
+        FIT_TS,
+        obs,
+        observe_cart,
+        y0=y0,
+        segments=segments,
+        positive=True,
+        simulate_options=dict(rtol=1e-10, atol=1e-10),
+    )
+    assert bool(result.converged)
+    assert abs(float(result.params["M"]) / 1.5 - 1) < 1e-2
+    assert abs(float(result.params["m"]) / 0.7 - 1) < 1e-2
+    q, v = result.segment_states
+    assert q["base"].shape == (segments, 1) and v["chain"].shape == (segments, 1, 3)
+    # d = 1 + 2 tangent coordinates: 2d = 6 per junction and per fitted state
+    assert result.dof == obs.size - 2
+    assert result.jacobian.shape[1] == 2 + (segments - 1) * 6
 
 
 # ----------------------------------------------------------------------------------------

@@ -15,9 +15,9 @@ import optimistix as optx
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, PyTree
 
-from .._geometry import retract, tangent_basis
 from .._simulate import simulate
-from .shooting import Residuals, map_flagged, model_output, split_segments
+from .._spaces import AbstractSpace, tree_add, tree_dtype
+from .shooting import Residuals, map_flagged, model_output, over_states, split_segments
 
 
 class FitResult(eqx.Module):
@@ -32,7 +32,8 @@ class FitResult(eqx.Module):
     - `converged`: whether the solver met its tolerances within `max_steps`
       (`result == optimistix.RESULTS.successful`).
     - `segment_states`: the fitted initial states `(q, v)` of the shooting segments,
-      `([B,] K, n, 3)` arrays (segment 0 is `y0` unless `fit_initial_state=True`).
+      with leading axes `([B,] K)`: `([B,] K, n, 3)` arrays on (S^2)^n, dicts of them on
+      a mixed space (segment 0 is `y0` unless `fit_initial_state=True`).
     - `result`: the `optimistix.RESULTS` code of the least-squares solve.
 
     Uncertainties, by linearizing the residuals at the solution (Gauss-Newton, as
@@ -40,11 +41,14 @@ class FitResult(eqx.Module):
     - `jacobian`: `(m_rows, p)`, the Jacobian of the residuals at the solution. Rows: the
       raveled residuals (observation residuals `(B, K, W, ...)`, zero on the padding of
       segments that own fewer than `W` observations, then the weighted continuity jumps
-      of `q` and of `v`, `(B, K - 1, n, 3)` each). Columns: the fitted parameters as
-      fitted (the floating-point leaves of `params`, raveled in `tree_leaves` order by
-      `jax.flatten_util.ravel_pytree`; `log(p)` for parameters flagged `positive`), then
-      the fitted segment states, `(B, K', n, 2, 2)` raveled: for each sphere the
-      coordinates of `dq` and of `dv` in the basis `sm.tangent_basis(q)` of its plane.
+      of `q` and of `v`, `(B, K - 1, n, 3)` each on (S^2)^n, raveled leaf by leaf on a
+      mixed space). Columns: the fitted parameters as fitted (the floating-point leaves
+      of `params`, raveled in `tree_leaves` order by `jax.flatten_util.ravel_pytree`;
+      `log(p)` for parameters flagged `positive`), then the fitted segment states,
+      `(B, K', 2, d)` raveled: the `d` tangent coordinates of `dq`, then of `dv`, in the
+      space's tangent basis at `q` (on (S^2)^n, `d = 2n`, two per sphere in the basis
+      `sm.tangent_basis(q)` of its plane; on a mixed space, the factors' coordinates in
+      the space's key order, a Euclidean factor's are its components).
     - `covariance`: `(p_params, p_params)`, the covariance of the fitted parameters (same
       order and space as the first columns of `jacobian`): the parameter block of
       `residual_variance * (J^T J)^{-1}`, i.e. with the segment states marginalized out.
@@ -54,10 +58,11 @@ class FitResult(eqx.Module):
       `se(p) = p * se(log p)`.
     - `residual_variance`: `s^2 = |r|^2 / dof`, the estimated noise variance.
     - `dof`: the degrees of freedom `m - p`. `m` counts the observation residuals and,
-      per continuity junction, `4n` (to first order the jumps of `(q, v)` lie in the
-      `4n`-dimensional tangent space); `p` counts the fitted parameters and `4n` per fitted
-      segment state. So `dof` is the number of observed values minus the number of
-      parameters (minus `4n` per record with `fit_initial_state`), as for single shooting.
+      per continuity junction, `2d` (to first order the jumps of `(q, v)` lie in the
+      `2d`-dimensional tangent space of the tangent bundle; `2d = 4n` on (S^2)^n); `p`
+      counts the fitted parameters and `2d` per fitted segment state. So `dof` is the
+      number of observed values minus the number of parameters (minus `2d` per record
+      with `fit_initial_state`), as for single shooting.
 
     These assume independent Gaussian noise of one variance on every observed value and a
     model that is close to linear in the unknowns over the size of the errors; the
@@ -111,21 +116,27 @@ def _positive_flags(params0, positive) -> tuple[bool, ...]:
     return tuple(jtu.tree_leaves(flags))
 
 
-def _as_batch(ts, observations, y0):
-    """Bring `ts`, `observations`, `y0` to a leading batch axis of records; check shapes."""
+def _as_batch(space: AbstractSpace, ts, observations, y0):
+    """Bring `ts`, `observations`, `y0` to a leading batch axis of records; check shapes
+    (those of one state by the system's `space`)."""
     if not (isinstance(y0, tuple | list) and len(y0) == 2):
-        raise ValueError("y0 must be a pair (q0, v0) of (n, 3) or (B, n, 3) arrays.")
-    q0, v0 = (jnp.asarray(y) for y in y0)
-    if q0.shape != v0.shape or q0.ndim not in (2, 3) or q0.shape[-1] != 3:
         raise ValueError(
-            f"y0 must be (q0, v0) with equal shapes (n, 3) or (B, n, 3), got {q0.shape} "
-            f"and {v0.shape}."
+            "y0 must be a pair (q0, v0) of (n, 3) or (B, n, 3) arrays (on a mixed space, "
+            "dicts of arrays, with or without a leading axis B)."
         )
-    batched = q0.ndim == 3
+    q0, v0 = jtu.tree_map(jnp.asarray, tuple(y0))
+    lead = space.batch_shape(q0)
+    if len(lead) > 1 or space.batch_shape(v0) != lead:
+        raise ValueError(
+            "y0 must be (q0, v0), one state or a batch of states with one leading axis B "
+            f"on every array, got shapes {jtu.tree_map(jnp.shape, (q0, v0))}."
+        )
+    batched = len(lead) == 1
     ts, observations = jnp.asarray(ts), jnp.asarray(observations)
     if not batched:
-        q0, v0, observations = q0[None], v0[None], observations[None]
-    num_records = q0.shape[0]
+        (q0, v0), observations = jtu.tree_map(lambda y: y[None], (q0, v0)), observations[None]
+    space.check_shapes(*jtu.tree_map(lambda y: y[0], (q0, v0)), "v0", "q0")
+    num_records = lead[0] if batched else 1
     if ts.ndim == 1:
         ts = jnp.broadcast_to(ts, (num_records,) + ts.shape)
     if ts.ndim != 2 or ts.shape[0] != num_records:
@@ -144,7 +155,7 @@ def _as_batch(ts, observations, y0):
 
 
 def _check_observe(observe, system, ts, observations, y0):
-    out = eqx.filter_eval_shape(observe, system, ts[0, 0], y0[0][0], y0[1][0])
+    out = eqx.filter_eval_shape(observe, system, ts[0, 0], *jtu.tree_map(lambda y: y[0], y0))
     shape = out.shape if isinstance(out, jax.ShapeDtypeStruct) else type(out).__name__
     if shape != observations.shape[2:]:
         raise ValueError(
@@ -164,8 +175,8 @@ def _guess_states(system, args, segment_t0, y0, sim):
         ).ys
 
     q, v = jax.vmap(one)(segment_t0, *y0)
-    q = jnp.where(jnp.isfinite(q), q, y0[0][:, None])
-    return q, jnp.where(jnp.isfinite(v), v, 0.0)
+    q = jtu.tree_map(lambda x, x0: jnp.where(jnp.isfinite(x), x, x0[:, None]), q, y0[0])
+    return q, jtu.tree_map(lambda x: jnp.where(jnp.isfinite(x), x, 0.0), v)
 
 
 def _initial_unknown_states(guess, system, args, segment_t0, y0, fit_initial_state, batched, sim):
@@ -174,43 +185,59 @@ def _initial_unknown_states(guess, system, args, segment_t0, y0, fit_initial_sta
     if guess is None:
         guess = _guess_states(system, args, segment_t0, y0, sim) if num_segments > 1 else None
     else:
-        guess = tuple(jnp.asarray(g) if batched else jnp.asarray(g)[None] for g in guess)
-        expected = (y0[0].shape[0], num_segments - 1) + y0[0].shape[1:]
-        if len(guess) != 2 or any(g.shape != expected for g in guess):
+        to_array = lambda g: jnp.asarray(g) if batched else jnp.asarray(g)[None]
+        expected = [(y.shape[0], num_segments - 1) + y.shape[1:] for y in jtu.tree_leaves(y0)]
+        valid = isinstance(guess, tuple | list) and len(guess) == 2
+        if valid:
+            guess = jtu.tree_map(to_array, tuple(guess))
+            leaves, structure = jtu.tree_flatten(guess)
+            valid = structure == jtu.tree_structure(y0) and [g.shape for g in leaves] == expected
+        if not valid:
             raise ValueError(
-                f"segment_states must be (q, v) for the starts of segments 2..K, shape "
-                f"{expected if batched else expected[1:]}, got {[g.shape for g in guess]}."
+                "segment_states must be (q, v) for the starts of segments 2..K: the "
+                "structure of y0 with leading axes ([B,] K - 1), shapes (with the B axis) "
+                f"{expected}, got {jtu.tree_map(jnp.shape, guess)}."
             )
     if not fit_initial_state:
         return guess
-    q0, v0 = (y[:, None] for y in y0)
+    first = jtu.tree_map(lambda y: y[:, None], y0)
     if guess is None:
-        return q0, v0
-    return jnp.concatenate([q0, guess[0]], 1), jnp.concatenate([v0, guess[1]], 1)
+        return first
+    return jtu.tree_map(lambda a, b: jnp.concatenate([a, b], 1), first, guess)
 
 
-def _degrees_of_freedom(observations, unknowns0, segments):
-    """`m - p`: observed values (and `4n` per continuity junction) minus the parameters
-    (and `4n` per fitted segment state); see `FitResult`."""
+def _tangent_size(space: AbstractSpace, state_tree):
+    """`d`, the number of tangent coordinates of one point (`2n` on (S^2)^n), from the
+    first of a tree of states with leading axes `(B, K)` (shapes only)."""
+    q = jtu.tree_map(lambda x: x[0, 0], state_tree)
+    return jax.eval_shape(lambda q: space.to_tangent(space.tangent_basis(q), q), q).shape[0]
+
+
+def _degrees_of_freedom(space, observations, unknowns0, segments):
+    """`m - p`: observed values (and `2d` per continuity junction) minus the parameters
+    (and `2d` per fitted segment state); see `FitResult`."""
     u, z = unknowns0
     num_params = ravel_pytree(u)[0].size
     if z is None:
         return observations.size - num_params
-    num_records, num_states, n = z[0].shape[:3]
+    num_records, num_states = jtu.tree_leaves(z[0])[0].shape[:2]
     junctions = num_records * (segments - 1)
-    return observations.size + 4 * n * (junctions - num_records * num_states) - num_params
+    size = 2 * _tangent_size(space, z[0])
+    return observations.size + size * (junctions - num_records * num_states) - num_params
 
 
-def _tangent_chart(z):
-    """The fitted segment states as a function of tangent coordinates `w` `(..., n, 2, 2)`
-    (`dq`, `dv` in `tangent_basis(q)`) around the retracted states, `w = 0` there."""
+def _tangent_chart(space: AbstractSpace, z):
+    """The fitted segment states as a function of tangent coordinates `w` `(B, K, 2, d)`
+    (`dq`, `dv` in the space's tangent basis at `q`) around the retracted states, `w = 0`
+    there."""
     if z is None:
         return jnp.zeros((0,)), lambda w: None
-    q, v = retract(*z)
-    basis = tangent_basis(q)
-    along = lambda w: jnp.einsum("...ij,...j->...i", basis, w)
-    chart = lambda w: (q + along(w[..., 0, :]), v + along(w[..., 1, :]))
-    return jnp.zeros(q.shape[:-1] + (2, 2), q.dtype), chart
+    q, v = over_states(space.retract)(*z)
+    basis = over_states(space.tangent_basis)(q)
+    move = over_states(lambda T, x, dx: tree_add(x, space.from_tangent(T, dx)))
+    chart = lambda w: (move(basis, q, w[..., 0, :]), move(basis, v, w[..., 1, :]))
+    shape = jtu.tree_leaves(q)[0].shape[:2] + (2, _tangent_size(space, q))
+    return jnp.zeros(shape, tree_dtype(q)), chart
 
 
 def _linearize(residuals, unknowns, data, loss, dof):
@@ -221,7 +248,7 @@ def _linearize(residuals, unknowns, data, loss, dof):
     Jacobian is built once."""
     u, z = unknowns
     u_flat, unravel_u = ravel_pytree(u)
-    w0, chart = _tangent_chart(z)
+    w0, chart = _tangent_chart(residuals.space, z)
     w_flat, unravel_w = ravel_pytree(w0)
 
     def flat_residuals(x):
@@ -291,22 +318,26 @@ def fit(
     (Levenberg-Marquardt by default).
 
     **Arguments:**
-    - `model`: `model(params) -> system` or `(system, args)`; any sphere_mech system.
+    - `model`: `model(params) -> system` or `(system, args)`; any sphere_mech system,
+      on (S^2)^n or on a mixed space (`space=`, states dicts of arrays).
     - `params0`: initial parameters, any pytree (dict, tuple, equinox Module such as an
       `eqx.nn.MLP`); its floating-point array leaves are fitted, other leaves kept.
     - `ts`: observation times `(T,)` (or `(B, T)`, one row per record), increasing;
       the simulation starts at `ts[0]`.
     - `observations`: `(T, ...)`, or `(B, T, ...)` for a batch of `B` records.
     - `observe`: `observe(system, t, q, v) -> array` of the shape of one observation
-      (e.g. the tip position).
+      (e.g. the tip position); `q`, `v` are one state (dicts on a mixed space).
     - `y0`: initial state `(q0, v0)` at `ts[0]`, `(n, 3)` arrays, or `(B, n, 3)` for a
-      batch of records (the batch is given by `y0`).
+      batch of records (the batch is given by `y0`); on a mixed space, dicts of arrays
+      (`{"cart": (1,), "bob": (1, 3)}`), with a leading axis `B` on every array for a
+      batch.
     - `segments`: number of shooting segments `K` (1: single shooting). Each segment
       after the first starts from its own state, fitted as an extra unknown and kept
-      on the tangent bundle by `retract` of an ambient `(a, b)`; a penalty
+      on the tangent bundle by the space's `retract` of an ambient `(a, b)`; a penalty
       `continuity * |y_end(k) - y_start(k + 1)|^2` ties the segments together.
     - `segment_states`: initial guesses `(q, v)` for the starts of segments 2..K,
-      `([B,] K - 1, n, 3)` (e.g. estimated from the data); default: a simulation of
+      `([B,] K - 1, n, 3)` (dicts of arrays with leading axes `([B,] K - 1)` on a mixed
+      space; e.g. estimated from the data); default: a simulation of
       `model(params0)` from `y0`.
     - `fit_initial_state`: also fit `y0` (taken then as the initial guess).
     - `positive`: `True`, or a pytree of bools matching `params0`: those parameters are
@@ -339,30 +370,30 @@ def fit(
         if key in sim:
             raise ValueError(f"simulate_options may not set {key!r}; fit sets it.")
     sim["adjoint"] = adjoint
-    ts, observations, y0, batched = _as_batch(ts, observations, y0)
-    segment_data = split_segments(ts, observations, segments)
-
     params0 = _as_arrays(params0)
     flags = _positive_flags(params0, positive)
     dynamic, static = eqx.partition(params0, eqx.is_inexact_array)
     system0, args0 = model_output(model, params0)
+    ts, observations, y0, batched = _as_batch(system0.space, ts, observations, y0)
+    segment_data = split_segments(ts, observations, segments)
     _check_observe(observe, system0, ts, observations, y0)
     z0 = _initial_unknown_states(
         segment_states, system0, args0, segment_data[2], y0, fit_initial_state, batched, sim
     )
     residuals = Residuals(
-        model, observe, flags, static, fit_initial_state, jnp.asarray(continuity), sim, jac
+        model, system0.space, observe, flags, static, fit_initial_state,
+        jnp.asarray(continuity), sim, jac,
     )
     solver = optx.LevenbergMarquardt(rtol=1e-6, atol=1e-9) if solver is None else solver
     unknowns0 = (map_flagged(jnp.log, dynamic, flags), z0)
-    dof = _degrees_of_freedom(observations, unknowns0, segments)
+    dof = _degrees_of_freedom(system0.space, observations, unknowns0, segments)
     (u, z), loss, initial_loss, num_steps, result, linear = _solve(
         residuals, solver, unknowns0, (segment_data, y0), max_steps, dof
     )
     jacobian, covariance, residual_variance = linear
     states = residuals.states(z, y0)
     if not batched:
-        states = tuple(s[0] for s in states)
+        states = jtu.tree_map(lambda s: s[0], states)
     converged = result == optx.RESULTS.successful
     fitted = (residuals.params(u), loss, initial_loss, num_steps, converged, states, result)
     stderr = _stderr(covariance, u, flags)

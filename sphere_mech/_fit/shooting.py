@@ -12,9 +12,9 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, PyTree
 
-from .._geometry import retract
 from .._simulate import simulate
 from .._solve import fill_zeros
+from .._spaces import AbstractSpace
 from .._system import AbstractSystem
 
 
@@ -60,15 +60,23 @@ def map_flagged(fn: Callable, tree: PyTree, flags: tuple[bool, ...]) -> PyTree:
     )
 
 
+def over_states(fn: Callable) -> Callable:
+    """`fn` of one state mapped over the leading axes `(B, K)` (records, segments)."""
+    return jax.vmap(jax.vmap(fn))
+
+
 class Residuals(eqx.Module):
     """The least-squares residuals `(unknowns, (segment data, y0)) -> (observation
-    residuals (B, K, W, ...), continuity jumps ((B, K - 1, n, 3), (B, K - 1, n, 3)))`.
+    residuals (B, K, W, ...), continuity jumps (dq, dv))`, the jumps with the structure of
+    a state and leading axes `(B, K - 1)` (`(B, K - 1, n, 3)` arrays on (S^2)^n).
 
     The unknowns are `(u, z)`: `u` the fitted parameters (leaves flagged `positive` as
-    their logarithm), `z` the ambient pairs `(a, b)` retracted to the starts of the
-    segments after the first (of all segments with `fit_initial_state`), or `None`."""
+    their logarithm), `z` the ambient pairs `(a, b)` that `space.retract` puts on the
+    tangent bundle at the starts of the segments after the first (of all segments with
+    `fit_initial_state`), or `None`."""
 
     model: Callable
+    space: AbstractSpace
     observe: Callable
     positive: tuple[bool, ...] = eqx.field(static=True)
     static_params: PyTree
@@ -81,14 +89,14 @@ class Residuals(eqx.Module):
         return eqx.combine(map_flagged(jnp.exp, u, self.positive), self.static_params)
 
     def states(self, z, y0):
-        """Initial states of all segments, `(B, K, n, 3)` each, on the tangent bundle."""
+        """Initial states of all segments, leading axes `(B, K)`, on the tangent bundle."""
+        retract = over_states(self.space.retract)
         if self.fit_initial_state:
             return retract(*z)
-        q0, v0 = (y[:, None] for y in y0)
+        first = jtu.tree_map(lambda y: y[:, None], y0)
         if z is None:
-            return q0, v0
-        q, v = retract(*z)
-        return jnp.concatenate([q0, q], 1), jnp.concatenate([v0, v], 1)
+            return first
+        return jtu.tree_map(lambda a, b: jnp.concatenate([a, b], 1), first, retract(*z))
 
     def segment(self, u, state, ts, obs, t0, t1, mask):
         """Masked observation residuals of one segment and its state at `t1`."""
@@ -97,22 +105,23 @@ class Residuals(eqx.Module):
         q, v = simulate(
             system, state, t1, t0=t0, args=args, saveat=saveat, throw=False, **self.sim
         ).ys
-        pred = jax.vmap(self.observe, in_axes=(None, 0, 0, 0))(system, ts, q[:-1], v[:-1])
+        q_obs, v_obs = jtu.tree_map(lambda x: x[:-1], (q, v))
+        pred = jax.vmap(self.observe, in_axes=(None, 0, 0, 0))(system, ts, q_obs, v_obs)
         mask = mask.reshape(mask.shape + (1,) * (pred.ndim - 1))
-        return jnp.where(mask, pred - obs, 0.0), (q[-1], v[-1])
+        return jnp.where(mask, pred - obs, 0.0), jtu.tree_map(lambda x: x[-1], (q, v))
 
     def __call__(self, unknowns, data):
         segment_data, y0 = data
         u, z = unknowns
         qs, vs = self.states(z, y0)
-        res, (q_end, v_end) = _segments(u, (qs, vs), problem=self, data=segment_data)
+        res, ends = _segments(u, (qs, vs), problem=self, data=segment_data)
         w = jnp.sqrt(self.continuity).astype(res.dtype)
-        return res, (w * (q_end[:, :-1] - qs[:, 1:]), w * (v_end[:, :-1] - vs[:, 1:]))
+        return res, jtu.tree_map(lambda e, s: w * (e[:, :-1] - s[:, 1:]), ends, (qs, vs))
 
 
 def _over_segments(fn, states, data):
     """`fn(state, ts, obs, t0, t1, mask)` over all records and segments."""
-    return jax.vmap(jax.vmap(fn))(states, *data)
+    return over_states(fn)(states, *data)
 
 
 @eqx.filter_custom_jvp
@@ -123,10 +132,10 @@ def _segments(u, states, *, problem, data):
 @_segments.def_jvp
 def _segments_jvp(primals, tangents, *, problem, data):
     """Segment `k` depends only on the parameters and its own initial state: build each
-    segment's Jacobian (`dim(u) + 6n` columns, forward mode; or its rows, reverse mode)
-    once, from the primals only, then apply it to any tangent. Under the `vmap` over
-    basis tangents that materializes the least-squares Jacobian, its cost is thus
-    independent of the number of segments."""
+    segment's Jacobian (`dim(u)` columns plus the size of a state, `6n` on (S^2)^n;
+    forward mode; or its rows, reverse mode) once, from the primals only, then apply it
+    to any tangent. Under the `vmap` over basis tangents that materializes the
+    least-squares Jacobian, its cost is thus independent of the number of segments."""
     u, states = primals
     du, dstates = (fill_zeros(t, p) for t, p in zip(tangents, primals, strict=True))
     u_flat, unravel_u = ravel_pytree(u)
