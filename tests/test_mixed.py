@@ -545,7 +545,8 @@ def cart_data():
     return y0, np.concatenate([x_ref, r_ref[:, 0]], axis=1)
 
 
-@pytest.mark.parametrize("segments", [1, 2])
+# single shooting is the same code as one segment of two (slow set: about 1 min)
+@pytest.mark.parametrize("segments", [pytest.param(1, marks=pytest.mark.slow), 2])
 def test_fit_recovers_masses_on_mixed_space(cart_data, segments):
     """`fit` recovers the cart and bob masses (started 30-40 % off) from the observed cart
     and bob positions, single and multiple shooting."""
