@@ -124,3 +124,20 @@ def test_math_is_served_by_the_site(site):
     assert (site / "assets" / "mathjax" / "tex-svg.js").stat().st_size > 100_000
     html = (site / "concepts" / "index.html").read_text()
     assert 'class="arithmatex"' in html and "assets/mathjax/tex-svg.js" in html
+
+
+def test_readme_quick_example_runs():
+    """The README's quick example (its one Python block, at most 15 lines) runs as shown
+    and gives what its comments say."""
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    blocks = text.split("```python\n")[1:]
+    assert len(blocks) == 1
+    code = blocks[0].split("```")[0]
+    assert len(code.strip().splitlines()) <= 15
+    namespace = {}
+    exec(compile(code, "README.md", "exec"), namespace)
+    assert namespace["qddot"].shape == (2, 3)
+    sol = namespace["sol"]
+    assert sol.result == sm.RESULTS.successful
+    assert float(sol.ts[-1]) == 10.0
+    assert float(sm.constraint_error(sol.ys[0][-1])) < 1e-12
