@@ -35,3 +35,28 @@ def jaxpr_equations(jaxpr):
                 inner = getattr(sub, "jaxpr", sub)
                 if hasattr(inner, "eqns"):
                     yield from jaxpr_equations(inner)
+
+
+def form_outputs(systems, variables, t, q, qdot, qddot, p):
+    """For each form in `systems` (keys as in `variables`, the state variable of each at
+    the same physical state): its rates (qdot, dv/dt) through the checked public entry
+    points, its energy, dE/dt along the rates (jvp) and the power of its own forces.
+    Plain `(n, 3)` arrays or dicts of them (mixed spaces)."""
+    import jax
+
+    out = {}
+    for name, system in systems.items():
+        v = variables[name]
+        if name == "lag":
+            rates = (qdot, qddot)
+        elif name == "ang":
+            rates = (system.to_linear(q, v), system.angular_acceleration(t, q, v, p))
+        else:
+            rates = system.vector_field(t, q, v, p)
+        energy_fn = lambda t_, q_, v_, system=system: system.energy(t_, q_, v_, p)
+        energy, dE = jax.jvp(energy_fn, (t, q, v), (jnp.ones_like(t), *rates))
+        f = system.generalized_force(t, q, v, p)
+        power = sum(jnp.sum(a * b) for a, b in
+                    zip(jtu.tree_leaves(f), jtu.tree_leaves(rates[0]), strict=True))
+        out[name] = dict(rates=rates, energy=energy, dE=dE, power=power)
+    return out

@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import max_rel_error
+from helpers import form_outputs, max_rel_error
 from hypothesis import given, settings
 
 import sphere_mech as sm
@@ -135,21 +135,7 @@ def evaluate(systems, t, q, qdot, p):
         dL_dt=jax.grad(lambda t_: lag.lagrangian(t_, q, qdot, p))(t),
     )
     variables = dict(lag=qdot, ang=sm.omega_from_qdot(q, qdot), ham=mu, ang_ham=pi, ham_ang=pi)
-    out = {}
-    for name, system in systems.items():
-        v = variables[name]
-        # the checked public entry points (their values are the unchecked `rates`)
-        if name == "lag":
-            rates = (qdot, qddot)
-        elif name == "ang":
-            rates = (sm.qdot_from_omega(q, v), system.angular_acceleration(t, q, v, p))
-        else:
-            rates = system.vector_field(t, q, v, p)
-        energy_fn = lambda t_, q_, v_, system=system: system.energy(t_, q_, v_, p)
-        energy, dE = jax.jvp(energy_fn, (t, q, v), (jnp.ones_like(t), *rates))
-        # power of this form's own forces (`power()` itself is checked on form 1)
-        power = jnp.sum(system.generalized_force(t, q, v, p) * rates[0])
-        out[name] = dict(rates=rates, energy=energy, dE=dE, power=power)
+    out = form_outputs(systems, variables, t, q, qdot, qddot, p)
     out["lag"]["power_method"] = lag.power(t, q, qdot, p)
     out["ang"]["momentum"] = systems["ang"].momentum(t, q, variables["ang"], p)
     return ref, out

@@ -12,6 +12,7 @@ import numpy as np
 import optimistix as optx
 import pytest
 import test_forms as forms
+from helpers import form_outputs
 from jax.flatten_util import ravel_pytree
 from scipy.integrate import solve_ivp
 
@@ -269,23 +270,7 @@ def evaluate_forms(systems, t, q, qdot, p):
     variables = dict(
         lag=qdot, ang=on_chain(jnp.cross, q, qdot), ham=mu, ang_ham=pi, ham_ang=pi, ham_newton=mu
     )
-    out = {}
-    for name, system in systems.items():
-        v = variables[name]
-        if name == "lag":
-            rates = (qdot, qddot)
-        elif name == "ang":
-            rates = (system.to_linear(q, v), system.angular_acceleration(t, q, v, p))
-        else:
-            rates = system.vector_field(t, q, v, p)
-        energy_fn = lambda t_, q_, v_, system=system: system.energy(t_, q_, v_, p)
-        energy, dE = jax.jvp(energy_fn, (t, q, v), (jnp.ones_like(t), *rates))
-        f = system.generalized_force(t, q, v, p)
-        power = sum(
-            jnp.sum(a * b)
-            for a, b in zip(jax.tree.leaves(f), jax.tree.leaves(rates[0]), strict=True)
-        )
-        out[name] = dict(rates=rates, energy=energy, dE=dE, power=power)
+    out = form_outputs(systems, variables, t, q, qdot, qddot, p)
     out["ang"]["momentum"] = systems["ang"].momentum(t, q, variables["ang"], p)
     return ref, out
 
