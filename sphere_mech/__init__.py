@@ -53,13 +53,21 @@ if TYPE_CHECKING:  # the public names; imported on first use (see `__getattr__`)
         AbstractPotential as AbstractPotential,
     )
     from ._scene.forces import (
+        BaseForce as BaseForce,
         BaseTorque as BaseTorque,
+        Harmonic as Harmonic,
         JointDamping as JointDamping,
+        PDPosition as PDPosition,
         PDTorque as PDTorque,
         TipForce as TipForce,
         VibratingSupport as VibratingSupport,
     )
-    from ._scene.kinetic import Chain as Chain, Particles as Particles, SharedSphere as SharedSphere
+    from ._scene.kinetic import (
+        Base as Base,
+        Chain as Chain,
+        Particles as Particles,
+        SharedSphere as SharedSphere,
+    )
     from ._scene.potentials import (
         Bending as Bending,
         Gravity as Gravity,

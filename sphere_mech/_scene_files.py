@@ -21,8 +21,17 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._scene.base import UNIT_TOLERANCE, ParameterError
-from ._scene.forces import BaseTorque, JointDamping, PDTorque, TipForce, VibratingSupport
-from ._scene.kinetic import Chain, Particles, SharedSphere
+from ._scene.forces import (
+    BaseForce,
+    BaseTorque,
+    Harmonic,
+    JointDamping,
+    PDPosition,
+    PDTorque,
+    TipForce,
+    VibratingSupport,
+)
+from ._scene.kinetic import Base, Chain, Particles, SharedSphere
 from ._scene.potentials import Bending, Gravity, PairInteraction, Spring
 from ._scene.scene import Scene
 from ._simulate import simulate
@@ -53,9 +62,9 @@ def _snake(name: str) -> str:
 
 
 EFFECTS = {_snake(c.__name__): c for c in (
-    Chain, Particles, SharedSphere, Gravity, Spring, Bending, PairInteraction, JointDamping,
-    BaseTorque, TipForce, VibratingSupport)}
-DRIVES = {_snake(c.__name__): c for c in (PDTorque,)}
+    Chain, Particles, SharedSphere, Base, Gravity, Spring, Bending, PairInteraction,
+    JointDamping, BaseTorque, TipForce, VibratingSupport, BaseForce)}
+DRIVES = {_snake(c.__name__): c for c in (PDTorque, PDPosition, Harmonic)}
 """Controllers, written as inline tables where Python takes a function."""
 
 
@@ -166,6 +175,9 @@ INITIAL = {
     "azimuth_rate_deg": ((), "rates in deg/s", None),
 }
 """`[initial]` keys -> (shape of one entry (for every sphere), what is expected, range)."""
+BASE_INITIAL = {"base": "the base's coordinates (m), one per axis of the Base",
+                "base_velocity": "the base's velocity (m/s), one per axis of the Base"}
+"""`[initial]` keys of a scene with a `Base` (default zeros)."""
 
 
 def _per_sphere(path, table, key: str, n: int) -> np.ndarray:
@@ -178,12 +190,29 @@ def _per_sphere(path, table, key: str, n: int) -> np.ndarray:
     return np.broadcast_to(np.asarray(x, dtype=float), (n, *item))
 
 
-def _initial(path, table, n: int):
+def _initial(path, table, scene: Scene):
+    """The initial state `[initial]` gives: `(q0, qdot0)`, dicts with a `Base`."""
     if not isinstance(table, dict):
         raise SceneFileError(path, "initial", "a table with q or polar_deg and azimuth_deg, "
                              f"got {_show(table)}")
-    _no_unknown(path, "initial", table, INITIAL, "q and qdot, or polar_deg and azimuth_deg "
-                "with optional rates")
+    base = {} if scene.base is None else BASE_INITIAL
+    _no_unknown(path, "initial", table, [*INITIAL, *base], "q and qdot, or polar_deg and "
+                "azimuth_deg with optional rates" + (", and base and base_velocity" if base
+                                                     else " (base: the scene has no Base)"))
+    q, qdot = _spheres_initial(path, table, scene.n)
+    if scene.base is None:
+        return q, qdot
+    x = {}
+    for key, expected in BASE_INITIAL.items():
+        value = table.get(key, [0.0] * scene.base.m)
+        if not (_numbers(value) and np.shape(value) == (scene.base.m,)):
+            raise SceneFileError(path, f"initial.{key}", f"{expected}: {scene.base.m} "
+                                 f"numbers, got {_show(value)}")
+        x[key] = jnp.asarray(value, dtype=q.dtype)
+    return {"base": x["base"], "spheres": q}, {"base": x["base_velocity"], "spheres": qdot}
+
+
+def _spheres_initial(path, table, n: int):
     if any(v in table and any(k.endswith(e) for k in table) for v, e in
            (("q", "_deg"), ("qdot", "_rate_deg"))):
         raise SceneFileError(path, "initial", "either q and qdot, or angles and rates")
@@ -266,7 +295,8 @@ class SceneSpec:
     - `path`: the file.
     - `name`: the scene's `name` (default: the file's stem).
     - `scene`: the `Scene` built from `[[effects]]`.
-    - `y0`: the initial state `(q0, qdot0)` from `[initial]`, `(n, 3)` arrays.
+    - `y0`: the initial state `(q0, qdot0)` from `[initial]`: `(n, 3)` arrays (with a
+      `Base`, dicts `{"base": (m,), "spheres": (n, 3)}`).
     - `solver`: the solver named in `[simulate]` (default `Projected(diffrax.Tsit5())`).
     - `solver_name`: the solver as the file spells it.
     - `t0`, `t1`: start and end times (s).
@@ -354,7 +384,7 @@ def load_scene(path) -> SceneSpec:
     if not isinstance(name, str):
         raise SceneFileError(path, "name", f"a string, got {_show(name)}")
     scene = _scene(path, data.get("effects"))
-    y0 = _initial(path, data.get("initial"), scene.n)
+    y0 = _initial(path, data.get("initial"), scene)
     args = _simulate_args(path, data)
     save_dt = _table(path, data, "output", ("save_dt",)).get(
         "save_dt", (args["t1"] - args["t0"]) / 1000)

@@ -2,7 +2,6 @@
 
 import diffrax
 import equinox as eqx
-import jax.numpy as jnp
 
 from ._results import raise_on_failure
 from ._solve import (
@@ -95,7 +94,7 @@ def simulate(
     """
     system, args = as_arrays((system, args))
     if system.n is not None:
-        system.check_size(jnp.asarray(y0[0]))
+        system.check_size(y0[0])
     y0 = initial_state(system.space, system.state_name, y0)
     dtype = state_dtype(y0)
     opts = options(solver, dt0, rtol, atol, stepsize_controller, saveat, max_steps, adjoint,

@@ -2,7 +2,7 @@
 families, `AbstractLagrangianSystem` and `AbstractHamiltonianSystem`."""
 
 import abc
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
 import equinox as eqx
 import jax
@@ -130,7 +130,9 @@ class AbstractSystem(eqx.Module):
 
         **Returns:** `None`.
         """
-        if self.n is not None and jnp.ndim(q) == 2 and jnp.shape(q)[0] != self.n:
+        if self.n is None or isinstance(q, Mapping):
+            return  # a mixed space's factors check their own sizes
+        if jnp.ndim(q) == 2 and jnp.shape(q)[0] != self.n:
             raise ValueError(f"the state has {jnp.shape(q)[0]} spheres but the system has "
                              f"{self.n}: q must have shape ({self.n}, 3), got {jnp.shape(q)}.")
 

@@ -1,6 +1,7 @@
 """The kinds of effect a scene is assembled from, and the checks their parameters share."""
 
 import abc
+from collections.abc import Mapping
 
 import equinox as eqx
 import jax
@@ -43,6 +44,25 @@ def check_vector(name: str, x, unit: bool = False) -> None:
     if unit and _concrete(x) and not abs(np.linalg.norm(x) - 1.0) <= UNIT_TOLERANCE:
         raise ParameterError(name, f"{name} must be a unit vector (length 1 within "
                              f"{UNIT_TOLERANCE:g}), got {_show(x)}")
+
+
+def check_axes(name: str, x) -> None:
+    """`(m, 3)` rows, `1 <= m <= 3`, orthonormal within `UNIT_TOLERANCE` (unless traced)."""
+    if jnp.ndim(x) != 2 or jnp.shape(x)[1] != 3 or not 1 <= jnp.shape(x)[0] <= 3:
+        raise ParameterError(name, f"{name} must be an (m, 3) array of m = 1, 2 or 3 "
+                             f"directions, got shape {jnp.shape(x)}")
+    if _concrete(x):
+        x = np.asarray(x)
+        error = np.max(np.abs(x @ x.T - np.eye(x.shape[0])))
+        if not error <= UNIT_TOLERANCE:
+            raise ParameterError(name, f"{name} must be orthonormal rows (unit length, "
+                                 f"mutually perpendicular, within {UNIT_TOLERANCE:g}), got "
+                                 f"{_show(x)}")
+
+
+def spheres_of(q):
+    """The `(n, 3)` sphere part of a scene's state (the state itself without a `Base`)."""
+    return q["spheres"] if isinstance(q, Mapping) else q
 
 
 def check_sign(name: str, x, unit: str = "", *, strict: bool = True, scalar=False) -> None:
@@ -98,6 +118,13 @@ class AbstractKinetic(AbstractEffect):
     def n(self) -> int:
         """Number of spheres (= number of masses), static."""
         return self.masses.shape[0]
+
+    def point_masses(self) -> jax.Array:
+        """The masses carried by the spheres (`masses` plus any payload).
+
+        **Returns:** an `(n,)` array (kg).
+        """
+        return self.masses
 
     @abc.abstractmethod
     def inertia(self) -> jax.Array:

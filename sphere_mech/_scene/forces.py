@@ -8,11 +8,12 @@ import jax
 import jax.numpy as jnp
 
 from . import base
-from .base import AbstractDrive, AbstractForce
+from .base import AbstractDrive, AbstractForce, ParameterError, spheres_of
 
 
 def _relative_omega(q, qdot, scene):
-    """`omega_i - omega_parent(i)` for every joint (`omega_i = q_i x qdot_i`)."""
+    """`omega_i - omega_parent(i)` for every joint (`omega_i = q_i x qdot_i`), from the
+    spheres' `(n, 3)` arrays."""
     omega = jnp.cross(q, qdot)
     padded = jnp.concatenate([jnp.zeros_like(omega[:1]), omega])
     return omega - padded[scene.parents() + 1]
@@ -22,10 +23,11 @@ def _drive_value(x):
     return x if callable(x) else base.as_float(x)
 
 
-def _evaluate(drive, t, q, qdot, args):
-    out = jnp.asarray(drive(t, q, qdot, args) if callable(drive) else drive, dtype=q.dtype)
-    if out.shape != (3,):
-        raise ValueError(f"a torque or force function must return a (3,) vector, got "
+def _evaluate(drive, t, q, qdot, args, shape=(3,)):
+    dtype = spheres_of(q).dtype
+    out = jnp.asarray(drive(t, q, qdot, args) if callable(drive) else drive, dtype=dtype)
+    if out.shape != shape:
+        raise ValueError(f"a torque or force function must return shape {shape}, got "
                          f"shape {out.shape}.")
     return out
 
@@ -52,10 +54,10 @@ class JointDamping(AbstractForce):
 
     def generalized_force(self, t, q, qdot, scene, args):
         def dissipation(v):
-            w = _relative_omega(q, v, scene)
+            w = _relative_omega(spheres_of(q), v, scene)
             return 0.5 * jnp.sum(self.coefficient * jnp.sum(w * w, axis=-1))
 
-        return -jax.grad(dissipation)(qdot)
+        return scene.on_spheres(-jax.grad(dissipation)(spheres_of(qdot)))
 
 
 class BaseTorque(AbstractForce):
@@ -83,12 +85,13 @@ class BaseTorque(AbstractForce):
 
     def generalized_force(self, t, q, qdot, scene, args):
         tau = _evaluate(self.torque, t, q, qdot, args)
-        link = self.link % q.shape[0]
-        f = jnp.zeros_like(q).at[link].add(jnp.cross(tau, q[link]))
+        s = spheres_of(q)
+        link = self.link % s.shape[0]
+        f = jnp.zeros_like(s).at[link].add(jnp.cross(tau, s[link]))
         parent = int(scene.parents()[link])
         if parent >= 0:
-            f = f.at[parent].add(-jnp.cross(tau, q[parent]))
-        return f
+            f = f.at[parent].add(-jnp.cross(tau, s[parent]))
+        return scene.on_spheres(f)
 
 
 class PDTorque(AbstractDrive):
@@ -119,7 +122,7 @@ class PDTorque(AbstractDrive):
         base.check_index(self, "link", self.link, scene.n)
 
     def __call__(self, t, q, qdot, args):
-        x, v = q[self.link], qdot[self.link]
+        x, v = spheres_of(q)[self.link], spheres_of(qdot)[self.link]
         return self.kp * jnp.cross(x, self.target) - self.kd * jnp.cross(x, v)
 
 
@@ -143,6 +146,8 @@ class TipForce(AbstractForce):
 
     def check(self, scene):
         base.check_index(self, "point", self.point, scene.n)
+        if isinstance(self.force, AbstractDrive):
+            self.force.check(scene)
 
     def generalized_force(self, t, q, qdot, scene, args):
         d = _evaluate(self.force, t, q, qdot, args)
@@ -153,10 +158,10 @@ class VibratingSupport(AbstractForce):
     """A prescribed motion of the support (every chain base and sphere centre).
 
     `s(t) = amplitude cos(angular_frequency t + phase) direction`, felt in the support
-    frame as the inertial force `-m_i s''(t)` on each mass (a force, not a potential, so
-    that the work-energy balance uses `power`). The Kapitza pendulum: a pendulum of length
-    `l` is stable upright when `amplitude^2 angular_frequency^2 > 2 g l` (vertical
-    vibration).
+    frame as the inertial force `-m_i s''(t)` on each mass, a `Base` included (a force,
+    not a potential, so that the work-energy balance uses `power`). The Kapitza pendulum:
+    a pendulum of length `l` is stable upright when
+    `amplitude^2 angular_frequency^2 > 2 g l` (vertical vibration).
 
     **Arguments:**
     - `amplitude`: `a` (m).
@@ -189,6 +194,120 @@ class VibratingSupport(AbstractForce):
         return -self.amplitude * w**2 * jnp.cos(w * t + self.phase) * self.direction
 
     def generalized_force(self, t, q, qdot, scene, args):
-        a = self.acceleration(t).astype(q.dtype)
-        m = scene.masses()
-        return jax.grad(lambda q_: -jnp.sum(m * (scene.positions(q_) @ a)))(q)
+        a = self.acceleration(t).astype(spheres_of(q).dtype)
+        m = scene.point_masses()
+        return jax.grad(lambda q_: -jnp.sum(m * (scene.points(q_) @ a)))(q)
+
+
+def _base_vector(owner, name: str, x, scene) -> None:
+    """`x` is a scalar or one value per axis of the scene's `Base`."""
+    m = scene.base.m
+    if jnp.ndim(x) and jnp.shape(x) != (m,):
+        raise ParameterError(name, f"{type(owner).__name__}.{name} must be a scalar or {m} "
+                             f"values, one per axis of the Base, got shape {jnp.shape(x)}")
+
+
+class BaseForce(AbstractForce):
+    """A force on the `Base`, in its coordinates (one component per axis: the thrust of a
+    drone, the push on a cart).
+
+    Virtual work `f . delta x`: the `"base"` entry of the generalized force.
+
+    **Arguments:**
+    - `force`: `f` (N): a constant `(m,)` vector or a function
+      `force(t, q, qdot, args) -> (m,)` of the scene's state (a controller such as
+      `PDPosition`, or `Harmonic`).
+    """
+
+    force: jax.Array | Callable = eqx.field(converter=_drive_value)
+
+    def __check_init__(self):
+        if not callable(self.force) and jnp.ndim(self.force) != 1:
+            raise ParameterError("force", f"force must be an (m,) vector (one component "
+                                 f"per axis of the Base), got shape {jnp.shape(self.force)}")
+
+    def check(self, scene):
+        if scene.base is None:
+            raise ParameterError("", "BaseForce needs a Base in the scene")
+        if not callable(self.force) and jnp.shape(self.force) != (scene.base.m,):
+            raise ParameterError("force", f"force must have {scene.base.m} components, one "
+                                 f"per axis of the Base, got shape {jnp.shape(self.force)}")
+        if isinstance(self.force, AbstractDrive):
+            self.force.check(scene)
+
+    def generalized_force(self, t, q, qdot, scene, args):
+        f = _evaluate(self.force, t, q, qdot, args, (scene.base.m,))
+        return {"base": f, "spheres": jnp.zeros_like(q["spheres"])}
+
+
+class PDPosition(AbstractDrive):
+    """A proportional-derivative position controller for `BaseForce` (a drone holding a
+    hover point, or flying a step to a new one).
+
+    `f = kp (target(t) - x) - kd xdot + feedforward` in the base's coordinates, with
+    `target(t) = target` before `step_time` and `target + step` from then on.
+
+    **Arguments:**
+    - `kp`: proportional gain (N/m, `>= 0`).
+    - `kd`: derivative gain (N s/m, `>= 0`).
+    - `target`: the set point (m): a scalar or one value per axis of the `Base`.
+    - `feedforward`: a constant force added (N), e.g. the weight the drone carries: a
+      scalar or one value per axis.
+    - `step`: the change of set point at `step_time` (m): a scalar or one per axis.
+    - `step_time`: when the set point changes (s).
+    """
+
+    kp: jax.Array = eqx.field(converter=base.as_float)
+    kd: jax.Array = eqx.field(default=0.0, converter=base.as_float)
+    target: jax.Array = eqx.field(default=0.0, converter=base.as_float)
+    feedforward: jax.Array = eqx.field(default=0.0, converter=base.as_float)
+    step: jax.Array = eqx.field(default=0.0, converter=base.as_float)
+    step_time: jax.Array = eqx.field(default=0.0, converter=base.as_float)
+
+    def __check_init__(self):
+        base.check_sign("kp", self.kp, " (N/m)", strict=False, scalar=True)
+        base.check_sign("kd", self.kd, " (N s/m)", strict=False, scalar=True)
+        base.check_shape("step_time", self.step_time, (), "a scalar")
+
+    def check(self, scene):
+        if scene.base is None:
+            raise ParameterError("", "PDPosition needs a Base in the scene")
+        for name in ("target", "feedforward", "step"):
+            _base_vector(self, name, getattr(self, name), scene)
+
+    def __call__(self, t, q, qdot, args):
+        x, v = q["base"], qdot["base"]
+        target = self.target + jnp.where(t >= self.step_time, self.step, 0.0)
+        f = self.kp * (target - x) - self.kd * v + self.feedforward
+        return jnp.broadcast_to(f, x.shape)
+
+
+class Harmonic(AbstractDrive):
+    """A force or torque varying harmonically in time, for `BaseForce`, `TipForce` or
+    `BaseTorque`: `f(t) = offset + amplitude cos(angular_frequency t + phase)`.
+
+    **Arguments:**
+    - `amplitude`: a vector of the force's shape (`(m,)` on a base, `(3,)` otherwise).
+    - `angular_frequency`: (rad/s), a scalar.
+    - `phase`: (rad), a scalar.
+    - `offset`: a constant part, of the force's shape (or a scalar).
+    """
+
+    amplitude: jax.Array = eqx.field(converter=base.as_float)
+    angular_frequency: jax.Array = eqx.field(converter=base.as_float)
+    phase: jax.Array = eqx.field(default=0.0, converter=base.as_float)
+    offset: jax.Array = eqx.field(default=0.0, converter=base.as_float)
+
+    def __check_init__(self):
+        base.check_shape("angular_frequency", self.angular_frequency, (), "a scalar")
+        base.check_shape("phase", self.phase, (), "a scalar")
+        if jnp.ndim(self.amplitude) != 1:
+            raise ParameterError("amplitude", f"amplitude must be a vector, got shape "
+                                 f"{jnp.shape(self.amplitude)}")
+        if jnp.ndim(self.offset) and jnp.shape(self.offset) != jnp.shape(self.amplitude):
+            raise ParameterError("offset", f"offset must be a scalar or of amplitude's shape "
+                                 f"{jnp.shape(self.amplitude)}, got {jnp.shape(self.offset)}")
+
+    def __call__(self, t, q, qdot, args):
+        phase = self.angular_frequency * t + self.phase
+        return self.offset + self.amplitude * jnp.cos(phase)

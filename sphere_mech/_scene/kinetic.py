@@ -1,9 +1,38 @@
 """Kinetic terms: point masses on spheres, with constant scalar inertia (fast path)."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .base import AbstractKinetic, as_float, check_shape, check_sign, check_vector, per_item
+from .base import (
+    AbstractEffect,
+    AbstractKinetic,
+    ParameterError,
+    as_float,
+    check_axes,
+    check_shape,
+    check_sign,
+    check_vector,
+    per_item,
+)
+
+
+def chain_inertia(masses: jax.Array, lengths: jax.Array) -> jax.Array:
+    """`M_ij = l_i l_j sum_{k>=max(i,j)} m_k`: the scalar inertia of point masses `m_i` at
+    `x_i = sum_{j<=i} l_j q_j` (a chain; a moving base is its first point, `l = 1`)."""
+    tail = jnp.cumsum(masses[::-1])[::-1]
+    idx = jnp.arange(masses.shape[0])
+    return jnp.outer(lengths, lengths) * tail[jnp.maximum(idx[:, None], idx)]
+
+
+def chain_inverse_bands(masses: jax.Array, lengths: jax.Array):
+    """The bands of `chain_inertia(masses, lengths)^-1`. `M = L^T diag(m) L` scaled by the
+    lengths, `L` lower-triangular ones: `M^-1` is tridiagonal (`L^-1` is bidiagonal)."""
+    inv_m = 1.0 / masses
+    previous = jnp.concatenate([jnp.zeros_like(inv_m[:1]), inv_m[:-1]])
+    d = (inv_m + previous) / lengths**2
+    e = -inv_m[:-1] / (lengths[:-1] * lengths[1:])
+    return d, e
 
 
 class Chain(AbstractKinetic):
@@ -11,7 +40,8 @@ class Chain(AbstractKinetic):
 
     Mass `m_i` sits at the tip of link `i` (length `l_i`, along `q_i`), at
     `x_i = base + sum_{j<=i} l_j q_j`; `M_ij = l_i l_j sum_{k>=max(i,j)} m_k` (constant:
-    Corollary 1 applies).
+    Corollary 1 applies). In a scene with a `Base`, the chain hangs from the moving base
+    and `base` is the offset of its first joint from the base's point.
 
     **Arguments:**
     - `masses`: `m_i` (kg, `> 0`): one value per link, or a scalar for every link.
@@ -19,35 +49,36 @@ class Chain(AbstractKinetic):
     - `base`: the pivot, a `(3,)` point (m).
     - `links`: the number of links (optional; needed when both `masses` and `lengths` are
       scalars).
+    - `payload`: a point mass (kg, `>= 0`) carried at the chain's end, added to the last
+      link's mass (the load at the end of a cable).
     """
 
     masses: jax.Array
     lengths: jax.Array
     base: jax.Array
+    payload: jax.Array
 
     def __init__(self, masses: jax.Array, lengths: jax.Array,
-                 base: jax.Array = (0.0, 0.0, 0.0), links: int | None = None):
+                 base: jax.Array = (0.0, 0.0, 0.0), links: int | None = None,
+                 payload: jax.Array = 0.0):
         self.masses, self.lengths = per_item(links, masses=masses, lengths=lengths)
         self.base = as_float(base)
+        self.payload = as_float(payload)
 
     def __check_init__(self):
         check_sign("masses", self.masses, " (kg)")
         check_sign("lengths", self.lengths, " (m)")
         check_vector("base", self.base)
+        check_sign("payload", self.payload, " (kg)", strict=False, scalar=True)
+
+    def point_masses(self):
+        return self.masses.at[-1].add(self.payload)
 
     def inertia(self):
-        tail = jnp.cumsum(self.masses[::-1])[::-1]
-        idx = jnp.arange(self.n)
-        return jnp.outer(self.lengths, self.lengths) * tail[jnp.maximum(idx[:, None], idx)]
+        return chain_inertia(self.point_masses(), self.lengths)
 
     def inverse_inertia_bands(self):
-        # M = L^T diag(m) L scaled by the lengths, L lower-triangular ones: M^-1 is
-        # tridiagonal (L^-1 is bidiagonal).
-        inv_m = 1.0 / self.masses
-        previous = jnp.concatenate([jnp.zeros_like(inv_m[:1]), inv_m[:-1]])
-        d = (inv_m + previous) / self.lengths**2
-        e = -inv_m[:-1] / (self.lengths[:-1] * self.lengths[1:])
-        return d, e
+        return chain_inverse_bands(self.point_masses(), self.lengths)
 
     def positions(self, q):
         return self.base + jnp.cumsum(self.lengths[:, None] * q, axis=0)
@@ -57,6 +88,54 @@ class Chain(AbstractKinetic):
 
     def bends(self):
         return tuple((i, i + 1) for i in range(self.n - 1))
+
+
+class Base(AbstractEffect):
+    """A point-mass base that moves and carries the scene's chain: a cart on a line, a
+    trolley in a plane, a drone in space.
+
+    Its coordinates `x` along `axes` are the `"base"` entry of the scene's state, which
+    becomes a dict `{"base": (m,), "spheres": (n, 3)}` (velocities and generalized forces
+    alike); its point is `position + x @ axes`, and the chain hangs from it. The scene
+    keeps the O(n) fast path (the base is one more point of the chain's inertia).
+
+    **Arguments:**
+    - `mass`: the base's mass (kg, `> 0`).
+    - `axes`: the directions it moves along, `(m, 3)` orthonormal rows: one for a line,
+      two for a plane, three (default: `e1`, `e2`, `e3`) for space.
+    - `position`: its point at `x = 0`, a `(3,)` point (m).
+    """
+
+    mass: jax.Array = eqx.field(converter=as_float)
+    axes: jax.Array = eqx.field(default=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)),
+                                converter=as_float)
+    position: jax.Array = eqx.field(default=(0.0, 0.0, 0.0), converter=as_float)
+
+    def __check_init__(self):
+        check_sign("mass", self.mass, " (kg)", scalar=True)
+        check_axes("axes", self.axes)
+        check_vector("position", self.position)
+
+    @property
+    def m(self) -> int:
+        """The number of directions it moves along (static)."""
+        return self.axes.shape[0]
+
+    def point(self, x: jax.Array) -> jax.Array:
+        """The base's point in the support frame.
+
+        **Arguments:**
+        - `x`: its coordinates, `(m,)`.
+
+        **Returns:** `position + x @ axes`, `(3,)` (m).
+        """
+        return self.position.astype(x.dtype) + x @ self.axes.astype(x.dtype)
+
+    def check(self, scene):
+        if len(scene.kinetic) != 1 or not isinstance(scene.kinetic[0], Chain):
+            raise ParameterError("", "a Base carries one Chain: the scene must list exactly "
+                                 "one kinetic term, a Chain, got "
+                                 f"{[type(k).__name__ for k in scene.kinetic]}")
 
 
 class AbstractSphereMasses(AbstractKinetic):

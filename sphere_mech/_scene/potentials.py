@@ -19,7 +19,8 @@ def safe_norm(x: jax.Array) -> jax.Array:
 class Gravity(AbstractPotential):
     """Uniform gravity.
 
-    `U = -g sum_i m_i direction . x_i` over the positions `x_i` of the masses.
+    `U = -g sum_i m_i direction . x_i` over the positions `x_i` of the masses (a `Base`
+    included).
 
     **Arguments:**
     - `g`: strength (m/s^2), a scalar `>= 0`.
@@ -34,8 +35,8 @@ class Gravity(AbstractPotential):
         base.check_vector("direction", self.direction, unit=True)
 
     def potential(self, t, q, scene, args):
-        x = scene.positions(q)
-        return -self.g * jnp.sum(scene.masses() * (x @ self.direction))
+        x = scene.points(q)
+        return -self.g * jnp.sum(scene.point_masses() * (x @ self.direction))
 
 
 class Spring(AbstractPotential):
@@ -110,7 +111,8 @@ class Bending(AbstractPotential):
 
     def potential(self, t, q, scene, args):
         i, j = scene.bend_pairs()
-        return jnp.sum(self.stiffness * (1.0 - jnp.sum(q[i] * q[j], axis=-1)))
+        s = base.spheres_of(q)
+        return jnp.sum(self.stiffness * (1.0 - jnp.sum(s[i] * s[j], axis=-1)))
 
 
 class PairInteraction(AbstractPotential):

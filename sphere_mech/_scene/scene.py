@@ -8,9 +8,10 @@ import jax.scipy.linalg as jsl
 import numpy as np
 
 from .._inertia import AbstractConstantInertiaLagrangian
+from .._spaces import AbstractSpace, Euclidean, Product, Spheres, tree_zeros_like
 from .base import AbstractEffect, AbstractForce, AbstractKinetic, AbstractPotential, ParameterError
 from .forces import BaseTorque, TipForce
-from .kinetic import Chain
+from .kinetic import Base, Chain, chain_inertia, chain_inverse_bands
 from .potentials import Gravity
 
 
@@ -22,22 +23,31 @@ class Scene(AbstractConstantInertiaLagrangian):
     traced, each under its class name (no force effect: `forces` is `None`). Each
     effect is checked against the scene (indices, counts) at construction.
 
+    With a `Base`, the scene's one `Chain` hangs from the moving base and the state is a
+    dict `{"base": (m,), "spheres": (n, 3)}` (the space `{"base": Euclidean(m),
+    "spheres": Spheres(n)}`); the fast path stays O(n).
+
     **Arguments:**
     - `effects`: the effects, in any order: at least one kinetic term (`Chain`,
-      `Particles`, `SharedSphere`), then any potentials (`Gravity`, `Spring`, `Bending`,
-      `PairInteraction`) and forces (`JointDamping`, `BaseTorque`, `TipForce`,
-      `VibratingSupport`).
+      `Particles`, `SharedSphere`), at most one `Base`, then any potentials (`Gravity`,
+      `Spring`, `Bending`, `PairInteraction`) and forces (`JointDamping`, `BaseTorque`,
+      `TipForce`, `VibratingSupport`, `BaseForce`).
     """
 
     kinetic: tuple[AbstractKinetic, ...]
+    base: Base | None
     potentials: tuple[AbstractPotential, ...]
     force_effects: tuple[AbstractForce, ...]
 
     def __init__(self, *effects: AbstractEffect):
         for e in effects:
-            if not isinstance(e, AbstractKinetic | AbstractPotential | AbstractForce):
-                raise ValueError(f"Scene takes effects (kinetic terms, potentials, forces), "
-                                 f"got {type(e).__name__}.")
+            if not isinstance(e, AbstractKinetic | Base | AbstractPotential | AbstractForce):
+                raise ValueError(f"Scene takes effects (kinetic terms, a base, potentials, "
+                                 f"forces), got {type(e).__name__}.")
+        bases = [e for e in effects if isinstance(e, Base)]
+        if len(bases) > 1:
+            raise ValueError(f"A scene takes at most one Base, got {len(bases)}.")
+        self.base = bases[0] if bases else None
         self.kinetic = tuple(e for e in effects if isinstance(e, AbstractKinetic))
         self.potentials = tuple(e for e in effects if isinstance(e, AbstractPotential))
         self.force_effects = tuple(e for e in effects if isinstance(e, AbstractForce))
@@ -60,12 +70,32 @@ class Scene(AbstractConstantInertiaLagrangian):
 
     @property
     def effects(self) -> tuple[AbstractEffect, ...]:
-        return self.kinetic + self.potentials + self.force_effects
+        base = () if self.base is None else (self.base,)
+        return self.kinetic + base + self.potentials + self.force_effects
+
+    @property
+    def base_axes(self):
+        return None if self.base is None else self.base.axes
+
+    @property
+    def space(self) -> AbstractSpace:
+        """`Spheres(n)`, or with a `Base` `{"base": Euclidean(m), "spheres": Spheres(n)}`."""
+        if self.base is None:
+            return Spheres(self.n)
+        return Product({"base": Euclidean(self.base.m), "spheres": Spheres(self.n)})
 
     def _offsets(self) -> list[int]:
         return list(np.cumsum([0] + [k.n for k in self.kinetic]))
 
+    def _with_base(self) -> tuple[jax.Array, jax.Array]:
+        """The masses and lengths of the chain with the base as its first point."""
+        chain = self.kinetic[0]
+        masses = jnp.concatenate([self.base.mass[None], chain.point_masses()])
+        return masses, jnp.concatenate([jnp.ones_like(chain.lengths[:1]), chain.lengths])
+
     def inertia(self, args=None):
+        if self.base is not None:
+            return chain_inertia(*self._with_base())
         return jsl.block_diag(*[k.inertia() for k in self.kinetic])
 
     def inverse_inertia_bands(self, args=None):
@@ -76,8 +106,11 @@ class Scene(AbstractConstantInertiaLagrangian):
         **Arguments:**
         - `args`: unused (the inertia is the effects' own).
 
-        **Returns:** its diagonal `(n,)` and off-diagonal `(n - 1,)`.
+        **Returns:** its diagonal `(n,)` and off-diagonal `(n - 1,)` (`n + 1` and `n` with
+        a `Base`: the chain's with the base as its first point).
         """
+        if self.base is not None:
+            return chain_inverse_bands(*self._with_base())
         bands = [k.inverse_inertia_bands() for k in self.kinetic]
         d = jnp.concatenate([b[0] for b in bands])
         zero = jnp.zeros((1,), dtype=d.dtype)
@@ -90,20 +123,54 @@ class Scene(AbstractConstantInertiaLagrangian):
 
         **Returns:** an `(n,)` array (kg).
         """
-        return jnp.concatenate([k.masses for k in self.kinetic])
+        return jnp.concatenate([k.point_masses() for k in self.kinetic])
 
-    def positions(self, q: jax.Array) -> jax.Array:
-        """Positions of the masses in the support frame.
+    def positions(self, q) -> jax.Array:
+        """Positions of the masses the spheres carry, in the support frame.
 
         **Arguments:**
-        - `q`: the scene's unit vectors, `(n, 3)`.
+        - `q`: the scene's configuration: `(n, 3)` unit vectors (with a `Base`, the dict
+          `{"base": (m,), "spheres": (n, 3)}`).
 
         **Returns:** the positions, `(n, 3)` (m).
         """
-        o = self._offsets()
-        return jnp.concatenate(
-            [k.positions(q[a:b]) for k, a, b in zip(self.kinetic, o[:-1], o[1:], strict=True)]
-        ).astype(q.dtype)
+        s, o = self.spheres(q), self._offsets()
+        x = jnp.concatenate(
+            [k.positions(s[a:b]) for k, a, b in zip(self.kinetic, o[:-1], o[1:], strict=True)]
+        ).astype(s.dtype)
+        return x if self.base is None else x + self.base.point(q["base"])
+
+    def points(self, q) -> jax.Array:
+        """Positions of every point mass: the base's point (with a `Base`) first, then
+        `positions(q)`.
+
+        **Arguments:**
+        - `q`: the scene's configuration.
+
+        **Returns:** an `(n, 3)` array (`(n + 1, 3)` with a `Base`) (m).
+        """
+        x = self.positions(q)
+        return x if self.base is None else jnp.concatenate([self.base.point(q["base"])[None], x])
+
+    def point_masses(self) -> jax.Array:
+        """The masses at `points(q)`.
+
+        **Returns:** an `(n,)` array (`(n + 1,)` with a `Base`) (kg).
+        """
+        m = self.masses()
+        return m if self.base is None else jnp.concatenate([self.base.mass[None], m])
+
+    def on_spheres(self, f: jax.Array):
+        """A generalized force acting on the spheres only, structured as the state.
+
+        **Arguments:**
+        - `f`: the spheres' part, `(n, 3)`.
+
+        **Returns:** `f`, or with a `Base` the dict with zeros on `"base"`.
+        """
+        if self.base is None:
+            return f
+        return {"base": jnp.zeros((self.base.m,), f.dtype), "spheres": f}
 
     def parents(self) -> np.ndarray:
         """The joint structure of the scene.
@@ -125,30 +192,33 @@ class Scene(AbstractConstantInertiaLagrangian):
         return np.asarray(pairs, dtype=int).reshape(-1, 2).T
 
     def kinetic_energy(self, q, qdot, args=None):
-        """`T = 1/2 sum_i m_i |xdot_i|^2`, O(n).
+        """`T = 1/2 sum_i m_i |xdot_i|^2` over every point mass, O(n).
 
         **Arguments:**
-        - `q`: the scene's unit vectors, `(n, 3)`.
-        - `qdot`: their velocities, `(n, 3)`.
+        - `q`: the scene's configuration.
+        - `qdot`: its velocity.
         - `args`: unused.
 
         **Returns:** a scalar (J).
         """
-        xdot = jax.jvp(self.positions, (q,), (qdot,))[1]
-        return (0.5 * jnp.sum(self.masses() * jnp.sum(xdot**2, axis=-1))).astype(q.dtype)
+        xdot = jax.jvp(self.points, (q,), (qdot,))[1]
+        T = 0.5 * jnp.sum(self.point_masses() * jnp.sum(xdot**2, axis=-1))
+        return T.astype(xdot.dtype)
 
     def potential(self, t, q, args=None):
-        U = jnp.zeros((), dtype=q.dtype)
+        dtype = self.spheres(q).dtype
+        U = jnp.zeros((), dtype=dtype)
         for p in self.potentials:
             with jax.named_scope(type(p).__name__):
-                U = U + p.potential(t, q, self, args).astype(q.dtype)
+                U = U + p.potential(t, q, self, args).astype(dtype)
         return U
 
     def _force(self, t, q, qdot, args):
-        f = jnp.zeros_like(q)
+        f = tree_zeros_like(q)
         for e in self.force_effects:
             with jax.named_scope(type(e).__name__):
-                f = f + e.generalized_force(t, q, qdot, self, args).astype(q.dtype)
+                fe = e.generalized_force(t, q, qdot, self, args)
+                f = jax.tree.map(lambda a, b: a + b.astype(a.dtype), f, fe)
         return f
 
     @property

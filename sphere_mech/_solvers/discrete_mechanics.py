@@ -21,7 +21,6 @@ momentum by the inverse Legendre map on the tangent planes.
 """
 
 import jax
-import jax.numpy as jnp
 import optimistix as optx
 from diffrax import RESULTS
 from jax import lax
@@ -115,8 +114,7 @@ def solve_position(system, t0, h, q0, mu0, scale, guess, args, tol, max_steps, f
 
     if fast_path and isinstance(system, AbstractConstantInertiaLagrangian):
         solve = system.multiplier_solver(q0, args)
-        zero = jnp.zeros(q0.shape[:1], dtype=q0.dtype)
-        chord = lambda a, _: a + to_tangent(T0, solve(momentum_residual(a), zero))
+        chord = lambda a, _: a + to_tangent(T0, solve(momentum_residual(a)))
         sol = optx.fixed_point(chord, Anderson(rtol=tol, atol=tol), a0, max_steps=max_steps,
                                throw=False)
     else:
