@@ -20,7 +20,14 @@ of 5 runs) of
 (ratios), and of the dense-Newton `Variational(2, fast_path=False)` (the path general
 systems take) for n <= 32, checked to agree with the O(n) path.
 
+Third table (`--base`, alone): the same chains hanging from a moving base (a drone: a
+`Base` point mass in space, and a cart: a `Base` on a line), the scene's O(n) fast path
+against its general autodiff twin (the same energies through `sm.Lagrangian` on the
+product space) and against the fixed-pivot chain of the same n, per acceleration
+evaluation as in the first table. Writes benchmarks/results/fast_path_base.md.
+
     python benchmarks/fast_path.py [--quick] [--dt 1e-3] [--steps 1000]
+    python benchmarks/fast_path.py --base [--quick]
 """
 
 import argparse
@@ -56,6 +63,61 @@ def make_systems(n):
     return chain, general
 
 
+def base_systems(n, axes):
+    """A chain (tip force, gravity) hanging from a `Base` moving along `axes`, and the
+    same energies and forces through the general path on the product space."""
+    rng = np.random.default_rng(n)
+    scene = sm.Scene(sm.Base(1.5, axes=axes),
+                     sm.Chain(rng.uniform(0.5, 2.0, n), rng.uniform(0.5, 2.0, n)),
+                     sm.Gravity(9.81), sm.TipForce(jnp.array([0.5, 0.0, -0.4])))
+    lagrangian = lambda t, q, qdot, args: scene.kinetic_energy(q, qdot) - scene.potential(t, q)
+    return scene, sm.Lagrangian(lagrangian, scene.forces, space=scene.space)
+
+
+def base_rows(ns, batch, repeats):
+    """Per-evaluation cost of the base scenes' fast path, their general twins and the
+    fixed-pivot chain of the same n (checked to agree)."""
+    rows = []
+    for n in ns:
+        keys = jax.random.split(jax.random.PRNGKey(n), batch)
+        s, sdot = jax.vmap(lambda k, n=n: sm.random_state(k, n))(keys)
+        fixed, _ = make_systems(n)
+        pivot, _ = time_per_evaluation(batched_rates(fixed), s, sdot, repeats)
+        for name, axes in (("drone", np.eye(3)), ("cart", [[1.0, 0.0, 0.0]])):
+            m = len(axes)
+            x = jax.random.normal(keys[0], (batch, m))
+            q, v = {"base": x, "spheres": s}, {"base": x[:, ::-1], "spheres": sdot}
+            scene, general = base_systems(n, axes)
+            fast_fn, general_fn = batched_rates(scene), batched_rates(general)
+            fast, _ = time_per_evaluation(fast_fn, q, v, repeats)
+            slow, _ = time_per_evaluation(general_fn, q, v, repeats)
+            a, b = fast_fn(q, v)[1], general_fn(q, v)[1]
+            error = max(float(jnp.max(jnp.abs(x - y)) / jnp.max(jnp.abs(y)))
+                        for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True))
+            assert error < 1e-10, f"paths disagree for the {name} at n={n}: {error}"
+            rows.append((name, n, fast, slow, pivot, error))
+            print(f"{name} n={n}: fast {fast * 1e6:.2f} us, general {slow * 1e6:.2f} us, "
+                  f"fixed pivot {pivot * 1e6:.2f} us", flush=True)
+    return rows
+
+
+def base_table(rows, batch, repeats):
+    header = (
+        f"Chains on a moving base: acceleration evaluations, float64, jit(vmap) over a batch "
+        f"of {batch} states, median of {repeats} repeats. Drone: a `Base` in space; cart: "
+        "a `Base` on a line. General path: the same energies and forces through "
+        "`sm.Lagrangian` on the product space; fixed pivot: the chain of the same n without "
+        "a base, in the same run.\n\n"
+        "| base | n | fast path (us/eval) | general path (us/eval) | speed-up "
+        "| fast / fixed pivot | max rel. difference |\n"
+        "|---|---:|---:|---:|---:|---:|---:|\n"
+    )
+    return header + "".join(
+        f"| {name} | {n} | {f * 1e6:.3f} | {s * 1e6:.3f} | {s / f:.1f}x | {f / p:.2f} "
+        f"| {e:.1e} |\n" for name, n, f, s, p, e in rows
+    )
+
+
 def batched_rates(system):
     """jit(vmap(rates)) with a guard against recompilation."""
 
@@ -77,7 +139,7 @@ def time_per_evaluation(fn, q, qdot, repeats):
         t0 = time.perf_counter()
         jax.block_until_ready(fn(q, qdot))
         times.append(time.perf_counter() - t0)
-    return statistics.median(times) / q.shape[0], compile_time
+    return statistics.median(times) / len(jax.tree.leaves(q)[0]), compile_time
 
 
 def start_state(n):
@@ -156,9 +218,17 @@ def main():
     parser.add_argument("--batch", type=int, default=256)
     parser.add_argument("--dt", type=float, default=1e-3, help="variational table: step")
     parser.add_argument("--steps", type=int, default=1000, help="variational table: steps")
+    parser.add_argument("--base", action="store_true",
+                        help="only the table of chains on a moving base")
     opts = parser.parse_args()
     ns = [1, 2, 4, 8] if opts.quick else [1, 2, 4, 8, 16, 32, 64]
     repeats = 5 if opts.quick else 20
+    if opts.base:
+        table = base_table(base_rows(ns, opts.batch, repeats), opts.batch, repeats)
+        print(table)
+        RESULTS.mkdir(exist_ok=True)
+        (RESULTS / "fast_path_base.md").write_text(table)
+        return
     rows = []
     for n in ns:
         chain, general = make_systems(n)
