@@ -239,9 +239,14 @@ def _toml(value) -> str:
         return "required"
     if value is None:
         return "optional"
+    return f"`{_plain(value)}`"
+
+
+def _plain(value) -> str:
+    """A default as TOML writes it: tuples (nested too) as arrays."""
     if isinstance(value, tuple | list):
-        return "`[" + ", ".join(map(str, value)) + "]`"
-    return f"`{value}`"
+        return "[" + ", ".join(map(_plain, value)) + "]"
+    return str(value)
 
 
 def _summary(doc: str) -> str:
@@ -277,6 +282,8 @@ def scene_file_reference() -> str:
     from sphere_mech import _scene_files as files
 
     initial = [f"| `{key}` | {what} |" for key, (_, what, _) in files.INITIAL.items()]
+    initial += [f"| `{key}` | {what}, with a `base` effect (default zeros) |"
+                for key, what in files.BASE_INITIAL.items()]
     simulate = [f"| `{key}` | {what} |" for key, what in files.SIMULATE.items()]
     return "\n".join(
         [
@@ -293,7 +300,9 @@ def scene_file_reference() -> str:
             "### Initial state (`[initial]`)",
             "",
             "Either `q` (and optionally `qdot`), or `polar_deg` and `azimuth_deg` with optional "
-            "rates; each one value for every sphere or a list with one per sphere.",
+            "rates; each one value for every sphere or a list with one per sphere. With a "
+            "`base` effect, also `base` and `base_velocity`, one number per axis of the base "
+            "(the state is then `{\"base\": (m,), \"spheres\": (n, 3)}`).",
             "",
             "| key | expected |",
             "|---|---|",

@@ -206,8 +206,9 @@ def _initial(path, table, scene: Scene):
     for key, expected in BASE_INITIAL.items():
         value = table.get(key, [0.0] * scene.base.m)
         if not (_numbers(value) and np.shape(value) == (scene.base.m,)):
-            raise SceneFileError(path, f"initial.{key}", f"{expected}: {scene.base.m} "
-                                 f"numbers, got {_show(value)}")
+            count = f"{scene.base.m} number" + "s" * (scene.base.m > 1)
+            raise SceneFileError(path, f"initial.{key}", f"{expected}: {count}, got "
+                                 f"{_show(value)}")
         x[key] = jnp.asarray(value, dtype=q.dtype)
     return {"base": x["base"], "spheres": q}, {"base": x["base_velocity"], "spheres": qdot}
 

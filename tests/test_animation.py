@@ -67,6 +67,10 @@ def test_skeleton_of_scenes():
     assert [list(link) for link in skel.links] == [[0, 5], [0, 6], [1, 7, 8]]
     assert list(skel.free) == [0, 1, 2] and float(skel.spheres[0][1]) == 2.0
     assert list(skel.tips) == [5, 6, 8, 2, 3, 4]
+    drone = sm.Scene(sm.Base(1.5), sm.Chain(0.02, 0.2, links=3))  # points(q): base first
+    skel = skeleton(drone, drone.n + 1)
+    assert skel.anchors.shape == (0, 3) and [list(link) for link in skel.links] == [[0, 1, 2, 3]]
+    assert list(skel.bases) == [0] and list(skel.tips) == [3] and skel.mass(3) == 2
 
 
 def test_animate_rejects_a_single_state_and_bad_frames():

@@ -156,6 +156,24 @@ def test_every_example_runs(example, tmp_path, capsys):
     assert "wrote" in capsys.readouterr().out
 
 
+def test_drone_flies_the_step_and_its_work_balances(tmp_path):
+    """The drone example (a moving base: dict state) over its whole 8 s: the PD controller
+    brings the drone to the step target x = 1 m, the work of the controller and the cable's
+    damping closes the balance to the tolerances, and the files hold the base."""
+    out = tmp_path / "out"
+    drone = next(p for p in EXAMPLES if p.stem == "drone_cable")
+    assert main(["run", str(drone), "--out", str(out), "--no-progress", "--no-animation"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    np.testing.assert_allclose(summary["base"], [1.0, 0.0, 0.0], atol=0.05)  # measured 0.025
+    assert summary["max_relative_work_energy_balance"] < 1e-6  # measured 1.2e-8
+    assert summary["max_constraint_error"] < 1e-13 and summary["n_spheres"] == 5
+    data = np.load(out / "trajectory.npz")
+    assert data["q.base"].shape == data["v.base"].shape == (801, 3)
+    assert data["q.spheres"].shape == (801, 5, 3) and data["x"].shape == (801, 6, 3)
+    np.testing.assert_array_equal(data["x"][:, 0], data["q.base"])  # the base's point first
+    assert data["q.base"][-1].tolist() == summary["base"]
+
+
 def test_failing_runs_keep_previous_outputs(tmp_path, capsys):
     out = tmp_path / "out"
     good = _bad(tmp_path, GOOD)

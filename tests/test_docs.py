@@ -116,7 +116,7 @@ def test_scene_file_reference_lists_every_effect_and_field(site):
         assert f"<code>{kind}</code>" in html, kind
         for field in _scene_files.schema(cls):
             assert f"<td><code>{field}</code></td>" in html, (kind, field)
-    for key in [*_scene_files.INITIAL, *_scene_files.SIMULATE]:
+    for key in [*_scene_files.INITIAL, *_scene_files.BASE_INITIAL, *_scene_files.SIMULATE]:
         assert f"<td><code>{key}</code></td>" in html, key
 
 

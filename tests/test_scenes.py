@@ -435,8 +435,28 @@ t1 = 1.0
 """
 
 
-def _file(tmp_path, extra="", simulate="", replace=None):
-    text = TWO_LINKS.format(extra=extra, simulate=simulate)
+CART = """
+[[effects]]
+type = "base"
+mass = 1.0
+axes = [[1.0, 0.0, 0.0]]
+[[effects]]
+type = "chain"
+masses = 0.5
+lengths = 0.8
+{extra}
+[initial]
+polar_deg = 140.0
+azimuth_deg = 90.0
+base = [0.0]
+[simulate]
+t1 = 1.0
+{simulate}
+"""
+
+
+def _file(tmp_path, extra="", simulate="", replace=None, template=TWO_LINKS):
+    text = template.format(extra=extra, simulate=simulate)
     for old, new in (replace or {}).items():
         assert old in text
         text = text.replace(old, new)
@@ -446,6 +466,8 @@ def _file(tmp_path, extra="", simulate="", replace=None):
 
 
 M2, L2 = "masses = [1.0, 1.0]", "lengths = [1.0, 1.0]"
+CART_BASE = lambda: sm.Base(1.0, axes=[[1.0, 0.0, 0.0]])  # noqa: E731
+CART_CHAIN = sm.Chain(0.5, 0.8)
 TAU_TOML = "[[effects]]\ntype = \"{}\"\n{}"
 CASES = {  # name: (Python, what the file changes, the field the file error names)
     "negative mass": (lambda: sm.Chain([1.0, -1.0], [1.0, 1.0]),
@@ -474,6 +496,40 @@ CASES = {  # name: (Python, what the file changes, the field the file error name
         dict(extra=TAU_TOML.format("base_torque", 'torque = { type = "pd_torque", kp = 1.0, '
                                    'target = [0.0, 0.0, 2.0] }')),
         "effects[2].torque.target"),
+    "negative base mass": (lambda: sm.Base(mass=-1.0),
+                           dict(template=CART, replace={"mass = 1.0": "mass = -1.0"}),
+                           "effects[0].mass"),
+    "non-orthonormal axes": (
+        lambda: sm.Base(1.0, axes=[[1.0, 0.0, 0.0], [0.6, 0.7, 0.0]]),
+        dict(template=CART, replace={"axes = [[1.0, 0.0, 0.0]]":
+                                     "axes = [[1.0, 0.0, 0.0], [0.6, 0.7, 0.0]]"}),
+        "effects[0].axes"),
+    "base force without a base": (
+        lambda: sm.Scene(TWO, sm.Gravity(), sm.BaseForce([1.0])),
+        dict(extra=TAU_TOML.format("base_force", "force = [1.0]")), "effects[2]"),
+    "base with two chains": (
+        lambda: sm.Scene(CART_BASE(), CART_CHAIN, CART_CHAIN),
+        dict(template=CART, extra=TAU_TOML.format("chain", "masses = 0.5\nlengths = 0.8")),
+        "effects[0]"),
+    "two bases": (lambda: sm.Scene(CART_BASE(), CART_BASE(), CART_CHAIN),
+                  dict(template=CART, extra=TAU_TOML.format("base", "mass = 1.0\naxes = "
+                                                            "[[1.0, 0.0, 0.0]]")),
+                  "effects"),
+    "base force of the wrong size": (
+        lambda: sm.Scene(CART_BASE(), CART_CHAIN, sm.BaseForce([1.0, 0.0])),
+        dict(template=CART, extra=TAU_TOML.format("base_force", "force = [1.0, 0.0]")),
+        "effects[2].force"),
+    "pd target of the wrong size": (
+        lambda: sm.Scene(CART_BASE(), CART_CHAIN,
+                         sm.BaseForce(sm.PDPosition(1.0, target=[0.0, 0.0]))),
+        dict(template=CART, extra=TAU_TOML.format(
+            "base_force", 'force = { type = "pd_position", kp = 1.0, target = [0.0, 0.0] }')),
+        "effects[2].force.target"),
+    "negative pd gain": (
+        lambda: sm.PDPosition(-1.0),
+        dict(template=CART, extra=TAU_TOML.format(
+            "base_force", 'force = { type = "pd_position", kp = -1.0 }')),
+        "effects[2].force.kp"),
 }
 
 
@@ -486,6 +542,30 @@ def test_python_and_files_reject_with_the_same_words(case, tmp_path):
     with pytest.raises(sm.SceneFileError) as file:
         sm.load_scene(path)
     assert str(file.value) == f"{path}: {field}: {python.value}"
+
+
+BASE_INITIAL = {  # name: (template, replacements, field, what the error says)
+    "too many base coordinates": (CART, {"base = [0.0]": "base = [0.0, 1.0]"}, "initial.base",
+                                  "the base's coordinates (m), one per axis of the Base: "
+                                  "1 number, got [0.0, 1.0]"),
+    "base velocity not an array": (CART, {"base = [0.0]": "base_velocity = 1.0"},
+                                   "initial.base_velocity", "the base's velocity (m/s), one "
+                                   "per axis of the Base: 1 number, got 1.0"),
+    "base without a Base": (TWO_LINKS, {"azimuth_deg = [0.0, 90.0]":
+                                        "azimuth_deg = [0.0, 90.0]\nbase = [0.0]"},
+                            "initial.base", "no such field (expected q and qdot, or "
+                            "polar_deg and azimuth_deg with optional rates (base: the scene "
+                            "has no Base))"),
+}
+
+
+@pytest.mark.parametrize("case", list(BASE_INITIAL))
+def test_base_initial_state_errors(case, tmp_path):
+    template, replace, field, expected = BASE_INITIAL[case]
+    path = _file(tmp_path, replace=replace, template=template)
+    with pytest.raises(sm.SceneFileError) as file:
+        sm.load_scene(path)
+    assert str(file.value) == f"{path}: {field}: {expected}"
 
 
 def test_files_broadcast_scalars_like_python(tmp_path):

@@ -3,8 +3,11 @@
 Runs a scene file (default: a double spherical pendulum, 20 s) and writes
 `trajectory.npz`, `summary.json`, `plot.png` and `animation.html` (a self-contained
 player; `--no-animation` skips it), under temporary names, then renamed, so a failing run
-loses nothing. A problem in the scene file gives one line
-`sphere-mech: error: <file>: <field>: <expected>` and exit status 2; a failed run, 1.
+loses nothing. `trajectory.npz` holds `t`, the states `q`, `v` (a scene with a `Base`:
+`q.base`, `q.spheres`, `v.base`, `v.spheres`), the drawn points `x` (`scene.points(q)`),
+`energy`, and the energy error or balance `error` at `error_t`. A problem in the scene
+file gives one line `sphere-mech: error: <file>: <field>: <expected>` and exit status 2;
+a failed run, 1.
 
 Compiled programs are kept in the user's cache directory (`$XDG_CACHE_HOME/sphere_mech/jax`,
 default `~/.cache/sphere_mech/jax`; macOS `~/Library/Caches/sphere_mech/jax`; Windows
@@ -70,18 +73,20 @@ def write_outputs(out: Path, result, scene, *, animation: bool = True) -> None:
 
     from .animation import page, player
     from .figures import plot
+    from .program import flat
     from .skeleton import skeleton
 
     out.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=out, prefix=".sphere-mech-") as tmp:
         tmp = Path(tmp)
-        np.savez(tmp / "trajectory.npz", t=result.t, q=result.q, v=result.v, x=result.x,
-                 energy=result.energy, error_t=result.error_t, error=result.error)
+        np.savez(tmp / "trajectory.npz", t=result.t, **flat("q", result.q),
+                 **flat("v", result.v), x=result.x, energy=result.energy,
+                 error_t=result.error_t, error=result.error)
         (tmp / "summary.json").write_text(json.dumps(result.summary, indent=2) + "\n")
         plot(tmp / "plot.png", result, scene)
         if animation:
             name = result.summary["scene"]
-            html = player(skeleton(scene, scene.n), result.t, result.x, title=name)
+            html = player(skeleton(scene, result.x.shape[1]), result.t, result.x, title=name)
             (tmp / "animation.html").write_text(page(html, name), encoding="utf-8")
         for name in output_names(animation):
             os.replace(tmp / name, out / name)

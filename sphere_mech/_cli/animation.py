@@ -14,6 +14,7 @@ import string
 import uuid
 
 import diffrax
+import jax
 import numpy as np
 
 from .._system import AbstractSystem
@@ -47,10 +48,11 @@ def _artists(ax, skel: Skeleton) -> tuple:
                      mfc="tab:blue", markevery=slice(1, None), animated=True)[0]
              for _ in skel.links]
     tips = ax.plot([], [], [], "o", color="tab:red", ms=5, animated=True)[0]
+    bases = ax.plot([], [], [], "ks", ms=7, animated=True)[0]
     n_trails = len(skel.tips) if len(skel.tips) <= 8 else 0
     trails = [ax.plot([], [], [], "-", lw=0.8, alpha=0.7, color=f"C{k}", animated=True)[0]
               for k in range(n_trails)]
-    return links, tips, trails
+    return links, tips, bases, trails
 
 
 def render(skel: Skeleton, t: np.ndarray, x: np.ndarray, *, title: str = "",
@@ -68,7 +70,7 @@ def render(skel: Skeleton, t: np.ndarray, x: np.ndarray, *, title: str = "",
     equal_axes(ax, skel, x)
     draw_static(ax, skel)
     ax.set_title(title, fontsize=10)
-    links, tips, trails = _artists(ax, skel)
+    links, tips, bases, trails = _artists(ax, skel)
     canvas.draw()
     still = canvas.copy_from_bbox(fig.bbox)
     base = np.array(canvas.buffer_rgba())
@@ -79,9 +81,10 @@ def render(skel: Skeleton, t: np.ndarray, x: np.ndarray, *, title: str = "",
         for line, link in zip(links, skel.links, strict=True):
             line.set_data_3d(*pts[f, link].T)
         tips.set_data_3d(*pts[f, skel.tips].T)
+        bases.set_data_3d(*pts[f, skel.bases].T)
         for line, i in zip(trails, skel.tips, strict=False):
             line.set_data_3d(*pts[max(0, f - trail):f + 1, i].T)
-        for artist in [*trails, *links, tips]:
+        for artist in [*trails, *links, tips, bases]:
             ax.draw_artist(artist)
         frame = np.where(pixels() == base.view(np.uint32)[..., 0], 0, pixels())
         overlays.append(_png(frame.view(np.uint8).reshape(base.shape)))  # unchanged: clear
@@ -203,16 +206,18 @@ class Animation(str):
         return f"<sphere_mech animation: {len(self) / 1e6:.2f} MB of HTML>"
 
 
-def _trajectory(sol) -> tuple[np.ndarray, np.ndarray]:
+def _trajectory(system, sol) -> tuple[np.ndarray, np.ndarray]:
+    """The finite save times `(T,)` of `sol` and the points drawn at them, `(T, p, 3)`."""
     ts, ys = sol.ts, sol.ys
     if isinstance(ts, list | tuple):  # SaveAt(subs=[...]): the first
         ts, ys = ts[0], ys[0]
-    t, q = np.asarray(ts), np.asarray(ys[0] if isinstance(ys, list | tuple) else ys)
-    if t.ndim != 1 or q.ndim != 3 or q.shape[-1] != 3 or len(q) != len(t):
-        raise ValueError(f"sol: expected the solution of one run, times (T,) and q (T, n, 3),"
-                         f" got times {t.shape} and q {q.shape}")
+    t, q = np.asarray(ts), ys[0] if isinstance(ys, list | tuple) else ys
+    if t.ndim != 1 or system.space.batch_shape(q) != t.shape:
+        raise ValueError(f"sol: expected the solution of one run, times (T,) and q (T, n, 3)"
+                         f" (or a dict of arrays with a leading T axis), got times {t.shape}"
+                         f" and q {jax.tree.map(np.shape, q)}")
     keep = np.isfinite(t)  # SaveAt(steps=True) pads with inf
-    return t[keep], q[keep]
+    return t[keep], positions(system, jax.tree.map(lambda x: np.asarray(x)[keep], q))
 
 
 def animate(system_or_scene: AbstractSystem, sol: diffrax.Solution, *,
@@ -220,9 +225,9 @@ def animate(system_or_scene: AbstractSystem, sol: diffrax.Solution, *,
     """An animation of a solution: an HTML player with play, pause, step and a time
     slider, that a notebook displays (no network needed).
 
-    A `Scene` is drawn from its kinetic terms at `scene.positions(q)` (chains from their
-    pivot, beads with their shared sphere); any other system as the points `q` on the
-    unit sphere.
+    A `Scene` is drawn from its kinetic terms at `scene.points(q)` (chains from their
+    pivot or the moving `Base`, drawn as a square, beads with their shared sphere); any
+    other system as the points `q` on the unit sphere.
 
     **Arguments:**
     - `system_or_scene`: the system that was simulated.
@@ -233,11 +238,11 @@ def animate(system_or_scene: AbstractSystem, sol: diffrax.Solution, *,
     **Returns:** the player's HTML as a `str` subclass that notebooks display (write it
     into a page's body to keep it).
     """
-    t, q = _trajectory(sol)
+    t, x = _trajectory(system_or_scene, sol)
     if len(t) < 2:
         raise ValueError(f"sol: expected states at two times or more, got {len(t)}; "
                          "save them with saveat=diffrax.SaveAt(ts=...)")
     if not (isinstance(frames, int) and frames >= 2):
         raise ValueError(f"frames: expected an integer >= 2, got {frames!r}")
-    skel = skeleton(system_or_scene, q.shape[1])
-    return Animation(player(skel, t, positions(system_or_scene, q), frames=frames))
+    skel = skeleton(system_or_scene, x.shape[1])
+    return Animation(player(skel, t, x, frames=frames))

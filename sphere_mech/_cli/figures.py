@@ -1,5 +1,6 @@
-"""`plot.png` of a scene run: the motion in an equal-aspect 3-D view (pivot, links at the
-start and the end, paths of the masses or snapshots of a long chain, shared spheres), the
+"""`plot.png` of a scene run: the motion in an equal-aspect 3-D view (pivot or moving base,
+links at the start and the end, paths of the masses or snapshots of a long chain, the
+base's path, shared spheres), the
 energy against time (with forces, also energy minus the work done), its relative error,
 and the constraint error (a panel only when it is above rounding level)."""
 
@@ -22,6 +23,8 @@ def _configuration(ax, skel, pts, style, label):
     if len(skel.free):
         dots = {**style, "ls": ""}
         handles += ax.plot(*pts[skel.free + len(skel.anchors)].T, marker="o", ms=6, **dots)
+    if len(skel.bases):
+        ax.plot(*pts[skel.bases].T, marker="s", ms=7, **{**style, "ls": ""})
     handles[0].set_label(label)
     return handles[:1]
 
@@ -36,8 +39,10 @@ def draw_motion(ax, skel: Skeleton, t: np.ndarray, x: np.ndarray) -> list:
     long = [link for link in skel.links if len(link) > LONG_CHAIN + 1]
     paths = [i for link in skel.links if len(link) <= LONG_CHAIN + 1 for i in link[1:]]
     paths += [link[-1] for link in long] + list(skel.free + len(skel.anchors))
+    for i in skel.bases:  # faint, under the masses' paths
+        handles += ax.plot(*pts[:, i].T, lw=0.8, ls=":", color="0.45", label="path of the base")
     for k, i in enumerate(paths):
-        label = f"path of mass {i - len(skel.anchors)}" if len(paths) <= 6 else None
+        label = f"path of mass {skel.mass(i)}" if len(paths) <= 6 else None
         color = "tab:red" if long else f"C{k % 10}"  # long: not a colour of the snapshots
         handles += ax.plot(*pts[:, i].T, lw=0.6, alpha=0.8, color=color, label=label)
     cmap = colormaps["viridis"]
@@ -78,7 +83,7 @@ def figure(result, scene):
     from matplotlib.figure import Figure
 
     s, skel = result.summary, skeleton(scene, result.x.shape[1])
-    eps = np.finfo(result.q.dtype).eps
+    eps = np.finfo(result.constraint.dtype).eps
     worst = float(np.max(result.constraint))
     drift = worst > 1000 * eps  # the constraint error says something: a panel
     fig = Figure(figsize=(13, 6.2), dpi=100)

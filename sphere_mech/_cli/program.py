@@ -41,7 +41,9 @@ class Integrated:
     """What a run returns: the saved trajectory (numpy) and the solver's counts.
 
     **Attributes:**
-    - `t`, `q`, `v`: the save times `(T,)` and states `(T, n, 3)`.
+    - `t`, `q`, `v`: the save times `(T,)` and states `(T, n, 3)` (where the scene's state
+      is a dict, dicts of such arrays with a leading `T` axis, e.g. `{"base": (T, m),
+      "spheres": (T, n, 3)}`).
     - `steps`, `rejected_steps`: the solver's steps (all segments).
     - `wall_time_s`: the time the segments took.
     - `step_t`, `step_q`, `step_v`: with forces, the solver's own steps (else `None`).
@@ -64,13 +66,15 @@ class Program:
 
     `call(t_start, ts, q, v, params)` integrates from `(q, v)` at `t_start = ts[0]` to
     `ts[-1]`, saving at `ts`, and returns `(q_saved, v_saved, failed, code, steps,
-    rejected)` plus, with forces, the steps `(t, q, v)` padded with `inf`.
+    rejected)` plus, with forces, the steps `(t, q, v)` padded with `inf` (states
+    structured as the scene's: arrays, or dicts of arrays).
 
     **Attributes:**
     - `call`: the compiled program.
     - `ts`: the save times of each segment, `(segments, m + 1)`, padded with its end.
     - `count`: how many save times each row holds before the padding.
-    - `q0`, `v0`: the initial state; `params`: the scene's arrays.
+    - `q0`, `v0`: the initial state (arrays, or dicts of arrays); `params`: the scene's
+      arrays.
     - `max_steps`: `[simulate] max_steps`, for all segments together, and
       `max_steps_code`, the result code of exceeding it.
     """
@@ -83,6 +87,7 @@ class Program:
     params: list
     max_steps: int
     max_steps_code: int
+    forced: bool
 
     def integrate(self, progress: bool = False) -> Integrated:
         """Run every segment (a progress bar on stderr with `progress`); raises a
@@ -91,15 +96,15 @@ class Program:
         start, (t0, t1) = time.perf_counter(), (self.ts[0, 0], self.ts[-1, -1])
         q, v, parts, steps, rejected, code = self.q0, self.v0, [], 0, 0, None
         for k, (ts, count) in enumerate(zip(self.ts, self.count, strict=True)):
-            out = [np.asarray(x) for x in self.call(ts[0], ts, q, v, self.params)]
+            out = jax.tree.map(np.asarray, self.call(ts[0], ts, q, v, self.params))
             steps, rejected = steps + int(out[4]), rejected + int(out[5])
             if out[2] or steps > self.max_steps:
                 code = int(out[3]) if out[2] else self.max_steps_code
                 break
             first = 0 if k == 0 else 1  # a segment starts where the last one saved
-            parts.append([out[0][first:count], out[1][first:count]]
-                         + [x[first:][np.isfinite(out[6][first:])] for x in out[6:]])
-            q, v = out[0][count - 1], out[1][count - 1]
+            kept = first + np.flatnonzero(np.isfinite(out[6][first:])) if self.forced else 0
+            parts.append(_take(list(out[:2]), slice(first, count)) + _take(list(out[6:]), kept))
+            q, v = _take(out[:2], count - 1)
             if bar is not None:
                 bar.n = round(100 * float((ts[-1] - t0) / (t1 - t0)), 2)
                 bar.refresh()
@@ -111,9 +116,14 @@ class Program:
             raise_on_codes(np.array([code]), self.max_steps, "simulate")
         t = np.concatenate([ts[(k > 0):c] for k, (ts, c) in
                             enumerate(zip(self.ts, self.count, strict=True))])
-        joined = [np.concatenate(x) for x in zip(*parts, strict=True)]
+        joined = jax.tree.map(lambda *x: np.concatenate(x), *parts)
         return Integrated(t, *joined[:2], steps, rejected, time.perf_counter() - start,
                           *(joined[2:] or [None] * 3))
+
+
+def _take(tree, index):
+    """`x[index]` for every array of `tree`."""
+    return jax.tree.map(lambda x: x[index], tree)
 
 
 def _bar():
@@ -148,16 +158,16 @@ def build(spec, t1=None) -> tuple[Program, jax.stages.Compiled]:
     import jax.numpy as jnp
 
     from .._results import RESULTS, code, failed
-    from .._solve import as_arrays, initial_state, options, solve, times
+    from .._solve import as_arrays, initial_state, options, solve, state_dtype, times
 
     scene = as_arrays(spec.scene)
-    scene.check_size(np.asarray(spec.y0[0]))
+    scene.check_size(spec.y0[0])
     q0, v0 = initial_state(scene.space, scene.state_name, spec.y0)
     dynamic, static = eqx.partition(scene, eqx.is_array)
     params, treedef = jax.tree.flatten(dynamic)
     ts, count = segment_times(spec.t0, float(spec.t1 if t1 is None else t1), spec.save_dt)
     opts = options(spec.solver, spec.dt0, spec.rtol, spec.atol, None, None, spec.max_steps,
-                   None, False, None, q0.dtype)
+                   None, False, None, state_dtype((q0, v0)))
 
     def segment(t_start, ts, q, v, params):
         system = eqx.combine(jax.tree.unflatten(treedef, params), static)
@@ -165,7 +175,7 @@ def build(spec, t1=None) -> tuple[Program, jax.stages.Compiled]:
         if system.has_forces:  # the work-energy balance is integrated over the steps
             saveat = diffrax.SaveAt(subs=[diffrax.SubSaveAt(ts=ts),
                                           diffrax.SubSaveAt(t0=True, steps=True)])
-        t_start, t_end, dt0 = times(q.dtype, t_start, ts[-1], spec.dt0)
+        t_start, t_end, dt0 = times(state_dtype((q, v)), t_start, ts[-1], spec.dt0)
         if isinstance(opts.controller, diffrax.ConstantStepSize):  # diffrax divides a
             # segment into equal steps: as many as dt0 fits, the save times' rounding aside
             dt0 = (t_end - t_start) / jnp.ceil((t_end - t_start) / dt0 * (1 - 1e-12))
@@ -177,10 +187,11 @@ def build(spec, t1=None) -> tuple[Program, jax.stages.Compiled]:
         return (*ys, failed(result), result, sol.stats["num_steps"],
                 sol.stats["num_rejected_steps"], *steps)
 
-    inputs = (ts[0, 0], ts[0], np.asarray(q0), np.asarray(v0), [np.asarray(p) for p in params])
+    inputs = (ts[0, 0], ts[0], *jax.tree.map(np.asarray, (q0, v0)),
+              [np.asarray(p) for p in params])
     compiled = jax.jit(segment).lower(*inputs).compile()
     program = Program(compiled, ts, count, *inputs[2:], spec.max_steps,
-                      int(code(RESULTS.max_steps_reached)))
+                      int(code(RESULTS.max_steps_reached)), scene.has_forces)
     return program, compiled
 
 
@@ -217,16 +228,16 @@ def store(folder: Path, name: str, program: Program, compiled) -> bool:
     if "callback" in compiled.as_text():
         return False
     payload, in_tree, out_tree = serialize(compiled)
-    inputs, outputs = _trees(program, out_tree.num_leaves)
-    if (in_tree, out_tree) != (inputs, outputs):
+    if (in_tree, out_tree) != _trees(program):
         return False
     arrays, binary = _files(folder, name)
     params = {f"param{i}": p for i, p in enumerate(program.params)}
     try:  # a folder that cannot be written keeps nothing, as JAX's cache
         arrays.parent.mkdir(parents=True, exist_ok=True)
         for path, write in ((arrays, lambda f: np.savez(
-                f, ts=program.ts, count=program.count, q0=program.q0, v0=program.v0,
-                steps=[program.max_steps, program.max_steps_code, out_tree.num_leaves],
+                f, ts=program.ts, count=program.count, **flat("q0", program.q0),
+                **flat("v0", program.v0),
+                steps=[program.max_steps, program.max_steps_code, program.forced],
                 **params)), (binary, lambda f: f.write(payload))):
             partial = path.with_name(f"{path.name}.{os.getpid()}.tmp")
             with open(partial, "wb") as f:
@@ -237,9 +248,25 @@ def store(folder: Path, name: str, program: Program, compiled) -> bool:
     return True
 
 
-def _trees(program: Program, outputs: int):
-    inputs = (program.ts[0, 0], program.ts[0], program.q0, program.v0, program.params)
-    return jax.tree.structure((inputs, {})), jax.tree.structure((0,) * outputs)
+def _trees(program: Program):
+    state = (program.q0, program.v0)
+    inputs = (program.ts[0, 0], program.ts[0], *state, program.params)
+    outputs = (*state, 0, 0, 0, 0, *((0, *state) if program.forced else ()))
+    return jax.tree.structure((inputs, {})), jax.tree.structure(outputs)
+
+
+def flat(name: str, tree) -> dict[str, np.ndarray]:
+    """The arrays of a state named for an `.npz` file: `{name: x}` for an array, and
+    `{"name.key": x[key]}` for a dict of arrays (a state on a product space)."""
+    if isinstance(tree, dict):
+        return {f"{name}.{k}": np.asarray(x) for k, x in tree.items()}
+    return {name: np.asarray(tree)}
+
+
+def unflat(data, name: str):
+    """The state `flat` named `name` in an `.npz` file's `data`."""
+    keys = [f.removeprefix(f"{name}.") for f in data.files if f.startswith(f"{name}.")]
+    return {k: data[f"{name}.{k}"] for k in keys} if keys else data[name]
 
 
 def load(folder: Path, name: str) -> Program | None:
@@ -251,11 +278,13 @@ def load(folder: Path, name: str) -> Program | None:
         return None
     try:
         with np.load(arrays) as data:
-            params = [data[f"param{i}"] for i in range(len(data.files) - 5)]
-            max_steps, max_steps_code, outputs = (int(x) for x in data["steps"])
-            program = Program(None, data["ts"], data["count"], data["q0"], data["v0"],
-                              params, max_steps, max_steps_code)
-        program.call = deserialize_and_load(binary.read_bytes(), *_trees(program, outputs))
+            params = [data[f"param{i}"] for i in
+                      range(sum(f.startswith("param") for f in data.files))]
+            max_steps, max_steps_code, forced = (int(x) for x in data["steps"])
+            program = Program(None, data["ts"], data["count"], unflat(data, "q0"),
+                              unflat(data, "v0"), params, max_steps, max_steps_code,
+                              bool(forced))
+        program.call = deserialize_and_load(binary.read_bytes(), *_trees(program))
     except Exception:  # unreadable (e.g. written by another jaxlib build): compile again
         return None
     return program

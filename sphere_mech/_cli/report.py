@@ -11,7 +11,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._geometry import retract
 from .program import Integrated, build
 
 
@@ -47,7 +46,8 @@ def work_energy_balance(system, ts, q, v, args=None):
     **Arguments:**
     - `system`: a Lagrangian system in `(q, qdot)` (a `Scene`, `Lagrangian`, ...).
     - `ts`: the times, shape `(T,)`, increasing (e.g. the solver's accepted steps).
-    - `q`, `v`: the states at `ts`, shape `(T, n, 3)` each.
+    - `q`, `v`: the states at `ts`, shape `(T, n, 3)` each (dicts of such arrays with a
+      leading `T` axis where the system's state is a dict).
     - `args`: the system's `args`.
 
     **Returns:** `(E, W, E - E(0) - W)`, three numpy arrays of shape `(T,)`.
@@ -64,15 +64,19 @@ class SceneResult:
 
     **Attributes:**
     - `t`: the saved times, `(T,)`.
-    - `q`, `v`: the saved states, `(T, n, 3)` each.
-    - `x`: the positions of the masses at `t`, `(T, n, 3)`.
+    - `q`, `v`: the saved states, `(T, n, 3)` each; where the scene's state is a dict (a
+      scene with a `Base`), dicts of arrays with a leading `T` axis, `{"base": (T, m),
+      "spheres": (T, n, 3)}`.
+    - `x`: the points drawn at `t`, `scene.points(q)`: `(T, n, 3)`, `(T, n + 1, 3)` with a
+      `Base` (its point first).
     - `energy`: the energy `E` at `t`.
     - `error_t`: the times of `error` (`t`, or the solver's steps for a scene with forces).
     - `error`: the relative energy error `(E - E(0)) / |E(0)|`, or with forces the
       work-energy balance `E - E(0) - W` divided by the larger of `max |E|`, `max |W|`.
-    - `constraint`: `max_i | |q_i| - 1 |` at `t`.
+    - `constraint`: `max_i | |q_i| - 1 |` over the spheres (`scene.spheres(q)`) at `t`.
     - `summary`: what `summary.json` holds (solver, tolerances or step, steps, wall time,
-      largest constraint and energy or balance error).
+      largest constraint and energy or balance error; with a `Base`, `"base"`: its final
+      coordinates).
     - `potential`: `U` at `t` (kinetic energy: `energy - potential`).
     - `work`: with forces, the work `W` done at `error_t`.
     - `step_energy`: with forces, `E` at `error_t`.
@@ -114,7 +118,7 @@ def scene_result(spec, run: Integrated, t1=None) -> SceneResult:
     file's), from `Program.integrate`."""
     scene, args, forced = spec.scene, None, spec.scene.has_forces
     t1, ts, wall = float(spec.t1 if t1 is None else t1), jnp.asarray(run.t), run.wall_time_s
-    q, v = retract(jnp.asarray(run.q), jnp.asarray(run.v)) if forced else (run.q, run.v)
+    q, v = jax.vmap(scene.space.retract)(run.q, run.v) if forced else (run.q, run.v)
     ts_s, ys_s = run.step_t, (run.step_q, run.step_v)
     energy = np.asarray(jax.vmap(scene.energy, (0, 0, 0, None))(ts, q, v, args))
     potential = np.asarray(jax.vmap(scene.potential, (0, 0, None))(ts, q, args))
@@ -130,9 +134,10 @@ def scene_result(spec, run: Integrated, t1=None) -> SceneResult:
         error_t, error = np.asarray(ts), (energy - energy[0]) / abs(energy[0] or 1.0)
         report = {"energy_report": "energy error (E(t) - E(0)) / |E(0)|",
                   "max_relative_energy_error": float(np.max(np.abs(error)))}
-    q, v = np.asarray(q), np.asarray(v)
-    constraint = np.max(np.abs(np.linalg.norm(q, axis=-1) - 1.0), axis=-1)
-    x = np.asarray(jax.vmap(scene.positions)(jnp.asarray(q)))
+    q, v = jax.tree.map(np.asarray, (q, v))
+    constraint = np.max(np.abs(np.linalg.norm(scene.spheres(q), axis=-1) - 1.0), axis=-1)
+    x = np.asarray(jax.vmap(scene.points)(q))
+    base = {} if scene.base is None else {"base": q["base"][-1].tolist()}
     summary = {
         "scene": spec.name, "file": str(spec.path), "solver": spec.solver_name,
         **({"rtol": spec.rtol, "atol": spec.atol}
@@ -140,6 +145,7 @@ def scene_result(spec, run: Integrated, t1=None) -> SceneResult:
         "n_spheres": scene.n, "effects": [type(e).__name__ for e in scene.effects],
         "t0": spec.t0, "t1": t1, "steps": run.steps, "rejected_steps": run.rejected_steps,
         "wall_time_s": wall, "max_constraint_error": float(constraint.max()), **report,
+        **base,
     }
     return SceneResult(np.asarray(ts), q, v, x, energy, np.asarray(error_t), np.asarray(error),
                        constraint, summary, potential, W, e_s)

@@ -1,6 +1,7 @@
 """What a picture of a system shows: the fixed points (a chain's pivot, a particle's
-centre), the links as polylines from a fixed point through the masses, and the spheres
-that several masses share. Shared by `plot.png`, `animation.html` and `sm.animate`."""
+centre), a moving base, the links as polylines from a fixed point or the base through the
+masses, and the spheres that several masses share. Shared by `plot.png`,
+`animation.html` and `sm.animate`."""
 
 import dataclasses
 
@@ -13,14 +14,17 @@ from .._scene.scene import Scene
 
 @dataclasses.dataclass(frozen=True)
 class Skeleton:
-    """`anchors`: `(k, 3)` fixed points; `links`: polylines as indices into the `(k + n,
-    3)` array of `points(x)` (anchors first, then the `n` masses); `spheres`: `(centre,
-    radius)` of each sphere that several masses share; `free`: masses on no link."""
+    """`anchors`: `(k, 3)` fixed points; `links`: polylines as indices into the `(k + p,
+    3)` array of `points(x)` (anchors first, then the `p` points of `x`: a scene's
+    `points(q)`, its base's point first); `spheres`: `(centre, radius)` of each sphere that
+    several masses share; `free`: masses on no link; `bases`: the indices into
+    `points(x)` of moving bases (drawn as squares)."""
 
     anchors: np.ndarray
     links: tuple[np.ndarray, ...]
     spheres: tuple[tuple[np.ndarray, float], ...]
     free: np.ndarray
+    bases: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=int))
 
     def points(self, x: np.ndarray) -> np.ndarray:
         """Anchors and masses, `(..., k + n, 3)`, from positions `x` of shape `(..., n, 3)`."""
@@ -34,6 +38,10 @@ class Skeleton:
         ends = [link[-1] for link in self.links]
         return np.asarray(ends + list(self.free + len(self.anchors)), dtype=int)
 
+    def mass(self, i: int) -> int:
+        """The number of the mass at index `i` of `points`."""
+        return i - len(self.anchors) - len(self.bases)
+
 
 def _anchor(anchors: list, point) -> int:
     point = np.asarray(point, dtype=float)
@@ -45,17 +53,20 @@ def _anchor(anchors: list, point) -> int:
 
 
 def skeleton(system, n: int) -> Skeleton:
-    """The skeleton of a `Scene` from its kinetic terms (chains hang from their base,
-    particles from their centres, beads on a `SharedSphere` show the sphere); of any other
-    system, the `n` points on the unit sphere centred at the origin."""
+    """The skeleton of a `Scene` from its kinetic terms (chains hang from their base or
+    the scene's moving `Base`, particles from their centres, beads on a `SharedSphere`
+    show the sphere), for `points(q)`; of any other system, the `n` points on the unit
+    sphere centred at the origin. A `Chain`'s offset from a moving `Base` is drawn as
+    part of its first link."""
     if not isinstance(system, Scene):
         return Skeleton(np.zeros((1, 3)), (), ((np.zeros(3), 1.0),), np.arange(n))
     anchors, links, spheres, free = [], [], [], []
-    offset = 0
+    bases = [] if system.base is None else [0]  # points(q): the base's point first
+    offset = len(bases)
     for k in system.kinetic:
         masses = list(range(offset, offset + k.n))
         if isinstance(k, Chain):
-            links.append([_anchor(anchors, k.base)] + masses)
+            links.append((bases or [_anchor(anchors, k.base)]) + masses)
         elif isinstance(k, Particles):
             centers = np.asarray(k.centers)
             links += [[_anchor(anchors, centers[j]), i] for j, i in enumerate(masses)]
@@ -67,13 +78,15 @@ def skeleton(system, n: int) -> Skeleton:
     anchors = np.asarray(anchors, dtype=float).reshape(-1, 3)
     index = lambda i: i + len(anchors) if i >= 0 else -1 - i
     return Skeleton(anchors, tuple(np.asarray([index(i) for i in link]) for link in links),
-                    tuple(spheres), np.asarray(free, dtype=int))
+                    tuple(spheres), np.asarray(free, dtype=int),
+                    np.asarray(bases, dtype=int) + len(anchors))
 
 
 def positions(system, q) -> np.ndarray:
-    """Positions `(T, n, 3)` of the masses: the scene's `positions(q)`, else `q`."""
+    """The points drawn, `(T, p, 3)`: a scene's `points(q)` (its base's point first), else
+    `q`."""
     if isinstance(system, Scene):
-        return np.asarray(jax.vmap(system.positions)(q))
+        return np.asarray(jax.vmap(system.points)(q))
     return np.asarray(q)
 
 
@@ -102,7 +115,8 @@ def equal_axes(ax, skel: Skeleton, x: np.ndarray) -> None:
 
 
 def draw_static(ax, skel: Skeleton) -> list:
-    """The spheres (wireframes) and the anchors (black squares); returns legend handles."""
+    """The spheres (wireframes) and the anchors (black squares; a moving base is drawn
+    with the moving parts); returns legend handles."""
     u, v = np.meshgrid(np.linspace(0, 2 * np.pi, 25), np.linspace(0, np.pi, 13))
     for c, r in skel.spheres:
         ax.plot_wireframe(c[0] + r * np.cos(u) * np.sin(v), c[1] + r * np.sin(u) * np.sin(v),

@@ -23,6 +23,18 @@ def _drive_value(x):
     return x if callable(x) else base.as_float(x)
 
 
+def _check_drive(field: str, drive, scene) -> None:
+    """Check a drive held in `field` against the scene (a constant: nothing to check); its
+    errors name `field.<its field>`, as a scene file writes it."""
+    if not isinstance(drive, AbstractDrive):
+        return
+    try:
+        drive.check(scene)
+    except ParameterError as e:
+        e.field = f"{field}.{e.field}" if e.field else field
+        raise
+
+
 def _evaluate(drive, t, q, qdot, args, shape=(3,)):
     dtype = spheres_of(q).dtype
     out = jnp.asarray(drive(t, q, qdot, args) if callable(drive) else drive, dtype=dtype)
@@ -80,8 +92,7 @@ class BaseTorque(AbstractForce):
 
     def check(self, scene):
         base.check_index(self, "link", self.link, scene.n)
-        if isinstance(self.torque, AbstractDrive):
-            self.torque.check(scene)
+        _check_drive("torque", self.torque, scene)
 
     def generalized_force(self, t, q, qdot, scene, args):
         tau = _evaluate(self.torque, t, q, qdot, args)
@@ -146,8 +157,7 @@ class TipForce(AbstractForce):
 
     def check(self, scene):
         base.check_index(self, "point", self.point, scene.n)
-        if isinstance(self.force, AbstractDrive):
-            self.force.check(scene)
+        _check_drive("force", self.force, scene)
 
     def generalized_force(self, t, q, qdot, scene, args):
         d = _evaluate(self.force, t, q, qdot, args)
@@ -232,8 +242,7 @@ class BaseForce(AbstractForce):
         if not callable(self.force) and jnp.shape(self.force) != (scene.base.m,):
             raise ParameterError("force", f"force must have {scene.base.m} components, one "
                                  f"per axis of the Base, got shape {jnp.shape(self.force)}")
-        if isinstance(self.force, AbstractDrive):
-            self.force.check(scene)
+        _check_drive("force", self.force, scene)
 
     def generalized_force(self, t, q, qdot, scene, args):
         f = _evaluate(self.force, t, q, qdot, args, (scene.base.m,))
