@@ -525,6 +525,12 @@ CASES = {  # name: (Python, what the file changes, the field the file error name
         dict(template=CART, extra=TAU_TOML.format(
             "base_force", 'force = { type = "pd_position", kp = 1.0, target = [0.0, 0.0] }')),
         "effects[2].force.target"),
+    "harmonic force of the wrong size": (
+        lambda: sm.Scene(CART_BASE(), CART_CHAIN, sm.BaseForce(sm.Harmonic([1.0, 0.0], 2.0))),
+        dict(template=CART, extra=TAU_TOML.format(
+            "base_force", 'force = { type = "harmonic", amplitude = [1.0, 0.0], '
+            'angular_frequency = 2.0 }')),
+        "effects[2].force"),
     "negative pd gain": (
         lambda: sm.PDPosition(-1.0),
         dict(template=CART, extra=TAU_TOML.format(

@@ -23,9 +23,10 @@ def _drive_value(x):
     return x if callable(x) else base.as_float(x)
 
 
-def _check_drive(field: str, drive, scene) -> None:
-    """Check a drive held in `field` against the scene (a constant: nothing to check); its
-    errors name `field.<its field>`, as a scene file writes it."""
+def _check_drive(field: str, drive, scene, shape=(3,)) -> None:
+    """Check a drive held in `field` against the scene, and the shape of what it returns
+    (a constant or a user's function: nothing to check); its errors name
+    `field.<its field>`, as a scene file writes it."""
     if not isinstance(drive, AbstractDrive):
         return
     try:
@@ -33,6 +34,13 @@ def _check_drive(field: str, drive, scene) -> None:
     except ParameterError as e:
         e.field = f"{field}.{e.field}" if e.field else field
         raise
+    spheres = jax.ShapeDtypeStruct((scene.n, 3), jnp.result_type(float))
+    state = spheres if scene.base is None else {
+        "base": jax.ShapeDtypeStruct((scene.base.m,), spheres.dtype), "spheres": spheres}
+    out = jax.eval_shape(drive, jax.ShapeDtypeStruct((), spheres.dtype), state, state, None)
+    if out.shape != shape:
+        raise ParameterError(field, f"{field}: {type(drive).__name__} returns shape "
+                             f"{out.shape}, expected {shape}")
 
 
 def _evaluate(drive, t, q, qdot, args, shape=(3,)):
@@ -242,7 +250,7 @@ class BaseForce(AbstractForce):
         if not callable(self.force) and jnp.shape(self.force) != (scene.base.m,):
             raise ParameterError("force", f"force must have {scene.base.m} components, one "
                                  f"per axis of the Base, got shape {jnp.shape(self.force)}")
-        _check_drive("force", self.force, scene)
+        _check_drive("force", self.force, scene, (scene.base.m,))
 
     def generalized_force(self, t, q, qdot, scene, args):
         f = _evaluate(self.force, t, q, qdot, args, (scene.base.m,))
