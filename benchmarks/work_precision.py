@@ -509,7 +509,8 @@ def figure(rows, path=None):
                 names.append(n)
     fig.legend(handles, names, loc="lower center", ncol=min(4, len(names)), fontsize=8,
                frameon=False)
-    fig.tight_layout(rect=(0, 0.1 if len(names) > 4 else 0.06, 1, 1))
+    legend_height = 0.3 + 0.2 * -(-len(names) // 4)  # inches, 4 names a row
+    fig.tight_layout(rect=(0, legend_height / fig.get_figheight(), 1, 1))
     if path is not None:
         fig.savefig(path, dpi=110)
         plt.close(fig)
