@@ -199,7 +199,8 @@ def methods(quick: bool) -> list[Method]:
 
 
 def _chain_state(thetas, phis, speeds_theta, speeds_phi):
-    """A chain state from polar angles (from -e3), azimuths and rates along e_theta, e_phi."""
+    """The spheres' `(q, v)` from polar angles (from -e3), azimuths and rates along e_theta,
+    e_phi (a scene's `space.retract` puts them exactly on its tangent bundle)."""
     x = jnp.stack([jnp.asarray(thetas, float), jnp.asarray(phis, float)], -1)
     q = unit_from_angles(x)
     th, ph = x[:, 0], x[:, 1]
