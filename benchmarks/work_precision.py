@@ -1,13 +1,15 @@
 """Work-precision benchmark: what accuracy costs in time, per integrator and scene.
 
 For every integrator (each diffrax solver under `sm.Projected` at several tolerances,
-fixed-step methods at several step sizes) and every scene, it measures
+fixed-step methods at several step sizes) and every scene, on (S^2)^n or, for the drone
+carrying a cable, on the mixed space R^3 x (S^2)^5 (all through the scene's API: its
+`space`, `points`, `spheres`), it measures
 
 - the error at the final time against a float64 reference computed with a much tighter
   tolerance (`Projected(Dopri8)`, rtol = atol = 1e-14): the largest distance between the
-  positions of the masses and the reference positions;
+  point masses (`scene.points`: the base's point included) and the reference's;
 - the largest energy error `max_t |E(t) - E(0)|` and the largest constraint error
-  `max_t max_i | |q_i| - 1 |`, over every step of the run;
+  `max_t max_i | |q_i| - 1 |` (over the spheres), over every step of the run;
 - the wall time of a compiled run (median of repeats; the first call is timed apart and
   the difference is reported as compile time; `cached` when the same program was already
   compiled for an earlier scene of the same size);
@@ -28,6 +30,7 @@ angle chart's pole, where the angle baseline's cost or error blows up while ours
 
     python benchmarks/work_precision.py           # full run, < ~10 min on 2 cores
     python benchmarks/work_precision.py --quick   # < 1 min (run by the test suite)
+    python benchmarks/work_precision.py --scenes drone   # one scene, merged into the results
 
 Writes `<out>/work_precision.{md,png,json}` (`work_precision_quick.*` with `--quick`).
 Integrators are listed in `methods()`; adding one is one line there.
@@ -72,7 +75,7 @@ class Counter(sm.AbstractPotential):
 
     def potential(self, t, q, scene, args):
         jax.debug.callback(_tick)
-        return jnp.zeros((), q.dtype)
+        return jnp.zeros((), scene.spheres(q).dtype)
 
 
 def counted(chain):
@@ -114,8 +117,8 @@ class AngleChain(eqx.Module):
         p = jax.grad(self.lagrangian, 1)(x, xt)
         return jnp.sum(p * xt) - self.lagrangian(x, xt)
 
-    def positions(self, x):
-        return self.chain.positions(unit_from_angles(x))
+    def points(self, x):
+        return self.chain.points(unit_from_angles(x))
 
 
 def angles_from_state(q, v):
@@ -147,6 +150,7 @@ class Scene:
     t1: float
     steps: tuple  # step sizes for fixed-step methods
     angle_baseline: bool = False
+    pole: bool = False  # only the Tsit5 methods, the angle baseline from rtol 1e-8 on
     note: str = ""
 
 
@@ -195,19 +199,20 @@ def methods(quick: bool) -> list[Method]:
 
 
 def _chain_state(thetas, phis, speeds_theta, speeds_phi):
-    """A chain state from polar angles (from -e3), azimuths and rates along e_theta, e_phi."""
+    """The spheres' `(q, v)` from polar angles (from -e3), azimuths and rates along e_theta,
+    e_phi (a scene's `space.retract` puts them exactly on its tangent bundle)."""
     x = jnp.stack([jnp.asarray(thetas, float), jnp.asarray(phis, float)], -1)
     q = unit_from_angles(x)
     th, ph = x[:, 0], x[:, 1]
     e_th = jnp.stack([jnp.cos(th) * jnp.cos(ph), jnp.cos(th) * jnp.sin(ph), jnp.sin(th)], -1)
     e_ph = jnp.stack([-jnp.sin(ph), jnp.cos(ph), jnp.zeros_like(ph)], -1)
     v = jnp.asarray(speeds_theta)[:, None] * e_th + jnp.asarray(speeds_phi)[:, None] * e_ph
-    return sm.retract(q, v)
+    return q, v
 
 
 def double_pendulum_scene(t1):
     chain = sm.chain_pendulum(jnp.ones(2), jnp.ones(2))
-    y0 = _chain_state([0.9, 1.2], [0.0, 0.5], [0.0, -0.3], [2.0, 1.5])
+    y0 = chain.space.retract(*_chain_state([0.9, 1.2], [0.0, 0.5], [0.0, -0.3], [2.0, 1.5]))
     return Scene("double pendulum", chain, y0, t1, (1e-2, 3e-3, 1e-3, 3e-4),
                  angle_baseline=True)
 
@@ -227,9 +232,23 @@ def triple_pendulum_scene(t1):
 def hanging_chain_scene(t1, n=16):
     chain = sm.chain_pendulum(jnp.full(n, 1.0 / n), jnp.full(n, 1.0 / n))
     i = np.arange(n)
-    y0 = _chain_state(0.6 * np.sin(np.pi * (i + 1) / (n + 1)), 0.2 * i / n,
-                      np.zeros(n), 0.5 * np.cos(np.pi * i / n))
+    y0 = chain.space.retract(*_chain_state(0.6 * np.sin(np.pi * (i + 1) / (n + 1)), 0.2 * i / n,
+                                           np.zeros(n), 0.5 * np.cos(np.pi * i / n)))
     return Scene(f"{n}-link hanging chain", chain, y0, t1, (1e-2, 3e-3, 1e-3, 3e-4))
+
+
+def drone_cable_scene(t1, n=5):
+    """The mixed space R^3 x (S^2)^5: a drone (a 1.5 kg point mass moving in space, no
+    thrust: no controller) carrying a 0.3 kg payload on a 5-link cable of 0.02 kg links,
+    tossed up at 14 m/s with the cable tilted and swinging; no damping, so the energy is
+    conserved. The whole falls freely (the centre of mass on a parabola, back near its
+    start at t1 = 3 s) while the cable whips around it."""
+    chain = sm.Scene(sm.Base(1.5), sm.Chain(0.02, 0.2, links=n, payload=0.3), sm.Gravity())
+    i = np.arange(n)
+    q, v = _chain_state(0.5 + 0.25 * i, 0.3 * i, 3.0 * np.cos(i), 4.0 - i)
+    y0 = chain.space.retract({"base": jnp.zeros(3), "spheres": q},
+                             {"base": jnp.array([0.5, -0.3, 14.0]), "spheres": v})
+    return Scene(f"drone with a {n}-link cable", chain, y0, t1, (1e-2, 3e-3, 1e-3, 3e-4))
 
 
 # ----------------------------------------------------------------------------------------
@@ -283,8 +302,12 @@ def reference_solution(scene, tol=REFERENCE_TOL):
 
 
 @eqx.filter_jit
-def _evaluate_q(sol, ts):
-    return jax.vmap(lambda t: sm.normalize(sol.evaluate(t)[0]))(ts)
+def _evaluate_q(chain, sol, ts):
+    return jax.vmap(lambda t: chain.space.normalize(sol.evaluate(t)[0]))(ts)
+
+
+def _last(tree):
+    return jax.tree.map(lambda a: a[-1], tree)
 
 
 def _timed(fn, repeats, budget=2.0, fast=0.3, most=30):
@@ -302,7 +325,7 @@ def _timed(fn, repeats, budget=2.0, fast=0.3, most=30):
     return first, statistics.median(times), min(times)
 
 
-def measure(scene, method, param, ref_positions, repeats, max_steps):
+def measure(scene, method, param, ref_points, repeats, max_steps):
     """One point of the work-precision diagram: a dict of measured numbers."""
     adaptive = method.tolerances is not None
     solver = method.make(scene)
@@ -313,27 +336,27 @@ def measure(scene, method, param, ref_positions, repeats, max_steps):
         y0 = angles_from_state(*scene.y0)
         run = lambda diag: _integrate_angles(angle_chain, solver, y0, t1, p, adaptive, diag,
                                              max_steps)
-        positions = angle_chain.positions
+        points = angle_chain.points
         energy = jax.vmap(angle_chain.energy)
         constraint = lambda ys: float("nan")
     else:
         y0 = scene.y0
         run = lambda diag: _integrate(scene.chain, solver, y0, t1, p, adaptive, diag, max_steps)
-        positions = scene.chain.positions
+        points = scene.chain.points
         energy = jax.vmap(lambda q, v: scene.chain.energy(0.0, q, v, None))
-        constraint = lambda ys: float(sm.constraint_error(ys[0].reshape(-1, 3)))
+        constraint = lambda ys: float(sm.constraint_error(scene.chain.spheres(ys[0])))
 
     first, wall, fastest = _timed(lambda: run(False), repeats)
     _, ys, ok, num_steps = run(False)
-    final_error = float(jnp.max(jnp.linalg.norm(positions(ys[0][-1]) - ref_positions, axis=-1)))
+    final_error = float(jnp.max(jnp.linalg.norm(points(_last(ys[0])) - ref_points, axis=-1)))
 
     _CALLS[0] = 0
     ts, ys_all, ok_diag, _ = run(True)
     jax.block_until_ready(ys_all)
     evaluations = _CALLS[0]
     keep = np.isfinite(np.asarray(ts))
-    ys_all = tuple(np.asarray(a)[keep] for a in ys_all)
-    e0 = float(energy(*(a[None] for a in y0))[0])
+    ys_all = jax.tree.map(lambda a: np.asarray(a)[keep], ys_all)
+    e0 = float(energy(*jax.tree.map(lambda a: a[None], y0))[0])
     energy_error = float(np.max(np.abs(np.asarray(energy(*ys_all)) - e0)))
     ok = bool(ok) and bool(ok_diag)
     if not ok:
@@ -355,13 +378,14 @@ def predictability_time(scene, t_max, eps=1e-10, threshold=1e-2):
     """First time at which a 1e-10 perturbation of `q0` moves some mass by more than
     `threshold` (in units of the chain's length)."""
     q0, v0 = scene.y0
-    q1, v1 = sm.retract(q0 + eps * jnp.array([[0.0, 1.0, 0.0]] * q0.shape[0]), v0)
+    q1, v1 = scene.chain.space.retract(q0 + eps * jnp.array([[0.0, 1.0, 0.0]] * q0.shape[0]),
+                                       v0)
     ts = jnp.linspace(0.0, t_max, 2001)
     solver = sm.Projected(diffrax.Dopri8())
     run = lambda y: sm.simulate(scene.chain, y, t_max, solver=solver, rtol=1e-13, atol=1e-13,
                                 saveat=diffrax.SaveAt(ts=ts), max_steps=1_000_000).ys[0]
-    xa = jax.vmap(scene.chain.positions)(run((q0, v0)))
-    xb = jax.vmap(scene.chain.positions)(run((q1, v1)))
+    xa = jax.vmap(scene.chain.points)(run((q0, v0)))
+    xb = jax.vmap(scene.chain.points)(run((q1, v1)))
     sep = np.max(np.linalg.norm(np.asarray(xa - xb), axis=-1), axis=-1)
     size = float(jnp.sum(scene.chain.kinetic[0].lengths))
     above = np.nonzero(sep > threshold * size)[0]
@@ -376,22 +400,24 @@ def pole_scene(t1, approach=1e-6, delta0=1e-3):
     chain = sm.chain_pendulum(jnp.ones(2), jnp.ones(2))
 
     def state(delta):
-        return _chain_state([1.0, 1.0], [0.0, 0.0], [0.0, 0.0], [delta, 0.0])
+        return chain.space.retract(*_chain_state([1.0, 1.0], [0.0, 0.0], [0.0, 0.0],
+                                                 [delta, 0.0]))
 
     def closest(delta):
         scene = Scene("pole passage (double pendulum)", chain, state(delta), t1,
-                      (1e-2, 3e-3, 1e-3), angle_baseline=True)
-        return scene, _closest_approach(reference_solution(scene, 1e-12), t1)
+                      (1e-2, 3e-3, 1e-3), angle_baseline=True, pole=True)
+        return scene, _closest_approach(scene, reference_solution(scene, 1e-12))
 
     _, d0 = closest(delta0)  # the out-of-plane excursion is linear in delta
     return closest(delta0 * approach / d0)
 
 
-def _closest_approach(sol, t1):
+def _closest_approach(scene, sol):
     """Smallest angle between link 1 and -e3: at each sign change of its x component
     (found on a grid, refined by bisection on the dense output) the angle is |(x, y)|."""
-    q1_at = lambda ts: np.asarray(_evaluate_q(sol, jnp.asarray(ts)))[:, 0]
-    ts = np.linspace(0.0, t1, 4001)
+    spheres = lambda ts: scene.chain.spheres(_evaluate_q(scene.chain, sol, jnp.asarray(ts)))
+    q1_at = lambda ts: np.asarray(spheres(ts))[:, 0]
+    ts = np.linspace(0.0, scene.t1, 4001)
     x = q1_at(ts)[:, 0]
     i = np.nonzero(np.sign(x[:-1]) != np.sign(x[1:]))[0]
     a, b, sign = ts[i], ts[i + 1], np.sign(x[i])
@@ -484,7 +510,8 @@ def figure(rows, path=None):
                 names.append(n)
     fig.legend(handles, names, loc="lower center", ncol=min(4, len(names)), fontsize=8,
                frameon=False)
-    fig.tight_layout(rect=(0, 0.1 if len(names) > 4 else 0.06, 1, 1))
+    legend_height = 0.3 + 0.2 * -(-len(names) // 4)  # inches, 4 names a row
+    fig.tight_layout(rect=(0, legend_height / fig.get_figheight(), 1, 1))
     if path is not None:
         fig.savefig(path, dpi=110)
         plt.close(fig)
@@ -494,78 +521,131 @@ def figure(rows, path=None):
 # ----------------------------------------------------------------------------------------
 
 
-def run(quick=False, out=None, log=print):
-    """Run the benchmark; returns `dict(rows=..., info=...)` and writes files to `out`."""
-    repeats = 3 if quick else 5
-    if quick:
-        scenes = [double_pendulum_scene(2.0)]
-        pole_t1 = 2.0
-    else:
-        triple = triple_pendulum_scene(5.0)
-        t_pred = predictability_time(triple, 20.0)
-        log(f"chaotic triple pendulum: a 1e-10 perturbation of q0 grows past 1% of the "
-            f"chain's length at t = {t_pred:.2f} s; horizon {triple.t1} s")
-        scenes = [double_pendulum_scene(10.0), triple, hanging_chain_scene(5.0)]
-        pole_t1 = 5.0
-    pole, approach = pole_scene(pole_t1)
-    log(f"pole passage: closest approach of link 1 to the pole {approach:.2e} rad")
-    scenes.append(pole)
-    info = dict(quick=quick, pole_closest_approach=approach)
-    if not quick:
-        info["triple_predictability_time"] = t_pred
+def _triple(t1, info, log):
+    triple = triple_pendulum_scene(t1)
+    t_pred = predictability_time(triple, 20.0)
+    log(f"chaotic triple pendulum: a 1e-10 perturbation of q0 grows past 1% of the "
+        f"chain's length at t = {t_pred:.2f} s; horizon {triple.t1} s")
+    info["triple_predictability_time"] = t_pred
+    return triple
 
+
+def _pole(t1, info, log):
+    pole, approach = pole_scene(t1)
+    log(f"pole passage: closest approach of link 1 to the pole {approach:.2e} rad")
+    info["pole_closest_approach"] = approach
+    return pole
+
+
+SCENES = ("double", "triple", "chain", "pole", "drone")
+"""The scenes' keys for `--scenes`, in the order of the full run (`--quick`: double and
+pole only)."""
+
+
+def scenes_of(quick, keys, info, log):
+    """The scenes named by `keys` (None: all) that the run (quick or full) has, built in
+    order; what is measured on the way goes into `info`."""
+    if quick:
+        builders = dict(double=lambda: double_pendulum_scene(2.0),
+                        pole=lambda: _pole(2.0, info, log))
+    else:
+        builders = dict(double=lambda: double_pendulum_scene(10.0),
+                        triple=lambda: _triple(5.0, info, log),
+                        chain=lambda: hanging_chain_scene(5.0),
+                        pole=lambda: _pole(5.0, info, log),
+                        drone=lambda: drone_cable_scene(3.0))
+    return [build() for key, build in builders.items() if keys is None or key in keys]
+
+
+def parameters(scene, method, quick):
+    """The tolerances or step sizes `method` runs at on `scene` (empty: it does not)."""
+    if (method.angles and not scene.angle_baseline) or (
+            scene.pole and not (method.angles or "Tsit5" in method.label)):
+        return []
+    adaptive = method.tolerances is not None
+    params = method.tolerances if adaptive else scene.steps
+    if quick:
+        params = params[:3] if adaptive else params[:2]
+    if not adaptive:
+        params = [p for p in params if scene.t1 / p <= method.max_fixed_steps]
+    if scene.pole and method.angles:
+        params = [p for p in params if p >= POLE_ANGLE_MIN_TOL]
+    return list(params)
+
+
+def measure_scene(scene, quick, repeats, info, log):
+    """Every method on one scene: its rows (and its reference's error into `info`)."""
+    final_points = lambda sol: scene.chain.points(_last(sol.ys[0]))
+    ref = final_points(reference_solution(scene))
+    check = final_points(reference_solution(scene, 100 * REFERENCE_TOL))
+    ref_err = float(jnp.max(jnp.linalg.norm(ref - check, axis=-1)))
+    info[f"reference_error[{scene.name}]"] = ref_err
+    log(f"{scene.name}: t1 = {scene.t1} s, reference (tol 1e-14 vs 1e-12) differs by "
+        f"{ref_err:.1e}")
     rows = []
-    for scene in scenes:
-        ref = scene.chain.positions(reference_solution(scene).ys[0][-1])
-        check = scene.chain.positions(reference_solution(scene, 100 * REFERENCE_TOL).ys[0][-1])
-        ref_err = float(jnp.max(jnp.linalg.norm(ref - check, axis=-1)))
-        info[f"reference_error[{scene.name}]"] = ref_err
-        log(f"{scene.name}: t1 = {scene.t1} s, reference (tol 1e-14 vs 1e-12) differs by "
-            f"{ref_err:.1e}")
-        for method in methods(quick):
-            if method.angles and not scene.angle_baseline:
-                continue
-            if scene is pole and not (method.angles or "Tsit5" in method.label):
-                continue
-            adaptive = method.tolerances is not None
-            params = method.tolerances if adaptive else scene.steps
-            if quick:
-                params = params[:3] if adaptive else params[:2]
-            if not adaptive:
-                params = [p for p in params if scene.t1 / p <= method.max_fixed_steps]
-            if scene is pole and method.angles:
-                params = [p for p in params if p >= POLE_ANGLE_MIN_TOL]
-            if not params:
-                continue
-            max_steps = 200_000 if adaptive else int(math.ceil(scene.t1 / min(params))) + 10
-            for param in params:
-                r = measure(scene, method, param, ref, repeats, max_steps)
-                rows.append(r)
-                log(f"  {method.label:28s} {param:8.0e}  err {_fmt(r['final_error'])}  "
-                    f"dE {_fmt(r['energy_error'])}  |q|-1 {_fmt(r['constraint_error'])}  "
-                    f"{1e3 * r['wall_time']:8.2f} ms  evals {r['evaluations']}")
+    for method in methods(quick):
+        params = parameters(scene, method, quick)
+        if not params:
+            continue
+        adaptive = method.tolerances is not None
+        max_steps = 200_000 if adaptive else int(math.ceil(scene.t1 / min(params))) + 10
+        for param in params:
+            r = measure(scene, method, param, ref, repeats, max_steps)
+            rows.append(r)
+            log(f"  {method.label:28s} {param:8.0e}  err {_fmt(r['final_error'])}  "
+                f"dE {_fmt(r['energy_error'])}  |q|-1 {_fmt(r['constraint_error'])}  "
+                f"{1e3 * r['wall_time']:8.2f} ms  evals {r['evaluations']}")
+    return rows
+
+
+def merged(old, new):
+    """`old` results with the scenes of `new` replaced (or appended), in scene order."""
+    names = {r["scene"] for r in new["rows"]}
+    order = list(dict.fromkeys([r["scene"] for r in old["rows"] + new["rows"]]))
+    rows = [r for r in old["rows"] if r["scene"] not in names] + new["rows"]
+    rows.sort(key=lambda r: order.index(r["scene"]))  # stable: methods keep their order
+    return dict(rows=rows, info=old["info"] | new["info"])
+
+
+def run(quick=False, out=None, log=print, scenes=None):
+    """Run the benchmark; returns `dict(rows=..., info=...)` and writes files to `out`.
+    With `scenes` (keys of `SCENES`), only those run, and their rows replace theirs in
+    the results already in `out` (the others are kept)."""
+    repeats = 3 if quick else 5
+    info = dict(quick=quick)
+    rows = []
+    for scene in scenes_of(quick, scenes, info, log):
+        rows += measure_scene(scene, quick, repeats, info, log)
+    results = dict(rows=rows, info=info)
+    stem = "work_precision_quick" if quick else "work_precision"
+    if out is not None and scenes is not None and (Path(out) / f"{stem}.json").exists():
+        results = merged(json.loads((Path(out) / f"{stem}.json").read_text()), results)
+        log(f"merged into {Path(out) / stem}.json")
+    rows, info = results["rows"], results["info"]
 
     table, ratios = markdown_table(rows), ratio_table(rows)
     log("\n" + table + "\n\nAngle baseline against ours at the same tolerance:\n\n" + ratios)
     if out is not None:
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
-        stem = "work_precision_quick" if quick else "work_precision"
         (out / f"{stem}.md").write_text(
             "# Work-precision results\n\n" + "\n".join(f"- {k}: {v}" for k, v in info.items())
             + "\n\n" + table + "\n\n## Angle baseline / ours, same tolerance\n\n" + ratios
             + "\n")
-        (out / f"{stem}.json").write_text(json.dumps(dict(rows=rows, info=info), indent=1))
+        (out / f"{stem}.json").write_text(json.dumps(results, indent=1))
         figure(rows, out / f"{stem}.png")
-    return dict(rows=rows, info=info)
+    return results
 
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="small run (< 1 min)")
     parser.add_argument("--out", default=str(RESULTS_DIR), help="output directory")
+    parser.add_argument("--scenes", nargs="+", choices=SCENES, metavar="SCENE",
+                        help=f"run only these scenes ({', '.join(SCENES)}) and merge their "
+                        "rows into the results already in --out")
     args = parser.parse_args(argv)
-    return run(quick=args.quick, out=args.out)
+    return run(quick=args.quick, out=args.out, scenes=args.scenes)
 
 
 if __name__ == "__main__":
