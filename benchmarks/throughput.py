@@ -29,39 +29,21 @@ writes benchmarks/results/throughput_<device>.{png,md,json}.
 `--device gpu` fails unless JAX sees a GPU; it defaults to float32 (CPU: float64).
 """
 
-import argparse  # noqa: E402 (the options decide the environment below)
-import os
+from _options import CORES, parse_options
 
 
-def parse_options(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="fewer sizes and steps")
-    parser.add_argument("--device", choices=("cpu", "gpu"), default="cpu")
-    parser.add_argument("--dtype", choices=("float32", "float64"),
-                        help="default: float64 on cpu, float32 on gpu")
-    parser.add_argument("--mjx", action="store_true", help="also run MJX on the CPU")
+def add_arguments(parser):
     parser.add_argument("--ns", type=int, nargs="*", help="links to measure (default 2 8 32)")
     parser.add_argument("--batches", type=int, nargs="*", help="batch sizes")
     parser.add_argument("--per-n", type=int, nargs="*", help="n for the single-trajectory cost")
     parser.add_argument("--merge", action="store_true",
                         help="add to the results of earlier runs in the results .json")
-    opts = parser.parse_args(argv)
-    if opts.mjx and opts.device == "gpu":
-        parser.error("--mjx is for the CPU (on a GPU, MJX runs whenever it is installed)")
-    opts.dtype = opts.dtype or ("float64" if opts.device == "cpu" else "float32")
-    return opts
 
 
-OPTS = parse_options()
-CORES = os.cpu_count() or 1
-if OPTS.device == "cpu":
-    os.environ.setdefault("XLA_FLAGS", f"--xla_force_host_platform_device_count={CORES}")
-    os.environ.setdefault("JAX_PLATFORMS", "cpu")
+OPTS = parse_options(__doc__.splitlines()[0], add_arguments)
 
 import json  # noqa: E402
 import pathlib  # noqa: E402
-import statistics  # noqa: E402
-import time  # noqa: E402
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
@@ -70,22 +52,23 @@ import numpy as np  # noqa: E402
 
 jax.config.update("jax_enable_x64", OPTS.dtype == "float64")
 matplotlib.use("Agg")
+import _peers as peers  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
-import mujoco  # noqa: E402
-from mujoco import rollout  # noqa: E402
-
-try:
-    from mujoco import mjx  # noqa: F401 (MJX is the peer on a GPU when installed)
-
-    HAVE_MJX = True
-except ImportError:
-    HAVE_MJX = False
+from _peers import (  # noqa: E402
+    DT,
+    HAVE_MJX,
+    G,
+    chain_xml,
+    final_positions,
+    fixed_step_loop,
+    joint_state,
+    rk4_step,
+    throughput,
+)
 
 import sphere_mech as sm  # noqa: E402
-from sphere_mech._batch import _solve_batch  # noqa: E402
 from sphere_mech._linalg import spd_solve  # noqa: E402
 
-DT, G = 1e-3, 9.81
 RESULTS = pathlib.Path(__file__).parent / "results"
 AGREEMENT = {"float64": 1e-8, "float32": 1e-3}[OPTS.dtype]
 """Largest position difference accepted between methods after 0.2 s (float32: its
@@ -108,68 +91,29 @@ def random_states(n, batch, seed=0):
     return q, sm.project(q, v)
 
 
-# ------------------------------------------------------------------------ sphere_mech
-def rk4_step(f, y):
-    """One classic RK4 step of `y' = f(y)` with step DT."""
-    k1 = f(y)
-    k2 = f(jax.tree.map(lambda a, b: a + 0.5 * DT * b, y, k1))
-    k3 = f(jax.tree.map(lambda a, b: a + 0.5 * DT * b, y, k2))
-    k4 = f(jax.tree.map(lambda a, b: a + DT * b, y, k3))
-    return jax.tree.map(lambda a, b1, b2, b3, b4: a + DT / 6 * (b1 + 2 * b2 + 2 * b3 + b4),
-                        y, k1, k2, k3, k4)
+# ------------------------------------------------------------- the methods, for n links
+def chain(n):
+    return sm.chain_pendulum(jnp.ones(n), jnp.ones(n), G)
 
 
-def fixed_step_loop(step):
-    """`solve(y, nsteps)`: `step` applied `nsteps` times to each element of a batch."""
-
-    @jax.jit
-    def solve(y, nsteps):
-        return jax.vmap(lambda y_: jax.lax.fori_loop(0, nsteps, lambda i, x: step(x), y_))(y)
-
-    return solve
-
-
-class SphereMech:
-    name = "sphere_mech"
-
+class SphereMech(peers.SphereMech):
     def __init__(self, n):
-        self.chain = sm.chain_pendulum(jnp.ones(n), jnp.ones(n), G)
-        self.solver = sm.Projected(sm.RK4())
-
-    def prepare(self, q, v):
-        return q, v
-
-    def run(self, y, nsteps):
-        sol = sm.simulate_batch(self.chain, y, nsteps * DT, solver=self.solver, dt0=DT,
-                                max_steps=100_000)
-        jax.block_until_ready(sol.ys)
-        return sol, int(np.max(sol.stats["num_steps"]))
-
-    def positions(self, sol):
-        return np.asarray(jax.vmap(self.chain.positions)(sol.ys[0][:, -1]))
+        super().__init__(chain(n), chain(n).positions)
 
 
-class BareScan:
-    """`Projected(RK4())`'s arithmetic with no diffrax loop: RK4 over the same
-    `system.rates`, then the same retraction, in a `fori_loop` under `jax.vmap`."""
-
-    name = "bare scan"
-
+class BareScan(peers.BareScan):
     def __init__(self, n):
-        self.chain = sm.chain_pendulum(jnp.ones(n), jnp.ones(n), G)
-        rates = lambda y: self.chain.rates(0.0, y, None)
-        self.solve = fixed_step_loop(lambda y: sm.retract(*rk4_step(rates, y)))
+        super().__init__(chain(n), chain(n).positions)
 
-    def prepare(self, q, v):
-        return q, v
 
-    def run(self, y, nsteps):
-        out = self.solve(y, nsteps)
-        jax.block_until_ready(out)
-        return out, nsteps
+class MuJoCo(peers.MuJoCo):
+    def __init__(self, n, nthread=CORES):
+        super().__init__(chain_xml(np.ones(n), np.ones(n)), joint_state, nthread)
 
-    def positions(self, out):
-        return np.asarray(jax.vmap(self.chain.positions)(out[0]))
+
+class MJX(peers.MJX):
+    def __init__(self, n):
+        super().__init__(chain_xml(np.ones(n), np.ones(n)), joint_state)
 
 
 # ------------------------------------------------------------------------------ angles
@@ -227,139 +171,6 @@ class Angles:
         return np.asarray(jnp.cumsum(q, axis=1))
 
 
-# ------------------------------------------------------------------------------ MuJoCo
-def chain_xml(n, inertia=1e-10):
-    def body(i):
-        if i == n:
-            return ""
-        pos = "0 0 0" if i == 0 else "0 0 -1"
-        return (f'<body pos="{pos}"><joint type="ball"/>'
-                f'<inertial pos="0 0 -1" mass="1" diaginertia="{inertia} {inertia} {inertia}"/>'
-                f"{body(i + 1)}</body>")
-
-    return (f'<mujoco><option timestep="{DT}" integrator="RK4" gravity="0 0 {-G}">'
-            '<flag contact="disable" constraint="disable"/></option>'
-            f"<worldbody>{body(0)}</worldbody></mujoco>")
-
-
-def rotation_to(q):
-    """The rotation matrix turning -e3 into the unit vector q (about -e3 x q)."""
-    a = np.array([0.0, 0.0, -1.0])
-    axis, c = np.cross(a, q), float(a @ q)
-    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + K + K @ K / (1.0 + c)
-
-
-def joint_state(q, v):
-    """Ball-joint coordinates `(qpos, qvel)` of a batch of chain states `(q, v)`: one
-    quaternion per joint (relative to its parent link) and the relative angular velocity
-    in the child's frame."""
-    q, v = np.asarray(q, dtype=float), np.asarray(v, dtype=float)
-    batch, n = q.shape[:2]
-    qpos, qvel = np.zeros((batch, 4 * n)), np.zeros((batch, 3 * n))
-    for b in range(batch):
-        R_prev, w_prev = np.eye(3), np.zeros(3)
-        for i in range(n):
-            R = rotation_to(q[b, i])
-            quat = np.zeros(4)
-            mujoco.mju_mat2Quat(quat, (R_prev.T @ R).reshape(-1))
-            w = np.cross(q[b, i], v[b, i])  # angular velocity of link i (no spin)
-            qpos[b, 4 * i : 4 * i + 4] = quat
-            qvel[b, 3 * i : 3 * i + 3] = R.T @ (w - w_prev)  # ball joint: child frame
-            R_prev, w_prev = R, w
-    return qpos, qvel
-
-
-def mass_positions(model, qpos):
-    """The point masses' positions `(batch, n, 3)` for a batch of joint positions."""
-    d = mujoco.MjData(model)
-    result = []
-    for row in np.asarray(qpos, dtype=float):
-        d.qpos[:] = row
-        mujoco.mj_kinematics(model, d)
-        result.append(d.xipos[1:].copy())
-    return np.array(result)
-
-
-class MuJoCo:
-    name = "MuJoCo"
-
-    def __init__(self, n, nthread=CORES):
-        self.n = n
-        self.model = mujoco.MjModel.from_xml_string(chain_xml(n))
-        self.data = [mujoco.MjData(self.model) for _ in range(nthread)]
-        self.spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
-        self.size = mujoco.mj_stateSize(self.model, self.spec)
-
-    def prepare(self, q, v):
-        d = self.data[0]
-        mujoco.mj_resetData(self.model, d)
-        state = np.zeros(self.size)
-        mujoco.mj_getState(self.model, d, state, self.spec)
-        qpos, qvel = joint_state(q, v)
-        states = np.tile(state, (len(qpos), 1))
-        states[:, 1 : 1 + 4 * self.n] = qpos
-        states[:, 1 + 4 * self.n : 1 + 7 * self.n] = qvel
-        return states
-
-    def run(self, states, nsteps):
-        data = self.data[: len(states)]  # no idle threads for tiny batches
-        out, _ = rollout.rollout(self.model, data, states, nstep=nsteps)
-        return out, nsteps
-
-    def positions(self, out):
-        return mass_positions(self.model, out[:, -1, 1 : 1 + 4 * self.n])
-
-
-class MJX:
-    """The MuJoCo model on `mujoco.mjx` (JAX): `mjx.step` (RK4) in a loop under vmap."""
-
-    name = "MJX"
-
-    def __init__(self, n):
-        self.model = mujoco.MjModel.from_xml_string(chain_xml(n))
-        mx = mjx.put_model(self.model)
-        data = mjx.make_data(mx)
-
-        def step(y):
-            d = mjx.step(mx, data.replace(qpos=y[0], qvel=y[1]))
-            return d.qpos, d.qvel
-
-        self.solve = fixed_step_loop(step)
-
-    def prepare(self, q, v):
-        dtype = jnp.zeros(()).dtype  # float32 unless x64 is on
-        return tuple(jnp.asarray(x, dtype) for x in joint_state(q, v))
-
-    def run(self, y, nsteps):
-        out = self.solve(y, nsteps)
-        jax.block_until_ready(out)
-        return out, nsteps
-
-    def positions(self, out):
-        return mass_positions(self.model, out[0])
-
-
-# --------------------------------------------------------------------------- measuring
-def throughput(method, n, batch, budget, repeats):
-    """Pendulum-steps per second (median of `repeats`) and compile time."""
-    y = method.prepare(*random_states(n, batch, seed=1))
-    nsteps = int(np.clip(budget // batch, 5, 2000))
-    start = time.perf_counter()
-    method.run(y, nsteps)
-    first = time.perf_counter() - start
-    times, steps = [], nsteps
-    cache = _solve_batch._cached._cache_size()
-    for _ in range(repeats if first < 5.0 else 1):  # slow configurations: one repeat
-        start = time.perf_counter()
-        _, steps = method.run(y, nsteps)
-        times.append(time.perf_counter() - start)
-    # eqx.debug.assert_max_traces in spirit: a repeated call must not compile again.
-    assert _solve_batch._cached._cache_size() == cache, "recompiled"
-    median = statistics.median(times)
-    return batch * steps / median, max(first - median, 0.0), median / steps
-
-
 def methods():
     """The methods this run compares; the first is the peer that ratios divide by."""
     if OPTS.device == "gpu":
@@ -377,10 +188,9 @@ the one-trajectory table, which compares the cost of a step."""
 def check_agreement(n=3, batch=4, nsteps=200):
     y = random_states(n, batch, seed=7)
     others = [cls(n) for cls in methods() if cls is not SphereMech]
-    reference = SphereMech(n)
-    pos = [m.positions(m.run(m.prepare(*y), nsteps)[0]) for m in [reference, *others]]
-    errors = {m.name: float(np.max(np.abs(p - pos[0]))) for m, p in zip(others, pos[1:],
-                                                                        strict=True)}
+    pos = final_positions([SphereMech(n), *others], y, nsteps)
+    errors = {m.name: float(np.max(np.abs(pos[m.name] - pos[SphereMech.name])))
+              for m in others}
     lines = [f"| {name} | {err:.1e} |" for name, err in errors.items()]
     print(f"\nAgreement with sphere_mech, max |x_i| difference after {nsteps * DT:g} s "
           f"(n = {n}, {batch} random states):\n\n| method | difference |\n|---|---|")
@@ -404,7 +214,8 @@ def measure_batches(ns, batches, budget, records):
                 ):
                     continue
                 work = budget * 2 / n / (4 if cls is Angles and n >= 8 else 1)
-                rate, compile_s, _ = throughput(cls(n), n, batch, work, repeats=3)
+                y = random_states(n, batch, seed=1)
+                rate, compile_s, _ = throughput(cls(n), y, work, repeats=3)
                 records["batch"][f"{cls.name}|{n}|{batch}"] = (rate, compile_s)
                 print(f"{cls.name}, n={n}, batch={batch}: {rate:.3g} steps/s", flush=True)
 
@@ -418,8 +229,9 @@ def measure_cost(per_n, records):
             if cls is Angles:
                 continue
             method = cls(n, **single.get(cls, {}))
-            short = throughput(method, n, 1, 500, repeats=3)[2] * 500
-            cost = (throughput(method, n, 1, 2000, repeats=3)[2] * 2000 - short) / 1500
+            y = random_states(n, 1, seed=1)
+            short = throughput(method, y, 500, repeats=3)[2] * 500
+            cost = (throughput(method, y, 2000, repeats=3)[2] * 2000 - short) / 1500
             records["cost"][f"{cls.name}|{n}"] = cost
             print(f"{cls.name}, n={n}, one trajectory: {cost * 1e6:.2f} us/step", flush=True)
 

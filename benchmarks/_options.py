@@ -1,0 +1,28 @@
+"""The command line shared by the MuJoCo comparisons (throughput.py, mixed_throughput.py):
+parsed before JAX is imported, since `--device` decides JAX's environment."""
+
+import argparse
+import os
+
+CORES = os.cpu_count() or 1
+
+
+def parse_options(description, add_arguments=None, argv=None):
+    """`--quick`, `--device cpu|gpu`, `--dtype`, `--mjx`, plus what `add_arguments(parser)`
+    adds; on CPU, asks XLA for one device per core. Call before importing JAX."""
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("--quick", action="store_true", help="fewer sizes and steps")
+    parser.add_argument("--device", choices=("cpu", "gpu"), default="cpu")
+    parser.add_argument("--dtype", choices=("float32", "float64"),
+                        help="default: float64 on cpu, float32 on gpu")
+    parser.add_argument("--mjx", action="store_true", help="also run MJX on the CPU")
+    if add_arguments is not None:
+        add_arguments(parser)
+    opts = parser.parse_args(argv)
+    if opts.mjx and opts.device == "gpu":
+        parser.error("--mjx is for the CPU (on a GPU, MJX runs whenever it is installed)")
+    opts.dtype = opts.dtype or ("float64" if opts.device == "cpu" else "float32")
+    if opts.device == "cpu":
+        os.environ.setdefault("XLA_FLAGS", f"--xla_force_host_platform_device_count={CORES}")
+        os.environ.setdefault("JAX_PLATFORMS", "cpu")
+    return opts
