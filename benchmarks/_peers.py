@@ -56,10 +56,8 @@ class SphereMech:
     """`sm.simulate_batch` with `sm.Projected(sm.RK4())` at the fixed step DT; `positions`
     maps one configuration to its point masses' positions."""
 
-    name = "sphere_mech"
-
-    def __init__(self, system, positions):
-        self.system, self.points = system, positions
+    def __init__(self, system, positions, name="sphere_mech"):
+        self.system, self.points, self.name = system, positions, name
         self.solver = sm.Projected(sm.RK4())
 
     def prepare(self, q, v):
