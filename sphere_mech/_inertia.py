@@ -18,7 +18,7 @@ forces normal to its subspace (`P = I - A^T A`) are eliminated exactly, which ch
 only the first sphere's entries of `S` (a rank-one correction): still O(n)."""
 
 import abc
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import ClassVar
 
 import jax
@@ -60,11 +60,15 @@ class AbstractConstantInertiaLagrangian(AbstractLagrangianSystem):
 
     @property
     def space(self) -> AbstractSpace:
-        """`Spheres()`, or with a base `{"base": Euclidean(m), "spheres": Spheres()}`."""
+        """`Spheres()`, or with a base `{"base": Euclidean(m), "spheres": Spheres()}` (any
+        number of spheres: `check_size` checks it where the system fixes it)."""
         A = self.base_axes
         if A is None:
             return Spheres()
-        return Product({"base": Euclidean(A.shape[0]), "spheres": Spheres()})
+        return Product({"base": Euclidean(A.shape[-2]), "spheres": Spheres()})
+
+    def check_size(self, q) -> None:
+        super().check_size(self.spheres(q) if isinstance(q, Mapping) else q)
 
     def spheres(self, q):
         """The unit vectors of a configuration (`q` itself without a base).

@@ -636,7 +636,7 @@ def test_base_scene_fast_path_equals_general_path(axes):
         sm.BaseForce(sm.PDPosition(20.0, 8.0, target=target, feedforward=2.0,
                                    step=0.5, step_time=0.2)),
     )
-    assert scene.space.factors == {"base": sm.Euclidean(m), "spheres": sm.Spheres(3)}
+    assert scene.space.factors == {"base": sm.Euclidean(m), "spheres": sm.Spheres()}
     k = jax.random.split(jax.random.PRNGKey(m), 4)
     s = sm.normalize(jax.random.normal(k[1], (3, 3)))
     q = {"base": jax.random.normal(k[0], (m,)), "spheres": s}
@@ -648,6 +648,9 @@ def test_base_scene_fast_path_equals_general_path(axes):
         assert max_abs_diff(fast, general) < 1e-12
     p = scene.momentum(0.3, q, v)
     assert max_abs_diff(scene.velocity_from_momentum(0.3, q, p)[0], v) < 1e-13
+    two = {"base": q["base"], "spheres": s[:2]}
+    with pytest.raises(ValueError, match="the state has 2 spheres but the system has 3"):
+        scene.acceleration(0.0, two, {"base": v["base"], "spheres": v["spheres"][:2]})
     assert abs(float(scene.energy(0.3, q, v) - twin.energy(0.3, q, v))) < 1e-12
     eqns = jaxpr_equations(jax.make_jaxpr(lambda y: scene.rates(0.3, y, None))((q, v)).jaxpr)
     assert not DENSE_PRIMITIVES & {e.primitive.name for e in eqns}

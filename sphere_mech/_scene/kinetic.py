@@ -119,7 +119,7 @@ class Base(AbstractEffect):
     @property
     def m(self) -> int:
         """The number of directions it moves along (static)."""
-        return self.axes.shape[0]
+        return self.axes.shape[-2]
 
     def point(self, x: jax.Array) -> jax.Array:
         """The base's point in the support frame.

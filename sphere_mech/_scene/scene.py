@@ -8,7 +8,7 @@ import jax.scipy.linalg as jsl
 import numpy as np
 
 from .._inertia import AbstractConstantInertiaLagrangian
-from .._spaces import AbstractSpace, Euclidean, Product, Spheres, tree_zeros_like
+from .._spaces import tree_zeros_like
 from .base import AbstractEffect, AbstractForce, AbstractKinetic, AbstractPotential, ParameterError
 from .forces import BaseTorque, TipForce
 from .kinetic import Base, Chain, chain_inertia, chain_inverse_bands
@@ -77,12 +77,6 @@ class Scene(AbstractConstantInertiaLagrangian):
     def base_axes(self):
         return None if self.base is None else self.base.axes
 
-    @property
-    def space(self) -> AbstractSpace:
-        """`Spheres(n)`, or with a `Base` `{"base": Euclidean(m), "spheres": Spheres(n)}`."""
-        if self.base is None:
-            return Spheres(self.n)
-        return Product({"base": Euclidean(self.base.m), "spheres": Spheres(self.n)})
 
     def _offsets(self) -> list[int]:
         return list(np.cumsum([0] + [k.n for k in self.kinetic]))
