@@ -700,8 +700,9 @@ def observe_drone(scene, t, q, v):
 
 
 def test_fit_recovers_payload_and_cable_damping():
-    """`fit` recovers the payload mass and the cable's damping (started 50 % and 100 %
-    off) from the drone's and the payload's positions, noise-free, over a 2 s step."""
+    """`fit` recovers the payload mass and the cable's damping (both started 50 % off)
+    from the drone's and the payload's positions over a 2 s step, noise-free (from a
+    Dopri8 run at 1e-12; the model integrates with RK4 at dt = 0.01)."""
     truth = {"payload": 0.3, "damping": 0.01}
     tilt = sm.normalize(jnp.array([0.1, 0.05, -1.0]))
     y0 = ({"base": jnp.zeros(3), "spheres": jnp.tile(tilt, (5, 1))},
@@ -710,9 +711,9 @@ def test_fit_recovers_payload_and_cable_damping():
                        rtol=1e-12, atol=1e-12, saveat=diffrax.SaveAt(ts=jnp.asarray(DRONE_TS)))
     scene = drone_scene(truth)
     obs = jax.vmap(lambda q, v: observe_drone(scene, 0.0, q, v))(*data.ys)
-    result = sm.fit(drone_scene, {"payload": 0.45, "damping": 0.02}, DRONE_TS, obs,
+    result = sm.fit(drone_scene, {"payload": 0.45, "damping": 0.015}, DRONE_TS, obs,
                     observe_drone, y0=y0, positive=True,
-                    simulate_options=dict(rtol=1e-8, atol=1e-8))
+                    simulate_options=dict(solver=sm.Projected(sm.RK4()), dt0=0.01))
     assert bool(result.converged)
     for name, value in truth.items():
         assert abs(float(result.params[name]) / value - 1) < 1e-2, name
