@@ -61,7 +61,8 @@ def check_axes(name: str, x) -> None:
 
 
 def spheres_of(q):
-    """The `(n, 3)` sphere part of a scene's state (the state itself without a `Base`)."""
+    """The `(n, 3)` sphere part of a scene's state (the state itself without a `Base`),
+    for drives, which see the state but not the scene (effects call `scene.spheres`)."""
     return q["spheres"] if isinstance(q, Mapping) else q
 
 

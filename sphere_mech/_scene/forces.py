@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 
 from . import base
+from .._spaces import tree_dtype
 from .base import AbstractDrive, AbstractForce, ParameterError, spheres_of
 
 
@@ -44,7 +45,7 @@ def _check_drive(field: str, drive, scene, shape=(3,)) -> None:
 
 
 def _evaluate(drive, t, q, qdot, args, shape=(3,)):
-    dtype = spheres_of(q).dtype
+    dtype = tree_dtype(q)
     out = jnp.asarray(drive(t, q, qdot, args) if callable(drive) else drive, dtype=dtype)
     if out.shape != shape:
         raise ValueError(f"a torque or force function must return shape {shape}, got "
@@ -74,10 +75,10 @@ class JointDamping(AbstractForce):
 
     def generalized_force(self, t, q, qdot, scene, args):
         def dissipation(v):
-            w = _relative_omega(spheres_of(q), v, scene)
+            w = _relative_omega(scene.spheres(q), v, scene)
             return 0.5 * jnp.sum(self.coefficient * jnp.sum(w * w, axis=-1))
 
-        return scene.on_spheres(-jax.grad(dissipation)(spheres_of(qdot)))
+        return scene.on_spheres(-jax.grad(dissipation)(scene.spheres(qdot)))
 
 
 class BaseTorque(AbstractForce):
@@ -104,7 +105,7 @@ class BaseTorque(AbstractForce):
 
     def generalized_force(self, t, q, qdot, scene, args):
         tau = _evaluate(self.torque, t, q, qdot, args)
-        s = spheres_of(q)
+        s = scene.spheres(q)
         link = self.link % s.shape[0]
         f = jnp.zeros_like(s).at[link].add(jnp.cross(tau, s[link]))
         parent = int(scene.parents()[link])
@@ -212,7 +213,7 @@ class VibratingSupport(AbstractForce):
         return -self.amplitude * w**2 * jnp.cos(w * t + self.phase) * self.direction
 
     def generalized_force(self, t, q, qdot, scene, args):
-        a = self.acceleration(t).astype(spheres_of(q).dtype)
+        a = self.acceleration(t).astype(tree_dtype(q))
         m = scene.point_masses()
         return jax.grad(lambda q_: -jnp.sum(m * (scene.points(q_) @ a)))(q)
 

@@ -111,7 +111,7 @@ class Bending(AbstractPotential):
 
     def potential(self, t, q, scene, args):
         i, j = scene.bend_pairs()
-        s = base.spheres_of(q)
+        s = scene.spheres(q)
         return jnp.sum(self.stiffness * (1.0 - jnp.sum(s[i] * s[j], axis=-1)))
 
 

@@ -8,7 +8,7 @@ import jax.scipy.linalg as jsl
 import numpy as np
 
 from .._inertia import AbstractConstantInertiaLagrangian
-from .._spaces import tree_zeros_like
+from .._spaces import tree_dtype, tree_zeros_like
 from .base import AbstractEffect, AbstractForce, AbstractKinetic, AbstractPotential, ParameterError
 from .forces import BaseTorque, TipForce
 from .kinetic import Base, Chain, chain_inertia, chain_inverse_bands
@@ -200,7 +200,7 @@ class Scene(AbstractConstantInertiaLagrangian):
         return T.astype(xdot.dtype)
 
     def potential(self, t, q, args=None):
-        dtype = self.spheres(q).dtype
+        dtype = tree_dtype(q)
         U = jnp.zeros((), dtype=dtype)
         for p in self.potentials:
             with jax.named_scope(type(p).__name__):
