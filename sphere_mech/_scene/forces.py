@@ -7,8 +7,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from . import base
 from .._spaces import tree_dtype
+from . import base
 from .base import AbstractDrive, AbstractForce, ParameterError, spheres_of
 
 
