@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._scene.base import UNIT_TOLERANCE, ParameterError
+from ._scene.base import MAX_MAGNITUDE, UNIT_TOLERANCE, ParameterError
 from ._scene.forces import (
     BaseForce,
     BaseTorque,
@@ -75,7 +75,9 @@ def _show(x) -> str:
 
 def _numbers(x) -> bool:
     """A finite number or a rectangular, non-empty (nested) array of them."""
-    if isinstance(x, int | float) and not isinstance(x, bool):
+    if isinstance(x, int) and not isinstance(x, bool):
+        return abs(x) <= MAX_MAGNITUDE  # a float: TOML integers may be longer
+    if isinstance(x, float):
         return math.isfinite(x)
     return (isinstance(x, list) and len(x) > 0 and all(_numbers(a) for a in x)
             and len({np.shape(a) for a in x}) == 1)
@@ -184,9 +186,11 @@ def _per_sphere(path, table, key: str, n: int) -> np.ndarray:
     item, expected, bounds = INITIAL[key]
     x = table[key]
     ok = _numbers(x) and np.shape(x) in (item, (n, *item))
-    if not (ok and (bounds is None or bounds[0] <= np.min(x) <= np.max(x) <= bounds[1])):
-        raise SceneFileError(path, f"initial.{key}", f"{expected}: one for all spheres or "
-                             f"an array of {n} (one per sphere), got {_show(x)}")
+    bounds = (-MAX_MAGNITUDE, MAX_MAGNITUDE) if bounds is None else bounds
+    if not (ok and bounds[0] <= np.min(x) <= np.max(x) <= bounds[1]):
+        raise SceneFileError(path, f"initial.{key}", f"{expected} (at most {bounds[1]:g} in "
+                             f"magnitude): one for all spheres or an array of {n} (one per "
+                             f"sphere), got {_show(x)}")
     return np.broadcast_to(np.asarray(x, dtype=float), (n, *item))
 
 
@@ -205,10 +209,11 @@ def _initial(path, table, scene: Scene):
     x = {}
     for key, expected in BASE_INITIAL.items():
         value = table.get(key, [0.0] * scene.base.m)
-        if not (_numbers(value) and np.shape(value) == (scene.base.m,)):
+        if not (_numbers(value) and np.shape(value) == (scene.base.m,)
+                and np.max(np.abs(value)) <= MAX_MAGNITUDE):
             count = f"{scene.base.m} number" + "s" * (scene.base.m > 1)
-            raise SceneFileError(path, f"initial.{key}", f"{expected}: {count}, got "
-                                 f"{_show(value)}")
+            raise SceneFileError(path, f"initial.{key}", f"{expected}: {count} (at most "
+                                 f"{MAX_MAGNITUDE:g} in magnitude), got {_show(value)}")
         x[key] = jnp.asarray(value, dtype=q.dtype)
     return {"base": x["base"], "spheres": q}, {"base": x["base_velocity"], "spheres": qdot}
 
@@ -251,9 +256,20 @@ DIFFRAX_SOLVERS = ("Euler", "Heun", "Midpoint", "Ralston", "Bosh3", "Tsit5", "Do
 PLAIN_SOLVERS = {"RK4": RK4, "LieRK4": LieRK4} | {n: getattr(diffrax, n) for n in DIFFRAX_SOLVERS}
 
 
+MAX_SOLVER_LENGTH = 200
+"""The longest solver a file may spell (`Projected(...)` nests)."""
+MAX_SAVED = 10**8
+"""The most numbers a run may save: save points x the numbers of a state (`q` and
+`qdot`), 800 MB in float64."""
+
+
 def parse_solver(text: str) -> diffrax.AbstractSolver:
     """A solver spelled as in Python, `"Projected(Tsit5)"` -> `Projected(diffrax.Tsit5())`,
-    parsed over a whitelist (never evaluated). Raises `ValueError` for anything else."""
+    parsed over a whitelist (never evaluated). Raises `ValueError` for anything else,
+    and for more than `MAX_SOLVER_LENGTH` characters."""
+    if len(text) > MAX_SOLVER_LENGTH:
+        raise ValueError(f"solver must be at most {MAX_SOLVER_LENGTH} characters (got "
+                         f"{len(text)}: {_show(text)})")
     match = re.fullmatch(r"\s*(\w+)\s*(?:\((.*)\))?\s*", text)
     name, inner = match.groups("") if match else ("", "")
     order = re.fullmatch(r"\s*(?:order\s*=\s*(\d+)\s*)?", inner)
@@ -330,7 +346,7 @@ def _table(path, data, key: str, allowed) -> dict:
     return table
 
 
-def _simulate_args(path, data) -> dict:
+def _simulate_args(path, data, t1=None) -> dict:
     table = _table(path, data, "simulate", SIMULATE)
     if "t1" not in table:
         raise SceneFileError(path, "simulate.t1", "missing; expected the end time in s")
@@ -350,12 +366,48 @@ def _simulate_args(path, data) -> dict:
         out["solver"] = parse_solver(out["solver_name"])
     except ValueError as e:
         raise SceneFileError(path, "simulate.solver", str(e)) from None
+    for key in ("t0", "t1", "dt0"):
+        if out[key] is not None and not abs(out[key]) <= MAX_MAGNITUDE:
+            raise SceneFileError(path, f"simulate.{key}", f"{key} must be at most "
+                                 f"{MAX_MAGNITUDE:g} s in magnitude (got {_show(out[key])})")
     try:  # the options simulate would refuse, with its words
-        options(out["solver"], out["dt0"], out["rtol"], out["atol"], None, None,
-                out["max_steps"], None, False, None, np.float64)
+        opts = options(out["solver"], out["dt0"], out["rtol"], out["atol"], None, None,
+                       out["max_steps"], None, False, None, np.float64)
     except ValueError as e:
         raise SceneFileError(path, "simulate", str(e)) from None
+    out["file_t1"] = out["t1"]
+    if t1 is not None:
+        out["t1"] = _end_time(path, t1, out["t0"])
+    steps = (out["t1"] - out["t0"]) / out["dt0"] if out["dt0"] else 0.0
+    if isinstance(opts.controller, diffrax.ConstantStepSize) and steps > out["max_steps"]:
+        raise SceneFileError(path, "simulate.dt0", f"dt0 must give at most max_steps = "
+                             f"{out['max_steps']} fixed steps from t0 to t1 (got "
+                             f"{out['dt0']:g}: {steps:.3g} steps)")
     return out
+
+
+def _end_time(path, t1, t0: float) -> float:
+    """The command line's `--t1`, checked as `[simulate] t1` (errors name `--t1`)."""
+    if not (isinstance(t1, int | float) and t0 < t1 <= MAX_MAGNITUDE):
+        raise SceneFileError(path, "--t1", f"--t1 must be a time in s after t0 = {t0:g} and "
+                             f"at most {MAX_MAGNITUDE:g} (got {t1})")
+    return float(t1)
+
+
+def _save_dt(path, table: dict, args: dict, numbers: int) -> float:
+    """`[output] save_dt` (default: 1/1000 of the file's run), checked; at most
+    `MAX_SAVED` numbers saved from `t0` to `t1` (`numbers` per state)."""
+    save_dt = table.get("save_dt", (args["file_t1"] - args["t0"]) / 1000)
+    if not (_number(save_dt) and save_dt > 0):
+        raise SceneFileError(path, "output.save_dt", f"expected a step > 0 (s), got "
+                             f"{_show(save_dt)}")
+    intervals = (args["t1"] - args["t0"]) / save_dt
+    if not (intervals + 1) * numbers <= MAX_SAVED:
+        raise SceneFileError(path, "output.save_dt", f"save_dt must give at most "
+                             f"{MAX_SAVED:.0e} saved numbers from t0 to t1 ((t1 - t0) / "
+                             f"save_dt = {intervals:.3g} intervals, {numbers} numbers a "
+                             f"state) (got {save_dt:g})")
+    return save_dt
 
 
 def _read(path: Path) -> dict:
@@ -369,11 +421,13 @@ def _read(path: Path) -> dict:
             from None
 
 
-def load_scene(path) -> SceneSpec:
+def load_scene(path, t1=None) -> SceneSpec:
     """Read and check a scene file (TOML, data only: no code is evaluated).
 
     **Arguments:**
     - `path`: the file (a `str` or `Path`).
+    - `t1`: another end time (the command line's `--t1`), checked as `[simulate] t1`
+      (errors name `--t1`); the default `save_dt` stays the file's.
 
     **Returns:** a `SceneSpec`. Raises `SceneFileError` naming the file, the field and
     what was expected, with the effect's own message for a value it rejects.
@@ -386,10 +440,8 @@ def load_scene(path) -> SceneSpec:
         raise SceneFileError(path, "name", f"a string, got {_show(name)}")
     scene = _scene(path, data.get("effects"))
     y0 = _initial(path, data.get("initial"), scene)
-    args = _simulate_args(path, data)
-    save_dt = _table(path, data, "output", ("save_dt",)).get(
-        "save_dt", (args["t1"] - args["t0"]) / 1000)
-    if not (_number(save_dt) and save_dt > 0):
-        raise SceneFileError(path, "output.save_dt", f"expected a step > 0 (s), got "
-                             f"{_show(save_dt)}")
+    args = _simulate_args(path, data, t1)
+    numbers = 2 * sum(np.size(x) for x in jax.tree.leaves(y0[0]))
+    save_dt = _save_dt(path, _table(path, data, "output", ("save_dt",)), args, numbers)
+    del args["file_t1"]
     return SceneSpec(path, name, scene, y0, save_dt=save_dt, **args)

@@ -7,7 +7,9 @@ loses nothing. `trajectory.npz` holds `t`, the states `q`, `v` (a scene with a `
 `q.base`, `q.spheres`, `v.base`, `v.spheres`), the drawn points `x` (`scene.points(q)`),
 `energy`, and the energy error or balance `error` at `error_t`. A problem in the scene
 file gives one line `sphere-mech: error: <file>: <field>: <expected>` and exit status 2;
-a failed run, 1.
+a failed run, 1. The output folder is created and written to before integrating (an
+`--out` that cannot be written: exit status 2); `summary.json` is strict JSON: a number
+that could not be computed is `null`, with the reason under `"not_computed"`.
 
 Compiled programs are kept in the user's cache directory (`$XDG_CACHE_HOME/sphere_mech/jax`,
 default `~/.cache/sphere_mech/jax`; macOS `~/Library/Caches/sphere_mech/jax`; Windows
@@ -25,6 +27,7 @@ is loaded."""
 
 import argparse
 import json
+import math
 import os
 import sys
 import tempfile
@@ -62,6 +65,28 @@ def enable_compilation_cache(folder: Path) -> None:
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 
+class CommandError(Exception):
+    """A problem with the command line's arguments or outputs: one line naming the
+    option, and the exit status (2: refused before integrating)."""
+
+    def __init__(self, message: str, status: int = 2):
+        super().__init__(message)
+        self.status = status
+
+
+def check_out(out: Path) -> None:
+    """Create the output folder `out` and write (then remove) a file in it, before
+    integrating; raises `CommandError` naming `--out` if it cannot be done."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=out, prefix=".sphere-mech-probe-") as f:
+            f.write(bytes(65536))  # a full disk fails here
+            f.flush()
+            os.fsync(f.fileno())
+    except OSError as e:
+        raise CommandError(f"--out: cannot create or write the folder {out} ({e})") from None
+
+
 def output_names(animation: bool = True) -> tuple[str, ...]:
     """The files a run writes."""
     return ("trajectory.npz", "summary.json", "plot.png") + (("animation.html",) * animation)
@@ -82,7 +107,8 @@ def write_outputs(out: Path, result, scene, *, animation: bool = True) -> None:
         np.savez(tmp / "trajectory.npz", t=result.t, **flat("q", result.q),
                  **flat("v", result.v), x=result.x, energy=result.energy,
                  error_t=result.error_t, error=result.error)
-        (tmp / "summary.json").write_text(json.dumps(result.summary, indent=2) + "\n")
+        (tmp / "summary.json").write_text(json.dumps(result.summary, indent=2,
+                                                     allow_nan=False) + "\n")
         plot(tmp / "plot.png", result, scene)
         if animation:
             name = result.summary["scene"]
@@ -95,12 +121,14 @@ def write_outputs(out: Path, result, scene, *, animation: bool = True) -> None:
 
 
 def _print_summary(s: dict, out: Path, animation: bool) -> None:
-    energy = (f"max relative energy error {s['max_relative_energy_error']:.1e}"
+    e = lambda x: "null" if x is None else f"{x:.1e}"  # noqa: E731
+    energy = (f"max relative energy error {e(s['max_relative_energy_error'])}"
               if "max_relative_energy_error" in s else
-              f"max work-energy balance {s['max_relative_work_energy_balance']:.1e} (relative)")
+              f"max work-energy balance {e(s['max_relative_work_energy_balance'])} (relative)")
     print(f"{s['scene']}: {s['t1']:g} s, {s['solver']}, {s['steps']} steps in "
-          f"{s['wall_time_s']:.2f} s; max constraint error {s['max_constraint_error']:.1e}; "
-          f"{energy}")
+          f"{s['wall_time_s']:.2f} s; max constraint error {e(s['max_constraint_error'])}; "
+          f"{energy}" + (f" (not computed: {', '.join(s['not_computed'])})"
+                         if "not_computed" in s else ""))
     print(f"wrote {out}/" + ", ".join(output_names(animation)))
 
 
@@ -112,6 +140,7 @@ def run(scene=None, out=Path("sphere_mech_out"), *, t1=None, progress=True, anim
     from . import program
 
     jax.config.update("jax_enable_x64", True)
+    check_out(Path(out))
     path = DEFAULT_SCENE if scene is None else Path(scene)
     name = program.key(path, t1) if programs is not None else None
     stored = program.load(programs, name) if name is not None else None
@@ -120,14 +149,17 @@ def run(scene=None, out=Path("sphere_mech_out"), *, t1=None, progress=True, anim
     from .._scene_files import load_scene
     from .report import scene_result
 
-    spec = load_scene(path)
+    spec = load_scene(path, t1)
     if integrated is None:
         stored, compiled = program.build(spec, t1)
         if name is not None:
             program.store(programs, name, stored, compiled)
         integrated = stored.integrate(progress)
     result = scene_result(spec, integrated, t1)
-    write_outputs(Path(out), result, spec.scene, animation=animation)
+    try:
+        write_outputs(Path(out), result, spec.scene, animation=animation)
+    except OSError as e:
+        raise CommandError(f"--out: could not write the results to {out} ({e})", 1) from None
     return result.summary
 
 
@@ -158,11 +190,13 @@ def main(argv=None) -> int:
     folder = None if ns.no_cache else cache_dir()
     if folder is not None:
         enable_compilation_cache(folder)
-    if ns.t1 is not None and not ns.t1 > 0:
-        return _fail(f"--t1: expected a positive time in s, got {ns.t1}", 2)
+    if ns.t1 is not None and not math.isfinite(ns.t1):  # after t0: checked with the file
+        return _fail(f"--t1 must be a finite time in s (got {ns.t1})", 2)
     try:
         summary = run(ns.scene, ns.out, t1=ns.t1, progress=not ns.no_progress,
                       animation=not ns.no_animation, programs=folder)
+    except CommandError as e:
+        return _fail(str(e), e.status)
     except Exception as e:
         from .._scene_files import SceneFileError
 

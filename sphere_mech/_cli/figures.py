@@ -103,7 +103,8 @@ def figure(result, scene):
     for a in fig.axes[1:]:
         a.set_xlabel("t [s]", fontsize=8)
         a.tick_params(labelsize=7)
-    fig.suptitle(f"{s['scene']}: {s['t1']:g} s, {s['solver']}, {s['steps']} steps", fontsize=11)
+    fig.suptitle(f"{s['scene']}: {s['t1']:g} s, {s['solver']}, {s['steps']} steps", fontsize=11,
+                 parse_math=False)  # the name is plain text
     fig.text(0.5, 0.02, f"constraint error max_i,t | |q_i| - 1 | = {worst:.1e} "
              f"({worst / eps:.1f} x machine epsilon)", ha="center", fontsize=9)
     return fig

@@ -46,7 +46,9 @@ class Integrated:
       "spheres": (T, n, 3)}`).
     - `steps`, `rejected_steps`: the solver's steps (all segments).
     - `wall_time_s`: the time the segments took.
-    - `step_t`, `step_q`, `step_v`: with forces, the solver's own steps (else `None`).
+    - `work_index`, `work`: with forces (else `None`), the indices into `t` of the start
+      and of every segment's end, `(segments + 1,)`, and the work of the forces done from
+      the start to those times (`WithWork`: summed over the solver's own steps).
     """
 
     t: np.ndarray
@@ -55,9 +57,8 @@ class Integrated:
     steps: int
     rejected_steps: int
     wall_time_s: float
-    step_t: np.ndarray | None = None
-    step_q: np.ndarray | None = None
-    step_v: np.ndarray | None = None
+    work_index: np.ndarray | None = None
+    work: np.ndarray | None = None
 
 
 @dataclasses.dataclass
@@ -66,7 +67,7 @@ class Program:
 
     `call(t_start, ts, q, v, params)` integrates from `(q, v)` at `t_start = ts[0]` to
     `ts[-1]`, saving at `ts`, and returns `(q_saved, v_saved, failed, code, steps,
-    rejected)` plus, with forces, the steps `(t, q, v)` padded with `inf` (states
+    rejected)` plus, with forces, the work of the forces over the segment (states
     structured as the scene's: arrays, or dicts of arrays).
 
     **Attributes:**
@@ -95,6 +96,7 @@ class Program:
         bar = _bar() if progress else None
         start, (t0, t1) = time.perf_counter(), (self.ts[0, 0], self.ts[-1, -1])
         q, v, parts, steps, rejected, code = self.q0, self.v0, [], 0, 0, None
+        work = [0.0]
         for k, (ts, count) in enumerate(zip(self.ts, self.count, strict=True)):
             out = jax.tree.map(np.asarray, self.call(ts[0], ts, q, v, self.params))
             steps, rejected = steps + int(out[4]), rejected + int(out[5])
@@ -102,8 +104,8 @@ class Program:
                 code = int(out[3]) if out[2] else self.max_steps_code
                 break
             first = 0 if k == 0 else 1  # a segment starts where the last one saved
-            kept = first + np.flatnonzero(np.isfinite(out[6][first:])) if self.forced else 0
-            parts.append(_take(list(out[:2]), slice(first, count)) + _take(list(out[6:]), kept))
+            parts.append(_take(list(out[:2]), slice(first, count)))
+            work += [work[-1] + float(out[6])] if self.forced else []
             q, v = _take(out[:2], count - 1)
             if bar is not None:
                 bar.n = round(100 * float((ts[-1] - t0) / (t1 - t0)), 2)
@@ -117,8 +119,9 @@ class Program:
         t = np.concatenate([ts[(k > 0):c] for k, (ts, c) in
                             enumerate(zip(self.ts, self.count, strict=True))])
         joined = jax.tree.map(lambda *x: np.concatenate(x), *parts)
-        return Integrated(t, *joined[:2], steps, rejected, time.perf_counter() - start,
-                          *(joined[2:] or [None] * 3))
+        ends = np.concatenate([[0], np.cumsum(self.count - 1)]) if self.forced else None
+        return Integrated(t, *joined, steps, rejected, time.perf_counter() - start, ends,
+                          np.array(work) if self.forced else None)
 
 
 def _take(tree, index):
@@ -159,6 +162,7 @@ def build(spec, t1=None) -> tuple[Program, jax.stages.Compiled]:
 
     from .._results import RESULTS, code, failed
     from .._solve import as_arrays, initial_state, options, solve, state_dtype, times
+    from .._solvers.work import WithWork, work_done
 
     scene = as_arrays(spec.scene)
     scene.check_size(spec.y0[0])
@@ -171,21 +175,19 @@ def build(spec, t1=None) -> tuple[Program, jax.stages.Compiled]:
 
     def segment(t_start, ts, q, v, params):
         system = eqx.combine(jax.tree.unflatten(treedef, params), static)
-        saveat = diffrax.SaveAt(ts=ts)
-        if system.has_forces:  # the work-energy balance is integrated over the steps
-            saveat = diffrax.SaveAt(subs=[diffrax.SubSaveAt(ts=ts),
-                                          diffrax.SubSaveAt(t0=True, steps=True)])
+        forced = system.has_forces  # the work of the forces, summed over the steps
+        solver = WithWork(opts.solver) if forced else opts.solver
+        saveat = diffrax.SaveAt(ts=ts, solver_state=forced)
         t_start, t_end, dt0 = times(state_dtype((q, v)), t_start, ts[-1], spec.dt0)
         if isinstance(opts.controller, diffrax.ConstantStepSize):  # diffrax divides a
             # segment into equal steps: as many as dt0 fits, the save times' rounding aside
             dt0 = (t_end - t_start) / jnp.ceil((t_end - t_start) / dt0 * (1 - 1e-12))
         sol = solve(system, (q, v), t_start, t_end, dt0, None,
-                    eqx.tree_at(lambda o: o.saveat, opts, saveat))
+                    eqx.tree_at(lambda o: (o.saveat, o.solver), opts, (saveat, solver)))
         result = code(sol.result)
-        ys, steps = (sol.ys, ()) if not system.has_forces else (sol.ys[0], (sol.ts[1],
-                                                                          *sol.ys[1]))
-        return (*ys, failed(result), result, sol.stats["num_steps"],
-                sol.stats["num_rejected_steps"], *steps)
+        work = (work_done(sol.solver_state),) if forced else ()
+        return (*sol.ys, failed(result), result, sol.stats["num_steps"],
+                sol.stats["num_rejected_steps"], *work)
 
     inputs = (ts[0, 0], ts[0], *jax.tree.map(np.asarray, (q0, v0)),
               [np.asarray(p) for p in params])
@@ -251,7 +253,7 @@ def store(folder: Path, name: str, program: Program, compiled) -> bool:
 def _trees(program: Program):
     state = (program.q0, program.v0)
     inputs = (program.ts[0, 0], program.ts[0], *state, program.params)
-    outputs = (*state, 0, 0, 0, 0, *((0, *state) if program.forced else ()))
+    outputs = (*state, 0, 0, 0, 0, *((0,) if program.forced else ()))
     return jax.tree.structure((inputs, {})), jax.tree.structure(outputs)
 
 

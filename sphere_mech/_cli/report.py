@@ -1,7 +1,9 @@
 """Running a scene and checking its energy bookkeeping: the energy error `E(t) - E(0)`,
 or with forces the work-energy balance `E(t) - E(0) - W(t)`, `W = int power dt` over the
 solver's own steps by the corrected trapezoidal rule `h/2 (P_k + P_{k+1}) + h^2/12 (P'_k -
-P'_{k+1})` (fourth order; `P' = dP/dt` along the flow by `jax.jvp`)."""
+P'_{k+1})` (fourth order; `P' = dP/dt` along the flow by `jax.jvp`): in a run of the
+command line, summed during the integration (`WithWork`) and read at the end of every
+segment."""
 
 import dataclasses
 
@@ -11,14 +13,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._solvers.work import power_and_rate, work_step
 from .program import Integrated, build
-
-
-def power_and_rate(system, t, q, v, args):
-    """`P = system.power` and its time derivative along the flow, `dP/dt`."""
-    p = lambda s, y: system.power(s, y[0], y[1], args)
-    tangent = (jnp.ones_like(t), system.rates(t, (q, v), args))
-    return jax.jvp(p, (t, (q, v)), tangent)
 
 
 @eqx.filter_jit
@@ -30,8 +26,7 @@ def _energy_and_power(system, ts, q, v, args):
 
 def work_integral(ts, P, dP):
     """Cumulative `int P dt` at `ts` by the end-corrected trapezoidal rule (order 4)."""
-    h = np.diff(ts)
-    pieces = 0.5 * h * (P[1:] + P[:-1]) + h**2 / 12.0 * (dP[:-1] - dP[1:])
+    pieces = work_step(np.diff(ts), P[:-1], dP[:-1], P[1:], dP[1:])
     return np.concatenate([[0.0], np.cumsum(pieces)])
 
 
@@ -113,22 +108,45 @@ def run_scene(spec, *, t1=None, progress=False) -> SceneResult:
     return scene_result(spec, build(spec, t1)[0].integrate(progress), t1)
 
 
+def strict_json(summary: dict, reasons: dict) -> dict:
+    """`summary` with every number that is not finite (NaN, infinity: not JSON) replaced
+    by `None`, and `"not_computed"`: `{field: reason}` for those and the fields `reasons`
+    names (already `None`)."""
+    reasons = dict(reasons)
+
+    def finite(key, x):
+        if isinstance(x, list):
+            return [finite(key, a) for a in x]
+        if isinstance(x, float) and not np.isfinite(x):
+            reasons.setdefault(key, f"not finite ({x}): the run overflowed")
+            return None
+        return x
+
+    out = {k: finite(k, x) for k, x in summary.items()}
+    return out | ({"not_computed": reasons} if reasons else {})
+
+
 def scene_result(spec, run: Integrated, t1=None) -> SceneResult:
     """The energy bookkeeping and summary of a run of `spec` up to `t1` (default: the
     file's), from `Program.integrate`."""
     scene, args, forced = spec.scene, None, spec.scene.has_forces
     t1, ts, wall = float(spec.t1 if t1 is None else t1), jnp.asarray(run.t), run.wall_time_s
     q, v = jax.vmap(scene.space.retract)(run.q, run.v) if forced else (run.q, run.v)
-    ts_s, ys_s = run.step_t, (run.step_q, run.step_v)
     energy = np.asarray(jax.vmap(scene.energy, (0, 0, 0, None))(ts, q, v, args))
     potential = np.asarray(jax.vmap(scene.potential, (0, 0, None))(ts, q, args))
     e_s = W = None
-    if forced:
-        e_s, W, balance = work_energy_balance(scene, ts_s, *ys_s, args)
+    reasons = {}
+    if forced:  # at the start and the end of every segment: the solver's own steps
+        e_s, W, error_t = energy[run.work_index], run.work, np.asarray(ts)[run.work_index]
+        balance = e_s - e_s[0] - W
         scale = max(np.max(np.abs(e_s)), np.max(np.abs(W)))
-        error_t, error = ts_s, balance / scale
+        error = balance / scale if scale > 0 else balance
+        if not scale > 0:
+            reasons["max_relative_work_energy_balance"] = (
+                "the energy and the work are zero throughout: no scale to divide by")
         report = {"energy_report": "work-energy balance E(t) - E(0) - W(t)",
-                  "max_relative_work_energy_balance": float(np.max(np.abs(error))),
+                  "max_relative_work_energy_balance": float(np.max(np.abs(error)))
+                  if scale > 0 else None,
                   "balance_scale_J": float(scale), "work_done_J": float(W[-1])}
     else:
         error_t, error = np.asarray(ts), (energy - energy[0]) / abs(energy[0] or 1.0)
@@ -147,5 +165,6 @@ def scene_result(spec, run: Integrated, t1=None) -> SceneResult:
         "wall_time_s": wall, "max_constraint_error": float(constraint.max()), **report,
         **base,
     }
+    summary = strict_json(summary, reasons)
     return SceneResult(np.asarray(ts), q, v, x, energy, np.asarray(error_t), np.asarray(error),
                        constraint, summary, potential, W, e_s)

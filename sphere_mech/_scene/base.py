@@ -1,6 +1,7 @@
 """The kinds of effect a scene is assembled from, and the checks their parameters share."""
 
 import abc
+import dataclasses
 from collections.abc import Mapping
 
 import equinox as eqx
@@ -10,6 +11,11 @@ import numpy as np
 
 UNIT_TOLERANCE = 1e-6
 """How far from unit length a `direction` or `target` may be."""
+MAX_MAGNITUDE = 1e100
+"""The largest magnitude of a parameter: products and squares of a few such numbers (an
+energy `m g l`, a kinetic energy `m v^2`) stay finite in float64."""
+MAX_COUNT = 100_000
+"""The most items (links, particles, beads) one kinetic term may have."""
 
 
 def as_float(x) -> jax.Array:
@@ -34,6 +40,27 @@ def _show(x) -> str:
     return str(np.asarray(x).tolist())
 
 
+def check_magnitude(name: str, x) -> None:
+    """`x` finite and within `MAX_MAGNITUDE` elementwise, unless traced."""
+    if not _concrete(x):
+        return
+    a = np.asarray(x)
+    if not jnp.issubdtype(a.dtype, jnp.inexact):
+        return
+    bad = ~(np.abs(a) <= MAX_MAGNITUDE)  # NaN is bad too
+    if np.any(bad):
+        raise ParameterError(name, f"{name} must be finite and at most {MAX_MAGNITUDE:g} in "
+                             f"magnitude, got {a[bad].flat[0]:g}")
+
+
+def check_fields(module: eqx.Module) -> None:
+    """`check_magnitude` on every floating array field of `module`."""
+    for field in dataclasses.fields(module):
+        x = getattr(module, field.name)
+        if isinstance(x, jax.Array | np.ndarray):
+            check_magnitude(field.name, x)
+
+
 def check_shape(name: str, x, shape: tuple, what: str) -> None:
     if jnp.shape(x) != shape:
         raise ParameterError(name, f"{name} must be {what}, got shape {jnp.shape(x)}")
@@ -41,6 +68,7 @@ def check_shape(name: str, x, shape: tuple, what: str) -> None:
 
 def check_vector(name: str, x, unit: bool = False) -> None:
     check_shape(name, x, (3,), "a (3,) vector")
+    check_magnitude(name, x)
     if unit and _concrete(x) and not abs(np.linalg.norm(x) - 1.0) <= UNIT_TOLERANCE:
         raise ParameterError(name, f"{name} must be a unit vector (length 1 within "
                              f"{UNIT_TOLERANCE:g}), got {_show(x)}")
@@ -70,6 +98,7 @@ def check_sign(name: str, x, unit: str = "", *, strict: bool = True, scalar=Fals
     """`x > 0` (`>= 0` if not strict) elementwise, unless traced; a scalar if `scalar`."""
     if scalar:
         check_shape(name, x, (), "a scalar")
+    check_magnitude(name, x)
     if _concrete(x) and not np.all(np.asarray(x) > 0 if strict else np.asarray(x) >= 0):
         raise ParameterError(name, f"{name} must be {'>' if strict else '>='} 0{unit}, "
                              f"got {_show(x)}")
@@ -82,15 +111,19 @@ def check_index(owner, name: str, i: int, n: int) -> None:
                              f"in [-{n}, {n}) (the scene has {n} spheres), got {i}")
 
 
-def per_item(count: int | None, **arrays) -> list[jax.Array]:
-    """Arrays of one value per item: a scalar broadcasts to `count` entries (`count`
-    defaults to the length of the 1-D arrays given); all must have the same length."""
+def per_item(count: int | None, count_name: str, **arrays) -> list[jax.Array]:
+    """Arrays of one value per item: a scalar broadcasts to `count` entries (`count`, the
+    argument `count_name`, defaults to the length of the 1-D arrays given; at most
+    `MAX_COUNT`, checked before anything is allocated); all must have the same length."""
+    if count is not None and not 1 <= count <= MAX_COUNT:
+        raise ParameterError(count_name, f"{count_name} must be an integer from 1 to "
+                             f"{MAX_COUNT}, got {count}")
     arrays = {k: as_float(v) for k, v in arrays.items()}
     if count is None:
         count = max((jnp.shape(v)[0] for v in arrays.values() if jnp.ndim(v) == 1), default=1)
-    if count < 1:
-        raise ParameterError(next(iter(arrays)), f"{', '.join(arrays)}: need at least one "
-                             f"value, got {count}")
+    if not 1 <= count <= MAX_COUNT:
+        raise ParameterError(next(iter(arrays)), f"{', '.join(arrays)}: need from 1 to "
+                             f"{MAX_COUNT} values, got {count}")
     out = []
     for name, x in arrays.items():
         x = jnp.broadcast_to(x, (count,)) if jnp.ndim(x) == 0 else x
@@ -101,8 +134,12 @@ def per_item(count: int | None, **arrays) -> list[jax.Array]:
 
 class AbstractEffect(eqx.Module):
     """Anything a scene can list. Parameters are array leaves; counts and indices are
-    static. Each effect checks its own parameters in `__check_init__` and its indices
-    against the scene in `check`."""
+    static. Each effect checks its own parameters in `__check_init__` (every floating
+    array finite and within `MAX_MAGNITUDE`, here) and its indices against the scene in
+    `check`."""
+
+    def __check_init__(self):
+        check_fields(self)
 
     def check(self, scene) -> None:
         """Raise `ValueError` if this effect does not fit `scene` (indices, counts)."""
@@ -206,7 +243,10 @@ class AbstractForce(AbstractEffect):
 
 class AbstractDrive(eqx.Module):
     """A controller for a torque or force: `drive(t, q, qdot, args) -> (3,)` (scene files
-    write it as an inline table)."""
+    write it as an inline table). Its floating arrays are checked as an effect's."""
+
+    def __check_init__(self):
+        check_fields(self)
 
     @abc.abstractmethod
     def __call__(self, t, q, qdot, args) -> jax.Array:

@@ -61,7 +61,7 @@ class Chain(AbstractKinetic):
     def __init__(self, masses: jax.Array, lengths: jax.Array,
                  base: jax.Array = (0.0, 0.0, 0.0), links: int | None = None,
                  payload: jax.Array = 0.0):
-        self.masses, self.lengths = per_item(links, masses=masses, lengths=lengths)
+        self.masses, self.lengths = per_item(links, "links", masses=masses, lengths=lengths)
         self.base = as_float(base)
         self.payload = as_float(payload)
 
@@ -147,7 +147,7 @@ class AbstractSphereMasses(AbstractKinetic):
     centers: jax.Array
 
     def __init__(self, masses, radii, centers, count):
-        self.masses, self.radii = per_item(count, masses=masses, radii=radii)
+        self.masses, self.radii = per_item(count, "count", masses=masses, radii=radii)
         centers = as_float(centers)
         self.centers = jnp.broadcast_to(centers, (self.n, 3)) if centers.ndim == 1 else centers
 

@@ -1,11 +1,12 @@
 """A wrapper that keeps any diffrax solver's state on the tangent bundle of (S^2)^n."""
 
-from diffrax import AbstractSolver, AbstractWrappedSolver
+from diffrax import AbstractSolver
 
 from .._term import space_of
+from .wrapped import AbstractTransparentSolver
 
 
-class Projected(AbstractWrappedSolver):
+class Projected(AbstractTransparentSolver):
     """Wraps any diffrax solver (explicit or implicit, adaptive or fixed-step) so that
     after every step each `q_i` is renormalized and the second state variable (velocity,
     angular velocity or momentum) has its normal part removed.
@@ -31,44 +32,6 @@ class Projected(AbstractWrappedSolver):
 
     solver: AbstractSolver
 
-    @property
-    def term_structure(self):
-        return self.solver.term_structure
-
-    @property
-    def interpolation_cls(self):
-        return self.solver.interpolation_cls
-
-    @property
-    def term_compatible_contr_kwargs(self):
-        return self.solver.term_compatible_contr_kwargs
-
-    @property
-    def root_finder(self):
-        """The wrapped implicit solver's root finder: `diffrax.diffeqsolve` reads (and
-        fills in) its tolerances on any solver that is an `AbstractImplicitSolver`, which
-        `Projected(Kvaerno5())` is by forwarding."""
-        return self.solver.root_finder
-
-    @property
-    def root_find_max_steps(self):
-        return self.solver.root_find_max_steps
-
-    @property
-    def scan_kind(self):
-        """The wrapped Runge-Kutta method's `scan_kind`: `diffrax.ForwardMode` reads it
-        (and sets it to "lax" through this property) so that forward mode works."""
-        return self.solver.scan_kind
-
-    def order(self, terms):
-        return self.solver.order(terms)
-
-    def strong_order(self, terms):
-        return self.solver.strong_order(terms)
-
-    def error_order(self, terms):
-        return self.solver.error_order(terms)
-
     def init(self, terms, t0, t1, y0, args):
         return self.solver.init(terms, t0, t1, y0, args)
 
@@ -82,6 +45,3 @@ class Projected(AbstractWrappedSolver):
             terms, t0, t1, y0, args, solver_state, made_jump
         )
         return space_of(terms).retract(*y1), y_error, dense_info, solver_state, result
-
-    def func(self, terms, t0, y0, args):
-        return self.solver.func(terms, t0, y0, args)

@@ -1,0 +1,64 @@
+"""`AbstractTransparentSolver`: a solver that wraps another and forwards everything that
+describes the method (order, terms, interpolation, root finder, `isinstance` checks)."""
+
+import abc
+
+from diffrax import AbstractSolver, AbstractWrappedSolver
+
+
+class AbstractTransparentSolver(AbstractWrappedSolver):
+    """Wraps `solver` (a dataclass field of the concrete class) and forwards its order,
+    term structure, interpolation, root finder and scan kind, as diffrax's `HalfSolver`
+    does; `isinstance` checks (adaptive, implicit) pass through (diffrax's
+    `AbstractWrappedSolver`). Concrete wrappers say what they add in `init` and `step`."""
+
+    solver: AbstractSolver
+
+    @property
+    def term_structure(self):
+        return self.solver.term_structure
+
+    @property
+    def interpolation_cls(self):
+        return self.solver.interpolation_cls
+
+    @property
+    def term_compatible_contr_kwargs(self):
+        return self.solver.term_compatible_contr_kwargs
+
+    @property
+    def root_finder(self):
+        """The wrapped implicit solver's root finder: `diffrax.diffeqsolve` reads (and
+        fills in) its tolerances on any solver that is an `AbstractImplicitSolver`, which
+        a wrapper of `Kvaerno5()` is by forwarding."""
+        return self.solver.root_finder
+
+    @property
+    def root_find_max_steps(self):
+        return self.solver.root_find_max_steps
+
+    @property
+    def scan_kind(self):
+        """The wrapped Runge-Kutta method's `scan_kind`: `diffrax.ForwardMode` reads it
+        (and sets it to "lax" through this property) so that forward mode works."""
+        return self.solver.scan_kind
+
+    def order(self, terms):
+        return self.solver.order(terms)
+
+    def strong_order(self, terms):
+        return self.solver.strong_order(terms)
+
+    def error_order(self, terms):
+        return self.solver.error_order(terms)
+
+    @abc.abstractmethod
+    def init(self, terms, t0, t1, y0, args):
+        """The solver state: the wrapped solver's, and what the wrapper adds."""
+
+    @abc.abstractmethod
+    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+        """One step of the wrapped solver, and what the wrapper does with it."""
+
+    def func(self, terms, t0, y0, args):
+        return self.solver.func(terms, t0, y0, args)
