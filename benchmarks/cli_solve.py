@@ -46,13 +46,23 @@ def scene_times(path: pathlib.Path, repeats: int) -> tuple[float, float, int]:
     spec = load_scene(path)
     program = build(spec)[0]
     cli = median_time(lambda: program.integrate(), repeats)
-    ts = np.concatenate([row[(k > 0):c] for k, (row, c) in
-                         enumerate(zip(program.ts, program.count, strict=True))])
+    ts = np.concatenate(
+        [row[(k > 0) : c] for k, (row, c) in enumerate(zip(program.ts, program.count, strict=True))]
+    )
 
     def simulate():
-        sol = sm.simulate(spec.scene, spec.y0, spec.t1, t0=spec.t0, solver=spec.solver,
-                          dt0=spec.dt0, rtol=spec.rtol, atol=spec.atol,
-                          max_steps=spec.max_steps, saveat=diffrax.SaveAt(ts=ts))
+        sol = sm.simulate(
+            spec.scene,
+            spec.y0,
+            spec.t1,
+            t0=spec.t0,
+            solver=spec.solver,
+            dt0=spec.dt0,
+            rtol=spec.rtol,
+            atol=spec.atol,
+            max_steps=spec.max_steps,
+            saveat=diffrax.SaveAt(ts=ts),
+        )
         jax.block_until_ready(sol.ys)
 
     return cli, median_time(simulate, repeats), len(program.ts)
@@ -68,17 +78,27 @@ def main():
     for path in scenes:
         cli, simulate, segments = scene_times(path, ns.repeats)
         forced = load_scene(path).scene.has_forces
-        rows.append(f"| {path.name} | {'yes' if forced else 'no'} | {segments} | {cli:.3f} | "
-                    f"{simulate:.3f} | {cli / simulate:.1f} |")
+        rows.append(
+            f"| {path.name} | {'yes' if forced else 'no'} | {segments} | {cli:.3f} | "
+            f"{simulate:.3f} | {cli / simulate:.1f} |"
+        )
         print(rows[-1], flush=True)
         load.append(os.getloadavg()[0])
-    machine = (f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
-               f"load average {min(load):.1f}-{max(load):.1f} during the runs")
-    table = "\n".join([
-        f"Solve time of `sphere-mech run` against `sm.simulate`, medians of {ns.repeats} "
-        f"runs after compiling; {machine}.", "",
-        "| scene | forces | segments | command line (s) | sm.simulate (s) | ratio |",
-        "|---|---|---|---|---|---|", *rows, ""])
+    machine = (
+        f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+        f"load average {min(load):.1f}-{max(load):.1f} during the runs"
+    )
+    table = "\n".join(
+        [
+            f"Solve time of `sphere-mech run` against `sm.simulate`, medians of {ns.repeats} "
+            f"runs after compiling; {machine}.",
+            "",
+            "| scene | forces | segments | command line (s) | sm.simulate (s) | ratio |",
+            "|---|---|---|---|---|---|",
+            *rows,
+            "",
+        ]
+    )
     print(table)
     if not ns.scenes:
         RESULTS.mkdir(exist_ok=True)

@@ -38,6 +38,42 @@ t1 = 0.5
 """
 
 
+ONE_VALUE = "masses = [1.0, 1.0]\nlengths = [1.0, 1.0]"
+CART = """
+[[effects]]
+type = "base"
+mass = 1.0
+axes = [[1.0, 0.0, 0.0]]
+[[effects]]
+type = "chain"
+masses = 0.5
+lengths = 0.8
+[initial]
+polar_deg = 140.0
+azimuth_deg = 90.0
+base_velocity = [0.0]
+[simulate]
+t1 = 0.1
+"""
+STILL = """
+name = "still bead"
+[[effects]]
+type = "particles"
+masses = 1.0
+radii = 1.0
+count = 1
+[[effects]]
+type = "joint_damping"
+coefficient = 0.5
+[initial]
+polar_deg = 90.0
+azimuth_deg = 0.0
+[simulate]
+t1 = 0.1
+"""
+"""A forced scene in which nothing moves: energy and work zero throughout."""
+
+
 @pytest.fixture(scope="module")
 def default_run(tmp_path_factory):
     """`sphere-mech run` with no argument, from another directory, default --out."""
@@ -117,6 +153,32 @@ ERRORS = {
                       "effects[0].masses", "masses must be > 0 (kg), got [1.0, -1.0]"),
     "negative length": (GOOD.replace("lengths = [1.0, 1.0]", "lengths = [-1.0, 1.0]"),
                         "effects[0].lengths", "> 0"),
+    # sizes and ranges: refused where read, before anything is allocated or integrated
+    "negative links": (GOOD.replace(ONE_VALUE, "masses = 1.0\nlengths = 1.0\nlinks = -2"),
+                       "effects[0].links", "links must be an integer from 1 to 100000, got -2"),
+    "huge links": (GOOD.replace(ONE_VALUE, f"masses = 1.0\nlengths = 1.0\nlinks = {2**63 - 1}"),
+                   "effects[0].links", "from 1 to 100000"),
+    "1e9 links": (GOOD.replace(ONE_VALUE, "masses = 1.0\nlengths = 1.0\nlinks = 1000000000"),
+                  "effects[0].links", "from 1 to 100000"),
+    "huge mass": (GOOD.replace("masses = [1.0, 1.0]", "masses = [1.0, 1e308]"),
+                  "effects[0].masses", "masses must be finite and at most 1e+100 in magnitude, "
+                  "got 1e+308"),
+    "huge g": (GOOD.replace('type = "gravity"', 'type = "gravity"\ng = 1e308'),
+               "effects[1].g", "g must be finite and at most 1e+100"),
+    "huge gain": (GOOD + '[[effects]]\ntype = "base_torque"\n'
+                  'torque = { type = "pd_torque", kp = 1e308 }\n', "effects[2].torque.kp",
+                  "kp must be finite and at most 1e+100"),
+    "huge t1": (GOOD.replace("t1 = 0.5", "t1 = 1e308"), "simulate.t1",
+                "t1 must be at most 1e+100 s"),
+    "tiny save_dt": (GOOD + "[output]\nsave_dt = 1e-300", "output.save_dt",
+                     "save_dt must give at most 1e+08 saved numbers"),
+    "tiny fixed step": (GOOD.replace('"Projected(Tsit5)"', '"RK4"\ndt0 = 1e-300'),
+                        "simulate.dt0", "dt0 must give at most max_steps = 100000 fixed steps"),
+    "deep solver": (GOOD.replace('"Projected(Tsit5)"',
+                                 '"' + "Projected(" * 3000 + "Tsit5" + ")" * 3000 + '"'),
+                    "simulate.solver", "solver must be at most 200 characters"),
+    "huge base velocity": (CART.replace("base_velocity = [0.0]", "base_velocity = [1e308]"),
+                           "initial.base_velocity", "at most 1e+100 in magnitude"),
 }
 
 
@@ -284,6 +346,10 @@ def test_figure_is_equal_aspect_and_shows_the_constraint_only_above_rounding(
     assert labels == ["E = T + U", "kinetic T", "potential U"]
     drifting = dataclasses.replace(result, constraint=np.linspace(0, 1e-9, len(result.t)))
     assert len(figure(drifting, scene).axes) == 4  # now a panel
+    named = dataclasses.replace(result, summary={**result.summary, "scene": "a $x^$ b"})
+    fig = figure(named, scene)
+    fig.canvas.draw()  # a title parsed as mathtext would raise here
+    assert fig.get_suptitle().startswith("a $x^$ b: ")
 
 
 def test_segments_cover_the_save_times_once():
@@ -324,3 +390,101 @@ def test_segmented_run_matches_one_simulate_call(pendulum_result, tmp_path):
     np.testing.assert_allclose(run.v, sol.ys[1], atol=1e-12)
     assert not store(tmp_path / "cache", "name", program, compiled)
     assert not (tmp_path / "cache").exists()
+
+
+def test_end_time_must_follow_t0(tmp_path, capsys):
+    """`--t1` before the file's `t0` (it integrated backwards) or not finite: exit 2,
+    one line naming `--t1`, nothing written."""
+    path = _bad(tmp_path, GOOD.replace("t1 = 0.5", "t0 = 10.0\nt1 = 10.5"))
+    out = tmp_path / "out"
+    assert main(["run", str(path), "--out", str(out), "--t1", "5"]) == 2
+    assert main(["run", str(path), "--out", str(out), "--t1", "inf"]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert err[0] == (f"sphere-mech: error: {path}: --t1: --t1 must be a time in s after "
+                      "t0 = 10 and at most 1e+100 (got 5.0)")
+    assert err[1] == "sphere-mech: error: --t1 must be a finite time in s (got inf)"
+    assert not out.exists()
+    spec = load_scene(path, 12.0)  # the reader applies --t1; save_dt stays the file's
+    assert spec.t1 == 12.0 and spec.save_dt == pytest.approx(0.5 / 1000)
+
+
+def test_output_folder_is_checked_before_integrating(tmp_path, capsys):
+    """An `--out` that is a file, or under a file: exit 2 naming `--out`, before any
+    compilation or integration (nothing printed on stdout)."""
+    good, blocker = _bad(tmp_path, GOOD), tmp_path / "file"
+    blocker.write_text("not a folder")
+    for out in (blocker, blocker / "sub"):
+        assert main(["run", str(good), "--out", str(out), "--no-progress"]) == 2
+        captured = capsys.readouterr()
+        assert captured.out == "" and captured.err.count("\n") == 1
+        assert captured.err.startswith(f"sphere-mech: error: --out: cannot create or write "
+                                       f"the folder {out} (")
+    assert blocker.read_text() == "not a folder"
+
+
+def test_still_forced_scene_writes_strict_json(tmp_path, capsys):
+    """A forced scene in which nothing moves: the relative work-energy balance (0/0) is
+    null with its reason, and summary.json is strict JSON (no NaN)."""
+    out = tmp_path / "out"
+    assert main(["run", str(_bad(tmp_path, STILL)), "--out", str(out), "--no-progress",
+                 "--no-animation"]) == 0
+    text = (out / "summary.json").read_text()
+    summary = json.loads(text, parse_constant=lambda c: pytest.fail(f"{c} in summary.json"))
+    assert summary["max_relative_work_energy_balance"] is None
+    assert summary["balance_scale_J"] == 0.0 and summary["work_done_J"] == 0.0
+    assert "no scale" in summary["not_computed"]["max_relative_work_energy_balance"]
+    assert "balance null (relative) (not computed" in capsys.readouterr().out
+
+
+def test_strict_json_replaces_what_is_not_finite():
+    from sphere_mech._cli.report import strict_json
+
+    out = strict_json({"a": 1.0, "b": float("inf"), "c": [0.0, float("nan")], "d": None},
+                      {"d": "why"})
+    assert out == {"a": 1.0, "b": None, "c": [0.0, None], "d": None, "not_computed": {
+        "b": "not finite (inf): the run overflowed", "c": "not finite (nan): the run "
+        "overflowed", "d": "why"}}
+    json.dumps(out, allow_nan=False)
+
+
+def test_forced_program_memory_does_not_grow_with_max_steps(tmp_path):
+    """The work of the forces is summed during the run (`WithWork`), not saved at every
+    step: the compiled segment program's buffers are the same for max_steps = 10^3 and
+    10^6 (they were 56 kB and 55 MB), and max_steps = 10^9 runs (it used to hang)."""
+    damped = GOOD + '[[effects]]\ntype = "joint_damping"\ncoefficient = 0.1\n'
+    sizes = []
+    for max_steps in (1000, 10**6, 10**9):
+        spec = load_scene(_bad(tmp_path, damped.replace("t1 = 0.5",
+                                                        f"t1 = 0.5\nmax_steps = {max_steps}")))
+        program, compiled = build(spec)
+        memory = compiled.memory_analysis()
+        sizes.append((memory.temp_size_in_bytes, memory.output_size_in_bytes))
+    assert sizes[0] == sizes[1] == sizes[2] and sum(sizes[0]) < 20_000  # measured 5317
+    run = program.integrate()
+    assert run.work_index.tolist() == [0, *np.cumsum(program.count - 1)]
+    assert run.work[0] == 0.0 and run.work[-1] < 0  # damping takes energy out
+
+
+@pytest.mark.parametrize("solver", ["Projected(Tsit5)", "Projected(Kvaerno5)", "LieRK4"])
+def test_work_summed_during_the_run_matches_the_steps(solver, tmp_path):
+    """`WithWork`'s work equals `sm.work_energy_balance` over the same run's saved steps
+    (the same corrected trapezoidal rule, summed in the loop instead of afterwards),
+    around a wrapped implicit solver too (diffrax's `isinstance` sees through it)."""
+    import diffrax
+
+    import sphere_mech as sm
+    from sphere_mech._solvers.work import WithWork, work_done
+
+    text = GOOD.replace("Projected(Tsit5)", solver)
+    spec = load_scene(_bad(tmp_path, text + '[[effects]]\ntype = "joint_damping"\n'
+                           'coefficient = 0.3\n[[effects]]\ntype = "tip_force"\n'
+                           "force = [0.5, 0.0, 1.0]\n"))
+    saveat = diffrax.SaveAt(t0=True, steps=True, solver_state=True)
+    sol = sm.simulate(spec.scene, spec.y0, spec.t1, solver=WithWork(spec.solver),
+                      saveat=saveat, max_steps=1000)
+    keep = np.isfinite(np.asarray(sol.ts))
+    q, v = (np.asarray(y)[keep] for y in sol.ys)
+    _, W, balance = sm.work_energy_balance(spec.scene, np.asarray(sol.ts)[keep], q, v)
+    assert abs(W[-1]) > 0.1
+    np.testing.assert_allclose(work_done(sol.solver_state), W[-1], rtol=1e-12)
+    assert np.max(np.abs(balance)) < 1e-5  # J; measured 1.0e-6 (Tsit5)

@@ -121,7 +121,7 @@ def write_outputs(out: Path, result, scene, *, animation: bool = True) -> None:
 
 
 def _print_summary(s: dict, out: Path, animation: bool) -> None:
-    e = lambda x: "null" if x is None else f"{x:.1e}"  # noqa: E731
+    e = lambda x: "null" if x is None else f"{x:.1e}"
     energy = (f"max relative energy error {e(s['max_relative_energy_error'])}"
               if "max_relative_energy_error" in s else
               f"max work-energy balance {e(s['max_relative_work_energy_balance'])} (relative)")
@@ -140,17 +140,19 @@ def run(scene=None, out=Path("sphere_mech_out"), *, t1=None, progress=True, anim
     from . import program
 
     jax.config.update("jax_enable_x64", True)
-    check_out(Path(out))
     path = DEFAULT_SCENE if scene is None else Path(scene)
     name = program.key(path, t1) if programs is not None else None
     stored = program.load(programs, name) if name is not None else None
     # a stored program starts before diffrax is imported; the file is checked after it
+    if stored is not None:  # (a file that was valid when its program was stored)
+        check_out(Path(out))
     integrated = stored.integrate(progress) if stored is not None else None
     from .._scene_files import load_scene
     from .report import scene_result
 
     spec = load_scene(path, t1)
     if integrated is None:
+        check_out(Path(out))
         stored, compiled = program.build(spec, t1)
         if name is not None:
             program.store(programs, name, stored, compiled)

@@ -2,10 +2,11 @@
 
 import jax
 import jax.numpy as jnp
+from diffrax import AbstractSolver
 
 from .._spaces import tree_dtype
 from .._term import physical_time, system_of
-from .wrapped import AbstractTransparentSolver
+from .wrapped import AbstractTransparentSolver, unwrapped
 
 
 def power_and_rate(system, t, q, v, args):
@@ -37,8 +38,17 @@ class WithWork(AbstractTransparentSolver):
     balance `E(t1) - E(t0) - W` then measures the integrator alone.
 
     **Arguments:**
-    - `solver`: the solver (e.g. `Projected(diffrax.Tsit5())`).
+    - `wrapped`: the solver (e.g. `Projected(diffrax.Tsit5())`).
     """
+
+    wrapped: AbstractSolver
+
+    @property
+    def solver(self):
+        """The solver inside `wrapped`'s transparent wrappers (`Projected`): diffrax
+        forwards `isinstance` checks one level only, and `WithWork(Projected(Kvaerno5()))`
+        must still be seen as implicit and adaptive."""
+        return unwrapped(self.wrapped)
 
     def _power(self, terms, t, y, args):
         system = system_of(terms)
@@ -47,11 +57,11 @@ class WithWork(AbstractTransparentSolver):
 
     def init(self, terms, t0, t1, y0, args):
         _, P, dP = self._power(terms, t0, y0, args)
-        return self.solver.init(terms, t0, t1, y0, args), jnp.zeros_like(P), P, dP
+        return self.wrapped.init(terms, t0, t1, y0, args), jnp.zeros_like(P), P, dP
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         inner, W, P0, dP0 = solver_state
-        y1, y_error, dense_info, inner, result = self.solver.step(
+        y1, y_error, dense_info, inner, result = self.wrapped.step(
             terms, t0, t1, y0, args, inner, made_jump
         )
         s0 = jnp.asarray(physical_time(terms, t0), dtype=W.dtype)

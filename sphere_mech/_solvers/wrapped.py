@@ -3,16 +3,15 @@ describes the method (order, terms, interpolation, root finder, `isinstance` che
 
 import abc
 
-from diffrax import AbstractSolver, AbstractWrappedSolver
+from diffrax import AbstractWrappedSolver
 
 
 class AbstractTransparentSolver(AbstractWrappedSolver):
-    """Wraps `solver` (a dataclass field of the concrete class) and forwards its order,
+    """Wraps `solver` (a field or property of the concrete class) and forwards its order,
     term structure, interpolation, root finder and scan kind, as diffrax's `HalfSolver`
-    does; `isinstance` checks (adaptive, implicit) pass through (diffrax's
-    `AbstractWrappedSolver`). Concrete wrappers say what they add in `init` and `step`."""
-
-    solver: AbstractSolver
+    does; `isinstance` checks (adaptive, implicit) pass through to `solver` (diffrax's
+    `AbstractWrappedSolver`, one level deep). Concrete wrappers say what they add in
+    `init` and `step`."""
 
     @property
     def term_structure(self):
@@ -62,3 +61,12 @@ class AbstractTransparentSolver(AbstractWrappedSolver):
 
     def func(self, terms, t0, y0, args):
         return self.solver.func(terms, t0, y0, args)
+
+
+def unwrapped(solver):
+    """The solver inside any `AbstractTransparentSolver`s around `solver` (they forward
+    everything but their steps to it): what `isinstance` checks should see. (By type:
+    diffrax's `isinstance` would look through any other wrapper, e.g. `HalfSolver`.)"""
+    while issubclass(type(solver), AbstractTransparentSolver):
+        solver = solver.solver
+    return solver
