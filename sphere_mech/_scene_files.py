@@ -186,11 +186,12 @@ def _per_sphere(path, table, key: str, n: int) -> np.ndarray:
     item, expected, bounds = INITIAL[key]
     x = table[key]
     ok = _numbers(x) and np.shape(x) in (item, (n, *item))
-    bounds = (-MAX_MAGNITUDE, MAX_MAGNITUDE) if bounds is None else bounds
+    if bounds is None:
+        bounds, expected = (-MAX_MAGNITUDE, MAX_MAGNITUDE), f"{expected} (at most " \
+            f"{MAX_MAGNITUDE:g} in magnitude)"
     if not (ok and bounds[0] <= np.min(x) <= np.max(x) <= bounds[1]):
-        raise SceneFileError(path, f"initial.{key}", f"{expected} (at most {bounds[1]:g} in "
-                             f"magnitude): one for all spheres or an array of {n} (one per "
-                             f"sphere), got {_show(x)}")
+        raise SceneFileError(path, f"initial.{key}", f"{expected}: one for all spheres or "
+                             f"an array of {n} (one per sphere), got {_show(x)}")
     return np.broadcast_to(np.asarray(x, dtype=float), (n, *item))
 
 

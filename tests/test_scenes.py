@@ -553,10 +553,11 @@ def test_python_and_files_reject_with_the_same_words(case, tmp_path):
 BASE_INITIAL = {  # name: (template, replacements, field, what the error says)
     "too many base coordinates": (CART, {"base = [0.0]": "base = [0.0, 1.0]"}, "initial.base",
                                   "the base's coordinates (m), one per axis of the Base: "
-                                  "1 number, got [0.0, 1.0]"),
+                                  "1 number (at most 1e+100 in magnitude), got [0.0, 1.0]"),
     "base velocity not an array": (CART, {"base = [0.0]": "base_velocity = 1.0"},
                                    "initial.base_velocity", "the base's velocity (m/s), one "
-                                   "per axis of the Base: 1 number, got 1.0"),
+                                   "per axis of the Base: 1 number (at most 1e+100 in "
+                                   "magnitude), got 1.0"),
     "base without a Base": (TWO_LINKS, {"azimuth_deg = [0.0, 90.0]":
                                         "azimuth_deg = [0.0, 90.0]\nbase = [0.0]"},
                             "initial.base", "no such field (expected q and qdot, or "
@@ -654,3 +655,27 @@ def test_simulate_keys_are_the_python_names(tmp_path):
     for old in ('method = "tsit5"', "dt = 0.1", "duration = 1.0"):
         with pytest.raises(sm.SceneFileError, match=r"simulate\.\w+: no such field"):
             sm.load_scene(_file(tmp_path, simulate=old))
+
+
+def test_parameters_out_of_range_are_refused_in_python_as_in_files():
+    """The effects' own checks (scene files reach the same ones): every floating
+    parameter finite and at most 1e100 in magnitude, counts from 1 to 100 000 named as
+    the argument (checked before anything is allocated), and float32 parameters checked
+    without overflow warnings."""
+    import warnings
+
+    with pytest.raises(ValueError, match=r"^masses must be finite and at most 1e\+100 in "
+                                         r"magnitude, got 1e\+308$"):
+        sm.chain_pendulum([1.0, 1e308], [1.0, 1.0])
+    with pytest.raises(ValueError, match=r"^kp must be finite .* got nan$"):
+        sm.PDTorque(kp=float("nan"))
+    for links in (-2, 2**63 - 1):
+        with pytest.raises(ValueError, match=rf"^links must be an integer from 1 to 100000, "
+                                             rf"got {links}$"):
+            sm.Chain(1.0, 1.0, links=links)
+    with pytest.raises(ValueError, match="^count must be an integer from 1 to 100000"):
+        sm.Particles(1.0, 1.0, count=10**9)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        chain = sm.Chain(jnp.full(2, 1e30, jnp.float32), jnp.ones(2, jnp.float32))
+    assert chain.masses.dtype == jnp.float32

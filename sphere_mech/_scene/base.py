@@ -47,7 +47,7 @@ def check_magnitude(name: str, x) -> None:
     a = np.asarray(x)
     if not jnp.issubdtype(a.dtype, jnp.inexact):
         return
-    bad = ~(np.abs(a) <= MAX_MAGNITUDE)  # NaN is bad too
+    bad = ~(np.abs(a).astype(np.float64) <= MAX_MAGNITUDE)  # NaN too; float32 compared in 64
     if np.any(bad):
         raise ParameterError(name, f"{name} must be finite and at most {MAX_MAGNITUDE:g} in "
                              f"magnitude, got {a[bad].flat[0]:g}")
