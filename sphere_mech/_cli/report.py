@@ -65,13 +65,16 @@ class SceneResult:
     - `x`: the points drawn at `t`, `scene.points(q)`: `(T, n, 3)`, `(T, n + 1, 3)` with a
       `Base` (its point first).
     - `energy`: the energy `E` at `t`.
-    - `error_t`: the times of `error` (`t`, or the solver's steps for a scene with forces).
+    - `error_t`: the times of `error` (`t`, or for a scene with forces the start and the
+      end of every segment of the run: steps of the solver, where the work is known).
     - `error`: the relative energy error `(E - E(0)) / |E(0)|`, or with forces the
-      work-energy balance `E - E(0) - W` divided by the larger of `max |E|`, `max |W|`.
+      work-energy balance `E - E(0) - W` divided by the larger of `max |E|`, `max |W|`
+      (not divided where both are zero: then the summary's relative balance is `null`).
     - `constraint`: `max_i | |q_i| - 1 |` over the spheres (`scene.spheres(q)`) at `t`.
     - `summary`: what `summary.json` holds (solver, tolerances or step, steps, wall time,
       largest constraint and energy or balance error; with a `Base`, `"base"`: its final
-      coordinates).
+      coordinates), strict JSON: what could not be computed is `None`, with the reason
+      in `"not_computed"`.
     - `potential`: `U` at `t` (kinetic energy: `energy - potential`).
     - `work`: with forces, the work `W` done at `error_t`.
     - `step_energy`: with forces, `E` at `error_t`.
@@ -87,7 +90,7 @@ class SceneResult:
     constraint: np.ndarray
     summary: dict
     potential: np.ndarray | None = None  # U at `t` (kinetic energy: `energy - potential`)
-    work: np.ndarray | None = None  # with forces: W at `error_t` (the solver's steps)
+    work: np.ndarray | None = None  # with forces: W at `error_t`
     step_energy: np.ndarray | None = None  # with forces: E at `error_t`
 
 
