@@ -367,10 +367,10 @@ def _simulate_args(path, data, t1=None) -> dict:
         out["solver"] = parse_solver(out["solver_name"])
     except ValueError as e:
         raise SceneFileError(path, "simulate.solver", str(e)) from None
-    for key in ("t0", "t1", "dt0"):
+    for key, unit in (("t0", " s"), ("t1", " s"), ("dt0", " s"), ("rtol", ""), ("atol", "")):
         if out[key] is not None and not abs(out[key]) <= MAX_MAGNITUDE:
             raise SceneFileError(path, f"simulate.{key}", f"{key} must be at most "
-                                 f"{MAX_MAGNITUDE:g} s in magnitude (got {_show(out[key])})")
+                                 f"{MAX_MAGNITUDE:g}{unit} in magnitude (got {_show(out[key])})")
     try:  # the options simulate would refuse, with its words
         opts = options(out["solver"], out["dt0"], out["rtol"], out["atol"], None, None,
                        out["max_steps"], None, False, None, np.float64)
