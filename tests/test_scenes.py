@@ -675,6 +675,9 @@ def test_parameters_out_of_range_are_refused_in_python_as_in_files():
             sm.Chain(1.0, 1.0, links=links)
     with pytest.raises(ValueError, match="^count must be an integer from 1 to 100000"):
         sm.Particles(1.0, 1.0, count=10**9)
+    with pytest.raises(ValueError, match=r"^PairInteraction sums over at most 1e\+07 pairs, "
+                                         r"got 5000 masses \(1.25e\+07 pairs\)$"):
+        sm.Scene(sm.SharedSphere(1.0, count=5000), sm.PairInteraction(1.0))
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         chain = sm.Chain(jnp.full(2, 1e30, jnp.float32), jnp.ones(2, jnp.float32))

@@ -115,6 +115,10 @@ class Bending(AbstractPotential):
         return jnp.sum(self.stiffness * (1.0 - jnp.sum(s[i] * s[j], axis=-1)))
 
 
+MAX_PAIRS = 10**7
+"""The most pairs a `PairInteraction` may sum over (its cost and memory grow with them)."""
+
+
 class PairInteraction(AbstractPotential):
     """A pairwise interaction between masses, `U = k sum_{i<j} c_i c_j / |x_i - x_j|^p`.
 
@@ -124,7 +128,8 @@ class PairInteraction(AbstractPotential):
     - `strength`: `k` (J m^p), a scalar.
     - `exponent`: `p > 0`.
     - `charges`: one value per interacting mass (default: ones).
-    - `masses`: the indices of the interacting masses (static; default: all of the scene).
+    - `masses`: the indices of the interacting masses (static; default: all of the scene),
+      at most `MAX_PAIRS` pairs (about 4500 masses).
     """
 
     strength: jax.Array = eqx.field(converter=base.as_float)
@@ -145,6 +150,10 @@ class PairInteraction(AbstractPotential):
         if len(idx) < 2:
             raise ParameterError("masses", f"PairInteraction needs at least two masses, got "
                                  f"{len(idx)}")
+        pairs = len(idx) * (len(idx) - 1) // 2
+        if pairs > MAX_PAIRS:
+            raise ParameterError("masses", f"PairInteraction sums over at most {MAX_PAIRS:.0e} "
+                                 f"pairs, got {len(idx)} masses ({pairs:.2e} pairs)")
         for i in idx:
             base.check_index(self, "masses", int(i), scene.n)
         if self.charges is not None:
