@@ -9,12 +9,14 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 
-from ._results import raise_on_failure
+from ._results import RESULTS, raise_on_failure
 from ._solve import (
     DEFAULT_MAX_STEPS,
+    as_array,
     as_arrays,
-    initial_state,
+    initial_states,
     options,
+    rows,
     solve,
     state_dtype,
     times,
@@ -63,22 +65,23 @@ def _local_solve(static, chunk, shared, batched, y0):
 
 
 @eqx.filter_jit
-def _initial_states(space, state_name, y0):
-    """Validate and retract the initial states, outside the sharded program (its checks
-    are host callbacks, which should not run inside `shard_map`)."""
-    return jax.vmap(lambda y: initial_state(space, state_name, y))(y0)
-
-
-@eqx.filter_jit
-def _solve_batch(static, chunk, mesh, shared, batched, y0, size, padded):
+def _solve_batch(static, chunk, mesh, shared, batched, y0, valid, size, padded):
     batched, y0 = _pad((batched, y0), padded)
     solve = lambda s, b, y: _local_solve(static, chunk, s, b, y)
     if mesh is not None:
         spec = PartitionSpec(BATCH_AXIS)
         solve = jax.shard_map(solve, mesh=mesh, in_specs=(PartitionSpec(), spec, spec),
                               out_specs=spec, check_vma=False)
-    sol = solve(shared, batched, y0)
-    return jax.tree.map(lambda x: x[:size], sol)
+    sol = jax.tree.map(lambda x: x[:size], solve(shared, batched, y0))
+    # Invalid initial states ran a stand-in (`initial_states`): their own code, nothing
+    # saved (`inf`, as for a run that fails at its initial state) and no steps.
+    result = jax.vmap(lambda ok, r: RESULTS.where(ok, r, RESULTS.invalid_initial))(
+        valid, sol.result)
+    discard = lambda fill: lambda x: jnp.where(rows(valid, x), x, fill)
+    ts, ys = jax.tree.map(discard(jnp.inf), (sol.ts, sol.ys))
+    stats = jax.tree.map(discard(0), sol.stats)
+    return eqx.tree_at(lambda s: (s.result, s.ts, s.ys, s.stats), sol, (result, ts, ys, stats),
+                       is_leaf=lambda x: x is None)
 
 
 def _chunk_size(chunk_size, n, local, platform):
@@ -134,7 +137,11 @@ def simulate_batch(
       trajectory failed, naming how many, which, and the first one's cause (the same
       message as `simulate`); `False` never raises for a run-time failure: `sol.result`
       holds each trajectory's own `sm.RESULTS` code (NaN parameters give
-      `RESULTS.nonfinite_initial`) and a failed trajectory does not affect the others.
+      `RESULTS.nonfinite_initial`, an invalid initial state `RESULTS.invalid_initial`)
+      and a failed trajectory does not affect the others (but see docs/batched.md for
+      differences of 1e-14 to 1e-11 through `Projected`'s first stages). Initial states
+      are checked one by one: with `throw=True` an invalid one (NaN, off the spheres,
+      not tangent) raises a `ValueError` before the solve, naming which.
       (With an adaptive controller a trajectory whose vector field is NaN keeps
       rejecting steps until `max_steps`, which the batch waits for; fixed-step solvers
       stop it at its first step.)
@@ -156,7 +163,7 @@ def simulate_batch(
     """
     if not (isinstance(y0, tuple | list) and len(y0) == 2):
         raise ValueError("y0 must be a pair (q0, v0) of (batch, n, 3) arrays.")
-    q0, v0 = jax.tree.map(jnp.asarray, tuple(y0))
+    q0, v0 = jax.tree.map(as_array, tuple(y0), is_leaf=lambda x: isinstance(x, list))
     leading = {jnp.shape(x)[:1] for x in jax.tree.leaves((q0, v0))}
     if len(leading) != 1 or leading == {()} or leading == {(0,)}:
         raise ValueError("y0 must have a leading batch axis (batch >= 1), the same on every "
@@ -188,6 +195,9 @@ def simulate_batch(
     one = jax.tree.map(lambda x: x[0] if eqx.is_array(x) else x, system) if batch_system else system
     if one.n is not None:
         one.check_size(one_state[0])
-    y0 = _initial_states(system.space, system.state_name, (q0, v0))
-    sol = _solve_batch(static, chunk, mesh, shared, batched, y0, size, padded)
+    # Checked per state, outside the sharded program (its checks would be host callbacks):
+    # an invalid state is NaN (so its run stops at once) and gets its own code.
+    y0 = jax.tree.map(lambda x: x.astype(dtype), (q0, v0))
+    y0, valid = initial_states(system.space, system.state_name, y0, "simulate_batch", throw)
+    sol = _solve_batch(static, chunk, mesh, shared, batched, y0, valid, size, padded)
     return raise_on_failure(sol, max_steps, "simulate_batch") if throw else sol

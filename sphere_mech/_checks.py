@@ -51,37 +51,48 @@ def check_shapes(q, v, v_name: str = "v", q_name: str = "q") -> None:
             raise ValueError(f"{name} must be a floating-point array, got {jnp.result_type(x)}.")
 
 
+def nonfinite(x, name: str) -> tuple[jax.Array, str]:
+    """`(problem, message)`: whether `x` has a NaN or infinity, and what to say then."""
+    return ~jnp.all(jnp.isfinite(x)), f"{name} contains NaN or infinite values."
+
+
+def off_unit(q, q_name: str = "q") -> tuple[jax.Array, str]:
+    """`(problem, message)`: whether some finite `|q_i|` differs from 1 by more than
+    `unit_tolerance`."""
+    tol = unit_tolerance(jnp.result_type(q))
+    err = jnp.max(jnp.abs(jnp.linalg.norm(q, axis=-1) - 1.0))
+    return err > tol, (
+        f"{q_name} is not on the spheres: some |q_i| differs from 1 by more than {tol:g} "
+        "(normalize q, e.g. with sphere_mech.normalize)."
+    )
+
+
+def off_tangent(q, v, v_name: str = "v") -> tuple[jax.Array, str]:
+    """`(problem, message)`: whether some `v_i` is not orthogonal to `q_i` within
+    `unit_tolerance` (relative to `1 + max_i |v_i|`)."""
+    tol = unit_tolerance(jnp.result_type(q))
+    normal = jnp.max(jnp.abs(jnp.sum(q * v, axis=-1)))
+    scale = 1.0 + jnp.max(jnp.linalg.norm(v, axis=-1))
+    return normal > tol * scale, (
+        f"{v_name} is not tangent to the spheres: some q_i . {v_name}_i exceeds {tol:g} "
+        f"(relative); remove the normal part, e.g. with sphere_mech.project(q, {v_name})."
+    )
+
+
 def check_finite_named(x, name: str):
-    return eqx.error_if(x, ~jnp.all(jnp.isfinite(x)), f"{name} contains NaN or infinite values.")
+    return eqx.error_if(x, *nonfinite(x, name))
 
 
 def check_unit(q, q_name: str = "q"):
     """Error (at run time) unless every row of `q` is a finite unit vector within
     tolerance."""
-    q = check_finite_named(q, q_name)
-    tol = unit_tolerance(jnp.result_type(q))
-    err = jnp.max(jnp.abs(jnp.linalg.norm(q, axis=-1) - 1.0))
-    return eqx.error_if(
-        q,
-        err > tol,
-        f"{q_name} is not on the spheres: some |q_i| differs from 1 by more than {tol:g} "
-        "(normalize q, e.g. with sphere_mech.normalize).",
-    )
+    return eqx.error_if(check_finite_named(q, q_name), *off_unit(q, q_name))
 
 
 def check_tangent(q, v, v_name: str = "v"):
     """Error (at run time) unless every `v_i` is finite and orthogonal to `q_i` within
     tolerance."""
-    v = check_finite_named(v, v_name)
-    tol = unit_tolerance(jnp.result_type(q))
-    normal = jnp.max(jnp.abs(jnp.sum(q * v, axis=-1)))
-    scale = 1.0 + jnp.max(jnp.linalg.norm(v, axis=-1))
-    return eqx.error_if(
-        v,
-        normal > tol * scale,
-        f"{v_name} is not tangent to the spheres: some q_i . {v_name}_i exceeds {tol:g} "
-        f"(relative); remove the normal part, e.g. with sphere_mech.project(q, {v_name}).",
-    )
+    return eqx.error_if(check_finite_named(v, v_name), *off_tangent(q, v, v_name))
 
 
 def check_scalar(value, what: str):

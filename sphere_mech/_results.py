@@ -17,6 +17,11 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "mass matrix (degenerate Lagrangian, e.g. a zero mass or length), a Legendre "
         "transform that is not invertible there (sm.legendre), or NaN parameters."
     )
+    invalid_initial = (
+        "The initial state is invalid: q0 or v0 contains NaN or infinite values, q0 is "
+        "off the spheres or v0 not tangent to them (beyond sm.unit_tolerance). With "
+        "throw=True simulate_batch raises a ValueError naming the states and the problem."
+    )
 
 
 _NEWTON = (
@@ -78,9 +83,14 @@ def raise_on_codes(values: np.ndarray, max_steps, what: str) -> None:
     bad = np.flatnonzero(failed(values))
     if bad.size == 0:
         return
-    where = ""
-    if values.size > 1:
-        shown = ", ".join(map(str, bad[:10])) + (", ..." if bad.size > 10 else "")
-        where = (f" {bad.size} of {values.size} trajectories failed (indices {shown}); "
-                 f"trajectory {bad[0]}:")
+    where = describe_failures(bad, values.size, "trajectories failed", "trajectory")
     raise RuntimeError(f"{what}:{where} {_messages(max_steps)[values[bad[0]]]}")
+
+
+def describe_failures(bad: np.ndarray, size: int, failed: str, one: str) -> str:
+    """`" 2 of 8 <failed> (indices 3, 5); <one> 3:"` for the failed members `bad` of a
+    batch of `size` (`""` for a batch of one): what errors about a batch say first."""
+    if size == 1:
+        return ""
+    shown = ", ".join(map(str, bad[:10])) + (", ..." if bad.size > 10 else "")
+    return f" {bad.size} of {size} {failed} (indices {shown}); {one} {bad[0]}:"

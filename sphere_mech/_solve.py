@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from ._results import RESULTS
+from ._results import RESULTS, describe_failures
 from ._solvers.projected import Projected
 from ._term import MechanicsTerm
 
@@ -108,20 +108,79 @@ def times(dtype, *ts):
     return tuple(None if t is None else jnp.asarray(t, dtype=dtype) for t in ts)
 
 
-def initial_state(space, state_name: str, y0):
+def initial_state(space, state_name: str, y0, what: str = "simulate"):
     """Check an initial state `(q0, v0)` of `space` (`v0` named `state_name`) and put it
     exactly on the tangent bundle.
 
     States within `unit_tolerance(dtype)` of the spheres (and of tangency) are accepted
-    and corrected (`q_i / |q_i|`, normal part of `v_i` removed); farther ones raise."""
+    and corrected (`q_i / |q_i|`, normal part of `v_i` removed); farther ones (and NaN)
+    raise a `ValueError` prefixed `what: ` (inside `jax.jit`, an equinox runtime error)."""
     if not (isinstance(y0, tuple | list) and len(y0) == 2):
         raise ValueError("y0 must be a pair (q0, v0) of (n, 3) arrays (dicts of arrays on "
                          "a mixed space).")
-    q0, v0 = jax.tree.map(jnp.asarray, tuple(y0))
+    q0, v0 = jax.tree.map(as_array, tuple(y0), is_leaf=lambda x: isinstance(x, list))
     space.check_shapes(q0, v0, state_name)
     dtype = state_dtype((q0, v0))  # one floating dtype for the whole state
-    q0, v0 = jax.tree.map(lambda x: x.astype(dtype), (q0, v0))
-    return space.retract(*space.check_values(q0, v0, state_name))
+    y0 = jax.tree.map(lambda x: x[None].astype(dtype), (q0, v0))
+    y0, _ = initial_states(space, state_name, y0, what, check=True)
+    return jax.tree.map(lambda x: x[0], y0)
+
+
+def as_array(x):
+    """An array of `x`; nested Python lists of numbers become float arrays."""
+    return jnp.asarray(x, dtype=float) if isinstance(x, list) else jnp.asarray(x)
+
+
+def initial_states(space, state_name: str, y0, what: str, check: bool):
+    """Initial states with a leading batch axis (shapes checked), each put on the
+    tangent bundle, and the invalid ones (`space.problems`: NaN, off the spheres, not
+    tangent) found per state: `(y0, valid)`, each invalid state replaced by the first
+    valid one (a stand-in: the caller discards its run).
+
+    With `check`, an invalid state raises: a `ValueError` naming how many, which and the
+    first one's problem (prefixed `what: `) when the states are concrete, an equinox
+    runtime error with the problem's message when traced."""
+    y0, problem, messages = _initial_states(space, state_name, y0,
+                                            check and _traced(y0))
+    problem = problem if _traced(problem) else np.asarray(problem)
+    if check and not _traced(problem):
+        bad = np.flatnonzero(problem >= 0)
+        if bad.size:
+            where = describe_failures(bad, problem.size, "initial states are invalid",
+                                      "initial state")
+            raise ValueError(f"{what}:{where} {messages[problem[bad[0]]]}")
+    return y0, problem < 0
+
+
+def _traced(tree) -> bool:
+    return any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(tree))
+
+
+@eqx.filter_jit
+def _initial_states(space, state_name, y0, raise_traced: bool):
+    def one(y):
+        found, messages = zip(*space.problems(*y, state_name), strict=True)
+        found = jnp.stack(found)
+        problem = jnp.where(jnp.any(found), jnp.argmax(found), -1)
+        if raise_traced:
+            y = eqx.branched_error_if(y, jnp.any(found), jnp.argmax(found), messages)
+        return space.retract(*y), problem, messages
+
+    messages = one(jax.tree.map(lambda x: x[0], y0))[2]
+    y0, problem = jax.vmap(lambda y: one(y)[:2])(y0)
+    # An invalid state is replaced by the first valid one: a stand-in whose run is
+    # discarded. (A NaN state would stop at once but stay on its "first step", and
+    # diffrax's Runge-Kutta methods then re-evaluate the first stage of every member of
+    # its vmap at every step (`unvmap_any(first_step)`), which changes the others'
+    # results with `Projected`, whose reused last stage is at the unprojected point.)
+    stand_in = jax.tree.map(lambda x: x[jnp.argmax(problem < 0)], y0)
+    y0 = jax.tree.map(lambda x, s: jnp.where(rows(problem < 0, x), x, s), y0, stand_in)
+    return y0, problem, messages
+
+
+def rows(mask, x):
+    """`mask` (one entry per member) broadcast against `x` (members along axis 0)."""
+    return jnp.reshape(mask, mask.shape + (1,) * (jnp.ndim(x) - 1))
 
 
 def state_dtype(y):

@@ -20,7 +20,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._checks import check_finite_named, check_shapes, check_tangent, check_unit
+from ._checks import check_shapes, nonfinite, off_tangent, off_unit
 from ._geometry import dot, normalize, project, sphere_exp, tangent_basis
 from ._linalg import basis_directions, from_tangent, reduced_matrix, to_tangent
 from ._solvers.lie_actions import (
@@ -87,9 +87,17 @@ class AbstractSpace(eqx.Module):
         shapes and a floating dtype."""
 
     @abc.abstractmethod
+    def problems(self, q, v, v_name: str = "v", q_name: str = "q") -> list:
+        """`[(problem, message), ...]`: boolean scalars saying whether `q` is off the space
+        or not finite, or `v` not finite or not tangent at `q` (within `unit_tolerance`),
+        each with its message; `check_values` raises the first one found."""
+
     def check_values(self, q, v, v_name: str = "v", q_name: str = "q"):
-        """Run-time checks (`eqx.error_if`): `q` on the space and `v` tangent at it, within
-        `unit_tolerance`; returns the (unchanged) `(q, v)`, tied to the checks."""
+        """Run-time checks (`eqx.branched_error_if`) of `problems`: `q` on the space and
+        `v` tangent at it; returns the (unchanged) `(q, v)`, tied to the checks."""
+        found, messages = zip(*self.problems(q, v, v_name, q_name), strict=True)
+        found = jnp.stack(found)
+        return eqx.branched_error_if((q, v), jnp.any(found), jnp.argmax(found), messages)
 
     @abc.abstractmethod
     def check_forces(self, f, q, q_name: str = "q") -> None:
@@ -204,9 +212,9 @@ class Spheres(AbstractFactor):
             )
         check_shapes(q, v, v_name, q_name)
 
-    def check_values(self, q, v, v_name="v", q_name="q"):
-        q = check_unit(q, q_name)
-        return q, check_tangent(q, v, v_name)
+    def problems(self, q, v, v_name="v", q_name="q"):
+        return [nonfinite(q, q_name), off_unit(q, q_name), nonfinite(v, v_name),
+                off_tangent(q, v, v_name)]
 
     def check_forces(self, f, q, q_name="q"):
         if jnp.shape(f) != jnp.shape(q):
@@ -297,8 +305,8 @@ class Euclidean(AbstractFactor):
                     f"{name} must be a floating-point array, got {jnp.result_type(x)}."
                 )
 
-    def check_values(self, q, v, v_name="v", q_name="q"):
-        return check_finite_named(q, q_name), check_finite_named(v, v_name)
+    def problems(self, q, v, v_name="v", q_name="q"):
+        return [nonfinite(q, q_name), nonfinite(v, v_name)]
 
     def check_forces(self, f, q, q_name="q"):
         if jnp.shape(f) != jnp.shape(q):
@@ -389,12 +397,9 @@ class Product(AbstractSpace):
         for k, f in self.factors.items():
             f.check_shapes(q[k], v[k], f"{v_name}[{k!r}]", f"{q_name}[{k!r}]")
 
-    def check_values(self, q, v, v_name="v", q_name="q"):
-        checked = {
-            k: f.check_values(q[k], v[k], f"{v_name}[{k!r}]", f"{q_name}[{k!r}]")
-            for k, f in self.factors.items()
-        }
-        return {k: c[0] for k, c in checked.items()}, {k: c[1] for k, c in checked.items()}
+    def problems(self, q, v, v_name="v", q_name="q"):
+        return [p for k, f in self.factors.items()
+                for p in f.problems(q[k], v[k], f"{v_name}[{k!r}]", f"{q_name}[{k!r}]")]
 
     def check_forces(self, f, q, q_name="q"):
         _check_keys(f, self.factors, "forces(t, q, v, args)")

@@ -94,6 +94,48 @@ def test_nan_trajectory_is_reported_and_isolated(masses):
         sm.simulate_batch(chains(bad_masses), y0, 1.0, batch_system=True, **FIXED)
 
 
+@pytest.mark.parametrize("on_error", ["raise", "nan"])
+def test_invalid_initial_state_is_reported_and_isolated(chain, on_error):
+    """One NaN initial state loses only its own trajectory (code `invalid_initial`), the
+    others bit-identical to a clean run, also under EQX_ON_ERROR=nan; with throw=True a
+    ValueError names it. Adaptive steps with Projected: a NaN member that never stepped
+    would change the others' first-stage evaluations (diffrax's unvmap_any)."""
+    script = textwrap.dedent(f"""
+        import os
+        os.environ["EQX_ON_ERROR"] = "{on_error}"
+        import jax, jax.numpy as jnp, numpy as np, diffrax, pytest
+        jax.config.update("jax_enable_x64", True)
+        import sphere_mech as sm
+        keys = jax.random.split(jax.random.PRNGKey(0), 6)
+        q0, v0 = jax.vmap(lambda k: sm.random_state(k, 3))(keys)
+        chain = sm.chain_pendulum(jnp.array([1.0, 2.0, 0.5]), jnp.array([1.0, 0.7, 1.3]))
+        kw = dict(saveat=diffrax.SaveAt(ts=jnp.linspace(0.0, 1.0, 4)))
+        clean = sm.simulate_batch(chain, (q0, v0), 1.0, throw=False, **kw)
+        bad = (q0.at[3, 0, 0].set(jnp.nan), v0.at[4].add(0.5 * q0[4]))
+        sol = sm.simulate_batch(chain, bad, 1.0, throw=False, **kw)
+        codes = np.asarray(sol.result == sm.RESULTS.invalid_initial)
+        assert codes.tolist() == [False] * 3 + [True, True, False], codes
+        ok = np.asarray(sol.result == sm.RESULTS.successful)
+        assert ok.tolist() == [True] * 3 + [False, False, True], ok
+        for a, b in zip(sol.ys, clean.ys):
+            a, b = np.asarray(a), np.asarray(b)
+            np.testing.assert_array_equal(a[[0, 1, 2, 5]], b[[0, 1, 2, 5]])
+            assert np.all(np.isinf(a[3:5]))
+        assert np.asarray(sol.stats["num_steps"])[3:5].tolist() == [0, 0]
+        with pytest.raises(ValueError, match=r"^simulate_batch: 2 of 6 initial states are "
+                           r"invalid \(indices 3, 4\); initial state 3: q contains NaN"):
+            sm.simulate_batch(chain, bad, 1.0, **kw)
+        print("ok")
+    """)
+    if on_error == "raise":  # equinox's default: run here
+        exec(script, {})
+        return
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                         env=env, timeout=300)
+    assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-3000:]
+
+
 def test_no_recompilation_when_values_change(masses):
     kwargs = dict(batch_system=True, **FIXED)
     sm.simulate_batch(chains(masses), states(3), 1.0, **kwargs)
