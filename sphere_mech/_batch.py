@@ -13,13 +13,11 @@ from ._results import RESULTS, raise_on_failure
 from ._solve import (
     DEFAULT_MAX_STEPS,
     as_array,
-    as_arrays,
     initial_states,
-    options,
+    prepare,
     rows,
     solve,
     state_dtype,
-    times,
 )
 from ._system import AbstractSystem
 
@@ -177,10 +175,9 @@ def simulate_batch(
         _leading(args, size, "args")
     if batch_system:
         _leading(eqx.filter(system, eqx.is_array), size, "system")
-    system, args = as_arrays((system, args))
-    opts = options(solver, dt0, rtol, atol, stepsize_controller, saveat, max_steps, adjoint,
-                   progress, event, dtype, batched=True)
-    t0, t1, dt0 = times(dtype, t0, t1, dt0)  # values, not structure
+    system, args, opts, t0, t1, dt0 = prepare(
+        system, args, dtype, t0, t1, dt0, solver, rtol, atol, stepsize_controller, saveat,
+        max_steps, adjoint, progress, event, batched=True)
     dynamic, static = eqx.partition((system, args, t0, t1, dt0, opts), eqx.is_array)
     mask = jax.tree.map(lambda _: False, dynamic)
     mask = (batch_system, batch_args) + mask[2:]  # prefixes: all of system / args or none

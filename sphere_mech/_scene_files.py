@@ -35,11 +35,13 @@ from ._scene.kinetic import Base, Chain, Particles, SharedSphere
 from ._scene.potentials import Bending, Gravity, PairInteraction, Spring
 from ._scene.scene import Scene
 from ._simulate import simulate
-from ._solve import options
-from ._solvers.liegroup import LieRK, LieRK4
-from ._solvers.projected import Projected
-from ._solvers.rk4 import RK4
-from ._solvers.variational import Variational
+from ._solve import OptionError, check_values, options
+from ._solvers.names import (  # noqa: F401 (DIFFRAX_SOLVERS, PLAIN_SOLVERS: the file format)
+    DIFFRAX_SOLVERS,
+    MAX_SOLVER_LENGTH,
+    PLAIN_SOLVERS,
+    parse_solver,
+)
 
 
 class SceneFileError(ValueError):
@@ -251,51 +253,9 @@ def _spheres_initial(path, table, n: int):
     return jnp.asarray(q / np.linalg.norm(q, axis=-1, keepdims=True)), jnp.asarray(qdot)
 
 
-DIFFRAX_SOLVERS = ("Euler", "Heun", "Midpoint", "Ralston", "Bosh3", "Tsit5", "Dopri5",
-                   "Dopri8", "ImplicitEuler", "Kvaerno3", "Kvaerno4", "Kvaerno5")
-"""diffrax's ODE solvers a file may name (bare: unprojected, as in Python)."""
-PLAIN_SOLVERS = {"RK4": RK4, "LieRK4": LieRK4} | {n: getattr(diffrax, n) for n in DIFFRAX_SOLVERS}
-
-
-MAX_SOLVER_LENGTH = 200
-"""The longest solver a file may spell (`Projected(...)` nests)."""
 MAX_SAVED = 10**8
 """The most numbers a run may save: save points x the numbers of a state (`q` and
 `qdot`), 800 MB in float64."""
-
-
-def parse_solver(text: str) -> diffrax.AbstractSolver:
-    """A solver spelled as in Python, `"Projected(Tsit5)"` -> `Projected(diffrax.Tsit5())`,
-    parsed over a whitelist (never evaluated). Raises `ValueError` for anything else,
-    and for more than `MAX_SOLVER_LENGTH` characters."""
-    if len(text) > MAX_SOLVER_LENGTH:
-        raise ValueError(f"solver must be at most {MAX_SOLVER_LENGTH} characters (got "
-                         f"{len(text)}: {_show(text)})")
-    match = re.fullmatch(r"\s*(\w+)\s*(?:\((.*)\))?\s*", text)
-    name, inner = match.groups("") if match else ("", "")
-    order = re.fullmatch(r"\s*(?:order\s*=\s*(\d+)\s*)?", inner)
-    if name == "Projected" and inner:
-        return Projected(parse_solver(inner))
-    if name == "LieRK" and inner:
-        solver, *options = inner.split(",")
-        return LieRK(parse_solver(solver), **dict(map(_lie_option, options)))
-    if name == "Variational" and order:
-        return Variational(order=int(order[1] or 2))
-    if name in PLAIN_SOLVERS and not inner.strip():
-        return PLAIN_SOLVERS[name]()
-    raise ValueError(f"a solver spelled as in Python: Projected(<solver>), "
-                     f"LieRK(<solver>[, action='SE3'|'SO3xR3'][, error='state'|'algebra']), "
-                     f"RK4, LieRK4, Variational, Variational(order=4) or a diffrax ODE solver "
-                     f"({', '.join(DIFFRAX_SOLVERS)}); got {text!r}")
-
-
-def _lie_option(text: str) -> tuple[str, str]:
-    """`action='SE3'` -> `("action", "SE3")`: a keyword argument of `LieRK` in a file."""
-    match = re.fullmatch(r"""\s*(action|error)\s*=\s*(['"])(\w+)\2\s*""", text)
-    if match is None:
-        raise ValueError(f"LieRK's options are action='SE3'|'SO3xR3' and "
-                         f"error='state'|'algebra'; got {text.strip()!r}")
-    return match[1], match[3]
 
 
 SIMULATE = {"solver": "a solver name", "t0": "a time in s", "t1": "a time in s after t0",
@@ -354,15 +314,19 @@ def _simulate_args(path, data, t1=None) -> dict:
     defaults = inspect.signature(simulate).parameters
     out = {k: table.get(k, defaults[k].default) for k in SIMULATE if k != "t1"}
     out |= {"t1": table["t1"], "solver_name": table.get("solver", "Projected(Tsit5)")}
-    positive = lambda x: x is None or (_number(x) and x > 0)
-    checks = {"t0": _number, "t1": lambda x: _number(x) and x > out["t0"], "dt0": positive,
-              "rtol": positive, "atol": positive, "max_steps": lambda x: _integer(x) and x >= 1,
+    number = lambda x: x is None or _number(x)
+    checks = {"t0": _number, "t1": lambda x: _number(x) and x > out["t0"], "dt0": number,
+              "rtol": number, "atol": number, "max_steps": _integer,
               "solver_name": lambda x: isinstance(x, str)}
     for key, ok in checks.items():
         if not ok(out[key]):
             field = key.removesuffix("_name")
             raise SceneFileError(path, f"simulate.{field}", f"expected {SIMULATE[field]}, got "
                                  f"{_show(out[key])}")
+    try:  # the values simulate would refuse, with its words
+        check_values(*(out[k] for k in ("t0", "t1", "dt0", "rtol", "atol", "max_steps")))
+    except OptionError as e:
+        raise SceneFileError(path, f"simulate.{e.field}", str(e)) from None
     try:
         out["solver"] = parse_solver(out["solver_name"])
     except ValueError as e:

@@ -4,15 +4,7 @@ import diffrax
 import equinox as eqx
 
 from ._results import raise_on_failure
-from ._solve import (
-    DEFAULT_MAX_STEPS,
-    as_arrays,
-    initial_state,
-    options,
-    solve,
-    state_dtype,
-    times,
-)
+from ._solve import DEFAULT_MAX_STEPS, initial_state, prepare, solve, state_dtype
 from ._system import AbstractSystem
 
 _solve = eqx.filter_jit(solve)
@@ -92,13 +84,11 @@ def simulate(
     space) with a leading time axis
     and whose `result` is an `sm.RESULTS` code.
     """
-    system, args = as_arrays((system, args))
     if system.n is not None:
         system.check_size(y0[0])
     y0 = initial_state(system.space, system.state_name, y0)
-    dtype = state_dtype(y0)
-    opts = options(solver, dt0, rtol, atol, stepsize_controller, saveat, max_steps, adjoint,
-                   progress, event, dtype)
-    t0, t1, dt0 = times(dtype, t0, t1, dt0)
+    system, args, opts, t0, t1, dt0 = prepare(
+        system, args, state_dtype(y0), t0, t1, dt0, solver, rtol, atol, stepsize_controller,
+        saveat, max_steps, adjoint, progress, event)
     sol = _solve(system, y0, t0, t1, dt0, args, opts)
     return raise_on_failure(sol, max_steps, "simulate") if throw else sol

@@ -1,6 +1,8 @@
 """The one solve core: `simulate` and `simulate_batch` both run `solve`, with the same
 options, the same result codes and the same errors."""
 
+import math
+
 import diffrax
 import equinox as eqx
 import jax
@@ -9,6 +11,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from ._results import RESULTS, describe_failures
+from ._solvers.names import as_solver
 from ._solvers.projected import Projected
 from ._term import MechanicsTerm
 
@@ -56,8 +59,8 @@ class Options(eqx.Module):
 def options(solver, dt0, rtol, atol, stepsize_controller, saveat, max_steps, adjoint,
             progress, event, dtype, batched=False) -> Options:
     """Check and complete the options of `simulate` (`batched=False`) or
-    `simulate_batch` (`batched=True`) (static errors)."""
-    solver = default_solver() if solver is None else solver
+    `simulate_batch` (`batched=True`) (static errors; values: `check_values`)."""
+    solver = default_solver() if solver is None else as_solver(solver)
     if stepsize_controller is not None:
         if rtol is not None or atol is not None:
             raise ValueError("Give rtol/atol either to simulate or to stepsize_controller, "
@@ -92,6 +95,63 @@ def options(solver, dt0, rtol, atol, stepsize_controller, saveat, max_steps, adj
         diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter(), event,
         max_steps, batched,
     )
+
+
+class OptionError(ValueError):
+    """A bad value of an option of `simulate`, `simulate_batch`, `fit` or a scene file:
+    `"<field> must be ... (got <value>)"`; `field` names the option (scene files prefix
+    it with `simulate.`)."""
+
+    def __init__(self, field: str, message: str):
+        self.field = field
+        super().__init__(message)
+
+
+def _concrete(x) -> float | None:
+    """A concrete scalar as a float; `None` for `None`, a traced value or an array of
+    another shape (left to diffrax)."""
+    if x is None or isinstance(x, jax.core.Tracer) or np.ndim(x) != 0:
+        return None
+    return float(x)
+
+
+def check_values(t0, t1, dt0, rtol, atol, max_steps) -> None:
+    """The one check of the values of the options of `simulate`, `simulate_batch`, `fit`
+    and scene files, where they are concrete (traced values pass): finite times, a
+    finite nonzero `dt0` with the sign of `t1 - t0` (the direction of integration),
+    finite `rtol`, `atol` > 0, an integer `max_steps` >= 1 (or `None`). Raises an
+    `OptionError` (a `ValueError`) `"<name> must be ... (got <value>)"`."""
+    t0, t1, dt0, rtol, atol = map(_concrete, (t0, t1, dt0, rtol, atol))
+    for name, t in (("t0", t0), ("t1", t1)):
+        if t is not None and not math.isfinite(t):
+            raise OptionError(name, f"{name} must be a finite time (got {t:g})")
+    if dt0 is not None:
+        if not (math.isfinite(dt0) and dt0 != 0):
+            raise OptionError("dt0", f"dt0 must be a finite, nonzero step (got {dt0:g})")
+        if t0 is not None and t1 is not None and (t1 - t0) * dt0 < 0:
+            raise OptionError("dt0", f"dt0 must have the sign of t1 - t0, the direction of "
+                              f"integration (got {dt0:g} with t0 = {t0:g}, t1 = {t1:g})")
+    for name, tol in (("rtol", rtol), ("atol", atol)):
+        if tol is not None and not (math.isfinite(tol) and tol > 0):
+            raise OptionError(name, f"{name} must be a finite number > 0 (got {tol:g})")
+    if max_steps is not None and not (isinstance(max_steps, int | np.integer)
+                                      and not isinstance(max_steps, bool) and max_steps >= 1):
+        raise OptionError("max_steps", f"max_steps must be an integer >= 1 or None (got "
+                          f"{max_steps!r})")
+
+
+def prepare(system, args, dtype, t0, t1, dt0, solver, rtol, atol, stepsize_controller,
+            saveat, max_steps, adjoint, progress, event, batched=False):
+    """The one prologue of `simulate` and `simulate_batch` after their states: check the
+    options' values (`check_values`) and complete them (`options`), Python floats among
+    the system and `args` as arrays (`as_arrays`), times in the state's dtype (`times`).
+
+    **Returns:** `(system, args, opts, t0, t1, dt0)`."""
+    check_values(t0, t1, dt0, rtol, atol, max_steps)
+    opts = options(solver, dt0, rtol, atol, stepsize_controller, saveat, max_steps, adjoint,
+                   progress, event, dtype, batched)
+    system, args = as_arrays((system, args))
+    return system, args, opts, *times(dtype, t0, t1, dt0)
 
 
 def as_arrays(tree):

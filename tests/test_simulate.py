@@ -185,3 +185,53 @@ def test_initial_state_checks():
         sm.simulate(SYSTEM, (2.0 * Q0, V0), T1, args=G)
     with pytest.raises(Exception, match="not tangent"):
         sm.simulate(SYSTEM, (Q0, V0 + Q0), T1, args=G)
+
+
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        (dict(dt0=0.0), r"^dt0 must be a finite, nonzero step \(got 0\)$"),
+        (dict(dt0=-0.01), r"^dt0 must have the sign of t1 - t0, the direction of integration "
+         r"\(got -0.01 with t0 = 0, t1 = 1\)$"),
+        (dict(rtol=-1e-8), r"^rtol must be a finite number > 0 \(got -1e-08\)$"),
+        (dict(atol=float("nan")), r"^atol must be a finite number > 0 \(got nan\)$"),
+        (dict(max_steps=0), r"^max_steps must be an integer >= 1 or None \(got 0\)$"),
+        (dict(t0=float("inf")), r"^t0 must be a finite time \(got inf\)$"),
+        (dict(solver=42), r"^solver must be a diffrax solver instance.*\(got 42\)$"),
+        (dict(solver="Tsit6"), r"^solver must be a diffrax solver or a solver spelled as in "
+         r"Python: .*got 'Tsit6'$"),
+        (dict(solver=sm.LieRK), r"^solver must be a diffrax solver instance"),
+    ],
+)
+def test_option_values_are_checked_before_tracing(options, message):
+    """The same check (and words) as scene files: a ValueError naming the option and its
+    value, before anything is traced, for simulate and simulate_batch alike."""
+    with pytest.raises(ValueError, match=message):
+        sm.simulate(SYSTEM, (Q0, V0), T1, args=G, **options)
+    with pytest.raises(ValueError, match=message):
+        sm.simulate_batch(SYSTEM, (Q0[None], V0[None]), T1, args=G, batch_args=False,
+                          **options)
+
+
+def test_solver_by_name_or_class(eager):
+    """A name (as in scene files) or a solver class resolves to an instance; a class
+    inside Projected is refused naming `solver`."""
+    ref = run((Q0, V0), solver=sm.Projected(diffrax.Tsit5()), dt0=0.01)
+    for solver in ("Projected(Tsit5)", "Tsit5", diffrax.Tsit5):
+        sol = run((Q0, V0), solver=solver, dt0=0.01)
+        unprojected = solver != "Projected(Tsit5)"
+        assert tree_allclose(sol.ys, ref.ys, rtol=0.0, atol=1e-5 if unprojected else 0.0)
+    with pytest.raises(ValueError, match=r"^Projected\(solver\): solver must be a diffrax "
+                       r"solver instance, e.g. diffrax.Tsit5\(\) \(got the class Tsit5\)$"):
+        sm.Projected(diffrax.Tsit5)
+
+
+def test_lists_and_backward_integration(eager):
+    """y0 as nested Python lists; t1 < t0 integrates backwards (and back again)."""
+    lists = (np.asarray(Q0).tolist(), np.asarray(V0).tolist())
+    sol = run(lists)
+    assert tree_allclose(sol.ys, eager.ys, rtol=0.0, atol=0.0)
+    end = (sol.ys[0][-1], sol.ys[1][-1])
+    back = sm.simulate(SYSTEM, end, 0.0, t0=T1, args=G, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(back.ys[0][-1], Q0, atol=1e-6)
+    assert float(back.ts[-1]) == 0.0

@@ -3,7 +3,7 @@ describes the method (order, terms, interpolation, root finder, `isinstance` che
 
 import abc
 
-from diffrax import AbstractWrappedSolver
+from diffrax import AbstractSolver, AbstractWrappedSolver
 
 
 class AbstractTransparentSolver(AbstractWrappedSolver):
@@ -12,6 +12,13 @@ class AbstractTransparentSolver(AbstractWrappedSolver):
     does; `isinstance` checks (adaptive, implicit) pass through to `solver` (diffrax's
     `AbstractWrappedSolver`, one level deep). Concrete wrappers say what they add in
     `init` and `step`."""
+
+    def __check_init__(self):
+        if not isinstance(self.solver, AbstractSolver):
+            what = (f"the class {self.solver.__name__}" if isinstance(self.solver, type)
+                    else repr(self.solver))
+            raise ValueError(f"{type(self).__name__}(solver): solver must be a diffrax solver "
+                             f"instance, e.g. diffrax.Tsit5() (got {what})")
 
     @property
     def term_structure(self):
