@@ -8,6 +8,7 @@ velocity or momentum when
 """
 
 import functools
+import inspect
 
 import equinox as eqx
 import jax
@@ -109,3 +110,20 @@ def check_finite(x, message: str):
     finite = functools.reduce(jnp.logical_and, [jnp.all(jnp.isfinite(a))
                                                 for a in jax.tree.leaves(x)])
     return eqx.error_if(x, ~finite, message)
+
+
+def check_function(fn, name: str, spelled: str, arity: int) -> None:
+    """Static check at construction: `fn` is a function that takes `arity` positional
+    arguments (where `inspect.signature` can read it: `functools.partial` and `*args`
+    work), else a `ValueError` naming `name` and how it is called (`spelled`)."""
+    if not callable(fn):
+        raise ValueError(f"{name} must be a function {spelled}, got {type(fn).__name__}.")
+    try:
+        signature = inspect.signature(fn)
+    except (TypeError, ValueError):  # a builtin or C function: nothing to read
+        return
+    try:
+        signature.bind(*range(arity))
+    except TypeError:
+        raise ValueError(f"{name} must be a function {spelled} ({arity} arguments), got "
+                         f"one with signature {signature}.") from None

@@ -8,6 +8,7 @@ from typing import ClassVar
 import equinox as eqx
 import jax
 
+from ._checks import check_function
 from ._custom_types import ForceFn
 from ._spaces import AbstractSpace, Spheres, as_space, tree_add, tree_sub
 from ._system import AbstractHamiltonianSystem
@@ -35,6 +36,9 @@ class Hamiltonian(AbstractHamiltonianSystem):
     space: AbstractSpace = eqx.field(default_factory=Spheres, converter=as_space)
     state_name: ClassVar[str] = "mu"
     angular: ClassVar[bool] = False
+
+    def __check_init__(self):
+        check_function(self.H, "H", "H(t, q, mu, args)", 4)
 
     def rates(self, t, y, args):
         q, mu = y
@@ -66,6 +70,9 @@ class AngularHamiltonian(AbstractHamiltonianSystem):
     space: AbstractSpace = eqx.field(default_factory=Spheres, converter=as_space)
     state_name: ClassVar[str] = "pi"
     angular: ClassVar[bool] = True
+
+    def __check_init__(self):
+        check_function(self.H, "H", "H(t, q, pi, args)", 4)
 
     def rates(self, t, y, args):
         q, pi = y

@@ -23,9 +23,10 @@ from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from diffrax import RESULTS
 
-from ._checks import check_scalar
+from ._checks import check_function, check_scalar
 from ._custom_types import Args, ForceFn, Points, Scalar
 from ._geometry import normalize
 from ._linalg import spd_solve, tridiagonal_matvec, tridiagonal_spd_solve
@@ -275,6 +276,15 @@ class ConstantInertiaLagrangian(AbstractConstantInertiaLagrangian):
             shape = jnp.shape(self.inertia_matrix)
             if len(shape) != 2 or shape[0] != shape[1]:
                 raise ValueError(f"inertia must be a square (n, n) matrix, got shape {shape}.")
+            if not isinstance(self.inertia_matrix, jax.core.Tracer):  # concrete: check now
+                M = np.asarray(self.inertia_matrix, dtype=float)
+                smallest = np.linalg.eigvalsh(M)[0] if np.all(np.isfinite(M)) else np.nan
+                if not (np.max(np.abs(M - M.T)) <= 1e-10 * np.max(np.abs(M)) and smallest > 0):
+                    raise ValueError(f"inertia must be a symmetric positive-definite matrix "
+                                     f"(got smallest eigenvalue {smallest:g} of {M.tolist()}).")
+        else:
+            check_function(self.inertia_matrix, "inertia", "inertia(args)", 1)
+        check_function(self.potential_fn, "potential", "U(t, q, args)", 3)
 
     @property
     def n(self) -> int | None:

@@ -8,10 +8,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._checks import check_finite, check_scalar
+from ._checks import check_function, check_scalar
 from ._custom_types import Args, ForceFn, Points, Tangents
 from ._spaces import AbstractSpace, Spheres, as_space, tree_add, tree_scale, tree_sub
-from ._system import SINGULAR_MESSAGE, AbstractLagrangianSystem, as_time
+from ._system import SINGULAR_MESSAGE, AbstractLagrangianSystem, as_time, check_rates
 
 
 def _lagrangian_terms(L, t, q, v, args, direction):
@@ -69,6 +69,9 @@ class Lagrangian(AbstractLagrangianSystem):
     state_name: ClassVar[str] = "qdot"
     angular: ClassVar[bool] = False
 
+    def __check_init__(self):
+        check_function(self.L, "L", "L(t, q, qdot, args)", 4)
+
     def lagrangian(self, t, q, qdot, args):
         return self.L(t, q, qdot, args)
 
@@ -104,6 +107,9 @@ class AngularLagrangian(AbstractLagrangianSystem):
     state_name: ClassVar[str] = "omega"
     angular: ClassVar[bool] = True
 
+    def __check_init__(self):
+        check_function(self.L, "L", "L(t, q, omega, args)", 4)
+
     def lagrangian(self, t, q, omega, args):
         return self.L(t, q, omega, args)
 
@@ -130,4 +136,4 @@ class AngularLagrangian(AbstractLagrangianSystem):
         **Returns:** `omegadot`, `(n, 3)`.
         """
         q, omega = self.check_state(q, omega)
-        return check_finite(self._vdot(t, q, omega, args), SINGULAR_MESSAGE)
+        return check_rates(self._vdot(t, q, omega, args), SINGULAR_MESSAGE, self, args)

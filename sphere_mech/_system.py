@@ -8,7 +8,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._checks import check_finite, check_scalar
+from ._checks import check_scalar
 from ._custom_types import Args, ForceFn, Points, Scalar, State, Tangents
 from ._momentum import invert_momentum, newton_tolerance
 from ._spaces import AbstractSpace, tree_dtype, tree_vdot, tree_zeros_like
@@ -17,6 +17,24 @@ SINGULAR_MESSAGE = (
     "the reduced mass matrix T^T (d^2 L / d v^2) T is singular or not finite: the "
     "Lagrangian is degenerate at this state (for example a zero mass or length)"
 )
+
+
+NONFINITE_PARAMETERS = (
+    "the equations of motion are not finite and args or the system's parameters contain "
+    "NaN or infinite values"
+)
+
+
+def check_rates(x, message: str, system, args):
+    """Error (at run time) when the rates `x` are not finite: blaming NaN or infinite
+    array leaves of `args` or of `system` when there are any, else `message` (a singular
+    mass matrix, a degenerate Hamiltonian)."""
+    finite = lambda tree: jnp.all(jnp.stack([jnp.all(jnp.isfinite(jnp.asarray(a)))
+                                             for a in jax.tree.leaves(tree)] or [True]))
+    inexact = lambda x: eqx.is_inexact_array(x) or isinstance(x, float | complex)
+    params = eqx.filter((system, args), inexact)
+    return eqx.branched_error_if(x, ~finite(x), jnp.where(finite(params), 1, 0),
+                                 [NONFINITE_PARAMETERS, message])
 
 
 def as_time(t, like: jax.Array) -> jax.Array:
@@ -220,7 +238,7 @@ class AbstractLagrangianSystem(AbstractSystem):
         """
         q, v = self.check_state(q, v)
         qddot = jax.jvp(self.to_linear, (q, v), self.rates(t, (q, v), args))[1]
-        return check_finite(qddot, SINGULAR_MESSAGE)
+        return check_rates(qddot, SINGULAR_MESSAGE, self, args)
 
     def velocity(self, t, q, v, args=None):
         return self.to_linear(q, v)
@@ -341,4 +359,4 @@ class AbstractHamiltonianSystem(AbstractSystem):
             "transform is not invertible at this state, e.g. a zero mass or a sphere "
             "without kinetic energy; or NaN parameters)"
         )
-        return check_finite(qdot, message), check_finite(pdot, message)
+        return check_rates((qdot, pdot), message, self, args)

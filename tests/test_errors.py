@@ -150,16 +150,20 @@ def test_nan_hamiltonian(state):
     [([1.0, 0.0], [1.0, 1.0]), ([0.0, 1.0], [1.0, 1.0]), ([1.0, 1.0], [1.0, 0.0])],
 )
 def test_degenerate_chain(masses, lengths, state):
-    """Refused at construction; the same chain as a constant-inertia system is singular
-    at run time, with a message that says so."""
+    """Refused at construction (as a chain and as a constant-inertia system); built from
+    traced values, singular at run time, with a message that says so."""
     q, v = state
     with pytest.raises(ValueError, match=r"(masses|lengths) must be > 0"):
         sm.chain_pendulum(jnp.array(masses), jnp.array(lengths))
     m, lengths = jnp.array(masses), jnp.array(lengths)
     M = jnp.outer(lengths, lengths) * jnp.cumsum(m[::-1])[::-1][jnp.maximum(*jnp.indices((2, 2)))]
-    fast = sm.ConstantInertiaLagrangian(M, lambda t, q, args: -9.81 * q[0, 2])
+    potential = lambda t, q, args: -9.81 * q[0, 2]
+    with pytest.raises(ValueError, match="inertia must be a symmetric positive-definite"):
+        sm.ConstantInertiaLagrangian(M, potential)
+    # Built from traced values (not checked then), it is singular at run time.
+    fast = lambda M: sm.ConstantInertiaLagrangian(M, potential).acceleration(0.0, q, v)
     with pytest.raises(eqx.EquinoxRuntimeError, match=SINGULAR):
-        fast.acceleration(0.0, q, v)
+        eqx.filter_jit(fast)(M)
 
 
 def test_chain_constructor():
@@ -195,3 +199,39 @@ def test_errors_through_simulate(state):
         sm.simulate(degenerate, (q, v), 1.0)
     sol = sm.simulate(degenerate, (q, v), 1.0, throw=False)  # a run-time failure: a code
     assert sol.result == sm.RESULTS.nonfinite_initial
+
+
+def test_functions_and_inertia_checked_at_construction():
+    """A system where L is expected, an L or H of the wrong arity, a negative inertia:
+    refused when the system is built, naming the argument; partials and *args pass."""
+    import functools
+
+    hamiltonian = sm.Hamiltonian(lambda t, q, mu, args: 0.5 * jnp.sum(mu**2))
+    with pytest.raises(ValueError, match=r"^L must be a function L\(t, q, qdot, args\), got "
+                       r"Hamiltonian\.$"):
+        sm.Lagrangian(hamiltonian)
+    with pytest.raises(ValueError, match=r"^L must be a function L\(t, q, qdot, args\) \(4 "
+                       r"arguments\), got one with signature \(t, q, qdot\)\.$"):
+        sm.Lagrangian(lambda t, q, qdot: 0.0)
+    with pytest.raises(ValueError, match=r"^H must be a function H\(t, q, pi, args\)"):
+        sm.AngularHamiltonian(lambda q, pi: 0.0)
+    with pytest.raises(ValueError, match=r"^inertia must be a symmetric positive-definite "
+                       r"matrix \(got smallest eigenvalue -1"):
+        sm.ConstantInertiaLagrangian(-jnp.eye(2), lambda t, q, args: 0.0)
+    with pytest.raises(ValueError, match=r"^potential must be a function U\(t, q, args\)"):
+        sm.ConstantInertiaLagrangian(jnp.eye(2), lambda t, q: 0.0)
+    sm.Lagrangian(functools.partial(lambda t, q, qdot, args, k: k, k=1.0))
+    sm.Lagrangian(lambda *a: 0.0)
+    # Traced inertia (e.g. under vmap) is left to the run-time checks.
+    eqx.filter_vmap(lambda m: sm.ConstantInertiaLagrangian(m, lambda t, q, a: 0.0))(
+        jnp.stack([jnp.eye(2), -jnp.eye(2)]))
+
+
+def test_nan_parameter_is_named_not_the_mass_matrix(state):
+    q, v = state
+    system = sm.Lagrangian(lambda t, q, qdot, g: 0.5 * jnp.sum(qdot**2) - g * jnp.sum(q[:, 2]))
+    with pytest.raises(eqx.EquinoxRuntimeError, match="args or the system's parameters "
+                       "contain NaN or infinite values"):
+        system.acceleration(0.0, q, v, jnp.asarray(jnp.nan))
+    with pytest.raises(eqx.EquinoxRuntimeError, match="args or the system's parameters"):
+        sm.Hamiltonian(lambda t, q, mu, g: g * jnp.sum(mu**2)).vector_field(0.0, q, v, jnp.inf)
