@@ -17,6 +17,13 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "mass matrix (degenerate Lagrangian, e.g. a zero mass or length), a Legendre "
         "transform that is not invertible there (sm.legendre), or NaN parameters."
     )
+    event_root_failed = (
+        "The root finder of `event` did not converge while locating the event (on the "
+        "dense output of the step where its condition changed sign): give "
+        "diffrax.Event(root_finder=...) looser tolerances, or make the condition function "
+        "smooth near its zero (a sign or a cube root defeats Newton's method); without a "
+        "root finder the run stops at the end of that step."
+    )
     invalid_initial = (
         "The initial state is invalid: q0 or v0 contains NaN or infinite values, q0 is "
         "off the spheres or v0 not tangent to them (beyond sm.unit_tolerance). With "
@@ -58,7 +65,8 @@ def _messages(max_steps) -> list[str]:
     hints = {int(code(item)): hint for item, hint in _HINTS}
     item = jax.tree.structure(RESULTS.successful)
     items = [jax.tree.unflatten(item, [np.asarray(i, np.int32)]) for i in range(len(RESULTS))]
-    return [f"{RESULTS[item]}{hints.get(i, '')} (max_steps={max_steps}; with throw=False "
+    limit = {int(code(RESULTS.max_steps_reached)): f"max_steps={max_steps}; "}
+    return [f"{RESULTS[item]}{hints.get(i, '')} ({limit.get(i, '')}with throw=False "
             "nothing is raised and sol.result holds the code)" for i, item in enumerate(items)]
 
 

@@ -38,15 +38,18 @@ def simulate(
       `system.space`, one array per factor); `v0` is the system's second state variable.
       A state within `unit_tolerance(dtype)` of the tangent bundle is normalized;
       farther ones raise.
-    - `t1`, `t0`: end and start times (any floats or scalar arrays; changing their values
-      does not recompile).
+    - `t1`, `t0`: end and start times (any finite floats or scalar arrays; changing their
+      values does not recompile). `t1 < t0` integrates backwards.
     - `args`: passed to the system's functions. Python floats in `args` and in the
       system's fields become arrays, so new values do not recompile.
-    - `solver`: any diffrax solver; default `Projected(diffrax.Tsit5())`. Solvers that do
+    - `solver`: any diffrax solver; default `Projected(diffrax.Tsit5())`. Also a solver
+      class that needs no arguments (`diffrax.Tsit5`) or a name as scene files spell it
+      (`"Tsit5"`, `"Projected(Dopri8)"`). Solvers that do
       not keep `|q_i| = 1` themselves should be wrapped in `Projected`; `LieRK(...)`,
       `LieRK4()` and `Variational()` keep it by construction.
-    - `dt0`: initial (adaptive) or fixed step size; required for fixed-step solvers.
-    - `rtol`, `atol`: tolerances of the default `diffrax.PIDController`; defaults
+    - `dt0`: initial (adaptive) or fixed step size, nonzero with the sign of `t1 - t0`;
+      required for fixed-step solvers.
+    - `rtol`, `atol`: tolerances (> 0) of the default `diffrax.PIDController`; defaults
       `1e-8, 1e-10` in float64 and `1e-5, 1e-6` in float32.
     - `stepsize_controller`: any diffrax controller instead (e.g.
       `diffrax.ConstantStepSize()` with `dt0`); fixed-step solvers (`RK4`,
@@ -78,7 +81,8 @@ def simulate(
       message). `False`: never raise for such a failure; `sol.result` holds the
       `sm.RESULTS` code and `sol.ys` the trajectory up to the failure (later
       `SaveAt(ts=...)` entries are `inf`). Invalid input (shapes, a `q0` off the
-      spheres, bad options) raises in both cases.
+      spheres, bad options) raises in both cases: a `ValueError` naming the argument
+      before anything is traced when its value is concrete.
 
     **Returns:** a `diffrax.Solution` whose `ys` is `(q, v)` (dicts of arrays on a mixed
     space) with a leading time axis

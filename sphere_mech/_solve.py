@@ -1,6 +1,7 @@
 """The one solve core: `simulate` and `simulate_batch` both run `solve`, with the same
 options, the same result codes and the same errors."""
 
+import functools
 import math
 
 import diffrax
@@ -362,6 +363,12 @@ def solve_with(adjoint, system, y0, t0, t1, dt0, args, opts: Options) -> diffrax
     # Unreached save times are `inf` in diffrax, never NaN: only NaN is looked for.
     has_nan = jnp.any(jnp.stack([jnp.any(jnp.isnan(y)) for y in jax.tree.leaves(sol.ys)]))
     result = RESULTS.promote(sol.result)
+    if opts.event is not None and not isinstance(opts.solver, diffrax.AbstractImplicitSolver):
+        # An explicit solver solves nothing: a nonlinear failure is the event's root finder.
+        root = [RESULTS.nonlinear_max_steps_reached, RESULTS.nonlinear_divergence,
+                RESULTS.singular]
+        failed_root = functools.reduce(jnp.logical_or, [result == r for r in root])
+        result = RESULTS.where(failed_root, RESULTS.event_root_failed, result)
     result = RESULTS.where((result == RESULTS.successful) & has_nan, RESULTS.nonfinite, result)
     result = RESULTS.where(ok, result, RESULTS.nonfinite_initial)
     ts, ys = jax.tree.map(lambda x: jnp.where(ok, x, jnp.inf),

@@ -87,3 +87,17 @@ def test_wrong_number_of_spheres_names_both_sizes(getkey):
     fast = sm.ConstantInertiaLagrangian(jnp.eye(2), lambda t, q, args: jnp.sum(q[:, 2]))
     with pytest.raises(ValueError, match=message):
         sm.simulate(fast, (q, v), 1.0)
+
+
+def test_root_finder_failure_is_named():
+    """An event whose root finder cannot converge (a cube root defeats Newton) gets its
+    own code and message, not the implicit step's, and no max_steps in it."""
+    q0 = jnp.array([[jnp.sin(0.5), 0.0, -jnp.cos(0.5)]])
+    cross = diffrax.Event(lambda t, y, args, **kw: jnp.cbrt(y[0][0, 0]),
+                          root_finder=optx.Newton(rtol=1e-13, atol=1e-13))
+    system = sm.chain_pendulum([1.0], [0.7])
+    sol = sm.simulate(system, (q0, jnp.zeros_like(q0)), 10.0, event=cross, throw=False)
+    assert bool(sol.result == sm.RESULTS.event_root_failed)
+    with pytest.raises(RuntimeError, match=r"^simulate: The root finder of `event` did not "
+                       r"converge.* \(with throw=False nothing is raised"):
+        sm.simulate(system, (q0, jnp.zeros_like(q0)), 10.0, event=cross)
