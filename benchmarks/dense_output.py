@@ -44,15 +44,24 @@ def reference():
         q, qd = y[:3], y[3:]
         return np.concatenate([qd, -(G / LENGTH) * (ez - q[2] * q) - (qd @ qd) * q])
 
-    sol = solve_ivp(rhs, (0.0, T1), np.concatenate(initial_state()), method="DOP853",
-                    rtol=1e-14, atol=1e-14, max_step=1e-3, dense_output=True)
+    sol = solve_ivp(
+        rhs,
+        (0.0, T1),
+        np.concatenate(initial_state()),
+        method="DOP853",
+        rtol=1e-14,
+        atol=1e-14,
+        max_step=1e-3,
+        dense_output=True,
+    )
     return lambda t: sol.sol(t).T
 
 
 def errors(solver, tol, ref):
     q0, v0 = (jnp.asarray(x)[None] for x in initial_state())
-    run = lambda saveat: sm.simulate(PENDULUM, (q0, v0), T1, solver=solver, rtol=tol,
-                                     atol=tol, saveat=saveat, max_steps=100_000)
+    run = lambda saveat: sm.simulate(
+        PENDULUM, (q0, v0), T1, solver=solver, rtol=tol, atol=tol, saveat=saveat, max_steps=100_000
+    )
     out = []
     for sol in (run(diffrax.SaveAt(steps=True)), run(diffrax.SaveAt(ts=jnp.asarray(TS)))):
         ts = np.asarray(sol.ts)
@@ -66,10 +75,14 @@ def errors(solver, tol, ref):
 
 def event_time(solver, tol=1e-8):
     q = jnp.array([[np.sin(1.0), 0.0, -np.cos(1.0)]])
-    event = diffrax.Event(lambda t, y, args, **kw: y[0][0, 0],
-                          root_finder=optx.Newton(rtol=1e-13, atol=1e-13), direction=False)
-    sol = sm.simulate(PENDULUM, (q, jnp.zeros_like(q)), 10.0, solver=solver, rtol=tol,
-                      atol=tol, event=event)
+    event = diffrax.Event(
+        lambda t, y, args, **kw: y[0][0, 0],
+        root_finder=optx.Newton(rtol=1e-13, atol=1e-13),
+        direction=False,
+    )
+    sol = sm.simulate(
+        PENDULUM, (q, jnp.zeros_like(q)), 10.0, solver=solver, rtol=tol, atol=tol, event=event
+    )
     return float(sol.ts[-1])
 
 
@@ -77,16 +90,24 @@ def main():
     ref = reference()
     print("| solver | tol | max error at steps | max error at SaveAt(ts) | ratio |")
     print("|---|---|---|---|---|")
-    for name, inner in (("Dopri5", diffrax.Dopri5()), ("Tsit5", diffrax.Tsit5()),
-                        ("Dopri8", diffrax.Dopri8())):
+    for name, inner in (
+        ("Dopri5", diffrax.Dopri5()),
+        ("Tsit5", diffrax.Tsit5()),
+        ("Dopri8", diffrax.Dopri8()),
+    ):
         for tol in (1e-6, 1e-9, 1e-12):
             at_steps, at_ts, _, _ = errors(sm.LieRK(inner), tol, ref)
-            print(f"| LieRK({name}) | {tol:.0e} | {at_steps:.1e} | {at_ts:.1e} | "
-                  f"{at_ts / at_steps:.1f} |", flush=True)
+            print(
+                f"| LieRK({name}) | {tol:.0e} | {at_steps:.1e} | {at_ts:.1e} | "
+                f"{at_ts / at_steps:.1f} |",
+                flush=True,
+            )
     exact = np.sqrt(LENGTH / G) * ellipk(np.sin(0.5) ** 2)
     print(f"\nevent at tol 1e-8, exact time {exact:.12f} s:")
-    for name, solver in (("LieRK(Dopri8)", sm.LieRK(diffrax.Dopri8())),
-                         ("Projected(Dopri8)", sm.Projected(diffrax.Dopri8()))):
+    for name, solver in (
+        ("LieRK(Dopri8)", sm.LieRK(diffrax.Dopri8())),
+        ("Projected(Dopri8)", sm.Projected(diffrax.Dopri8())),
+    ):
         t = event_time(solver)
         print(f"  {name}: {t:.12f} s, off by {t - exact:.1e} s")
 
