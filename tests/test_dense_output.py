@@ -91,14 +91,21 @@ CHAIN_Y0 = sm.random_state(jax.random.PRNGKey(3), 2, speed=1.0)
 
 @pytest.mark.parametrize("action", ["SE3", "SO3xR3"])
 @pytest.mark.parametrize(
-    "system, y0", [(CHAIN, CHAIN_Y0), (CART, CART_Y0)], ids=["spheres", "mixed"]
+    "system, y0, inner",
+    [
+        (CHAIN, CHAIN_Y0, diffrax.Tsit5()),
+        (CART, CART_Y0, diffrax.Tsit5()),
+        (CHAIN, CHAIN_Y0, diffrax.Heun()),
+    ],
+    ids=["spheres", "mixed", "spheres-Heun"],
 )
-def test_dense_points_on_tangent_bundle_and_continuous(system, y0, action):
+def test_dense_points_on_tangent_bundle_and_continuous(system, y0, inner, action):
     """Straight from `diffrax.diffeqsolve` (no retraction by `simulate`): every dense
     point has `|q_i| = 1` and `q_i . v_i = 0` to rounding, and the dense output equals
     the steps' end points at the steps (from the left and from the right). A loose
-    tolerance, so the steps are long."""
-    solver = sm.LieRK(diffrax.Tsit5(), action=action)
+    tolerance, so the steps are long. Heun (not first-same-as-last) takes the cubic
+    Hermite in the algebra."""
+    solver = sm.LieRK(inner, action=action)
     sol = diffrax.diffeqsolve(
         sm.MechanicsTerm(system),
         solver,
