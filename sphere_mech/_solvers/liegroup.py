@@ -1,7 +1,7 @@
 """Runge-Kutta-Munthe-Kaas methods over any explicit diffrax tableau, on T(S^2)^n."""
 
 from collections.abc import Callable
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax.lax as lax
@@ -12,10 +12,12 @@ from diffrax import (
     RESULTS,
     AbstractAdaptiveSolver,
     AbstractERK,
+    AbstractLocalInterpolation,
     AbstractTerm,
     ThirdOrderHermitePolynomialInterpolation,
 )
 
+from .._spaces import tree_sub
 from .._term import space_of, system_of
 from .lie_actions import AbstractLieAction
 from .rk4 import RK4
@@ -39,8 +41,38 @@ def _combine(coeffs, ks):
     return jtu.tree_map(lambda K: jnp.tensordot(coeffs, K, axes=1), ks)
 
 
-def _minus(a, b):
-    return jtu.tree_map(lambda x, y: x - y, a, b)
+class LieInterpolation(AbstractLocalInterpolation):
+    r"""`LieRK`'s dense output on one step: $y(t) = \exp(\sigma(t)) \cdot y_0$, finished
+    as the step's end point is, where $\sigma(t)$ is a dense output of the step's
+    algebra increment (`sigma`, a diffrax local interpolation of Lie-algebra elements
+    with $\sigma(t_0) = 0$ and $\sigma(t_1) = \sum_i b_i k_i$). The points are moved by
+    the group, so they lie on the spheres (and, with `"SE3"` or after `finish`, in the
+    tangent planes) to rounding."""
+
+    t0: Any
+    t1: Any
+    y0: Any
+    sigma: AbstractLocalInterpolation
+    group: AbstractLieAction
+
+    def evaluate(self, t0, t1=None, left=True):
+        del left
+        if t1 is not None:
+            return tree_sub(self.evaluate(t1), self.evaluate(t0))
+        return self.group.finish(self.group.act(self.sigma.evaluate(t0), self.y0))
+
+
+class _LieInterpolationCls(eqx.Module):
+    """`LieRK.interpolation_cls`: builds a `LieInterpolation` from a step's `dense_info`
+    with the algebra interpolation `algebra` (compared by value, so that diffrax's
+    `DenseInterpolation`, which keeps it as a static field, hashes and compares stably)."""
+
+    algebra: Callable[..., AbstractLocalInterpolation] = eqx.field(static=True)
+
+    def __call__(self, *, t0, t1, y0, u, k, group):
+        zero = jtu.tree_map(jnp.zeros_like, u)
+        sigma = self.algebra(t0=t0, t1=t1, y0=zero, y1=u, k=k)
+        return LieInterpolation(t0=t0, t1=t1, y0=y0, sigma=sigma, group=group)
 
 
 class LieRK(AbstractAdaptiveSolver):
@@ -68,8 +100,22 @@ class LieRK(AbstractAdaptiveSolver):
     of the next: for first-same-as-last tableaus (Bosh3, Dopri5, Tsit5, Dopri8, and
     RK4's with its embedded order-3 stage) it *is* the last stage, so a step costs
     `num_stages - 1` evaluations; otherwise it costs `num_stages`, as in diffrax.
-    Dense output: cubic Hermite from $f(y_0)$ and $f(y_1)$ (`simulate` retracts saved
-    states).
+
+    Dense output (`SaveAt(ts=...)`, `SaveAt(dense=True)`, event times) is the tableau's
+    own continuous extension carried through the Lie algebra: $y(t_0 + \theta h) =
+    \exp(\sigma(\theta)) \cdot y_0$ with $\sigma(\theta) = \sum_i b_i(\theta) k_i$,
+    the wrapped solver's `interpolation_cls` applied to the algebra stages $k_i$ (for
+    the ODE that the stages integrate, $\sigma' = \mathrm{dexp}^{-1}_\sigma(h\,\xi)$,
+    these are ordinary Runge-Kutta stages, so the extension keeps its order): order 4
+    for `Dopri5` and `Tsit5` (their quartic and Tsitouras' interpolants), diffrax's
+    Bogacki-Shampine polynomial for `Dopri8`, cubic Hermite for `Bosh3` and `RK4()`
+    (order 3). A tableau that is not first-same-as-last (`Heun`, `Midpoint`,
+    `Ralston`, `Euler`) has no stage at $y_1$, which diffrax's interpolants take as the
+    last stage; it gets the cubic Hermite of $\sigma$ from $k_1$ and
+    $\mathrm{dexp}^{-1}_{\sigma(1)}(h\,\xi(y_1))$ (order 3; the rate at $y_1$ is
+    evaluated anyway). Dense points lie on the spheres and in the tangent planes to
+    rounding, with either action, and equal the steps' end points at the steps. The
+    wrapped solver's interpolation must be linear in `(y0, y1, k)`, as diffrax's are.
 
     **Arguments:**
 
@@ -114,9 +160,15 @@ class LieRK(AbstractAdaptiveSolver):
     error: str = eqx.field(static=True, default="state")
 
     term_structure: ClassVar = AbstractTerm
-    interpolation_cls: ClassVar[Callable[..., ThirdOrderHermitePolynomialInterpolation]] = (
-        ThirdOrderHermitePolynomialInterpolation.from_k
-    )
+
+    @property
+    def interpolation_cls(self):
+        """The dense output of a step (see the class docstring): the wrapped solver's
+        interpolation of the algebra increment for a first-same-as-last tableau, cubic
+        Hermite otherwise."""
+        if self.solver.tableau.fsal:
+            return _LieInterpolationCls(self.solver.interpolation_cls)
+        return _LieInterpolationCls(ThirdOrderHermitePolynomialInterpolation.from_k)
 
     def __check_init__(self):
         if not isinstance(self.solver, AbstractERK | RK4):
@@ -186,16 +238,20 @@ class LieRK(AbstractAdaptiveSolver):
         y1_unfinished = group.act(u, y0)
         y1 = group.finish(y1_unfinished)
         f1 = terms.vf(t1, y1, args)
-        if tableau.fsal:  # the last stage is at u_s = u: the rate at y1
-            k = group.dexpinv(u, group.algebra(y1, terms.prod(f1, h)))
-            ks = jtu.tree_map(lambda K, x: K.at[s - 1].set(x), ks, k)
+        # The rate at y1 in the algebra: the last stage of a first-same-as-last tableau
+        # (u_s = u), else the end slope of the dense output's Hermite.
+        k_end = group.dexpinv(u, group.algebra(y1, terms.prod(f1, h)))
+        if tableau.fsal:
+            ks = jtu.tree_map(lambda K, x: K.at[s - 1].set(x), ks, k_end)
+            k_dense = ks
+        else:
+            k_dense = jtu.tree_map(lambda a, b: jnp.stack([a[0], b]), ks, k_end)
         u_error = _combine(jnp.asarray(tableau.b_error, dtype), ks)
         if self.error == "algebra":
             y_error = u_error
         else:
-            y_error = _minus(y1_unfinished, group.act(_minus(u, u_error), y0))
-        k = jtu.tree_map(lambda a, b: jnp.stack([a, b]), terms.prod(f0, h), terms.prod(f1, h))
-        dense_info = dict(y0=y0, y1=y1, k=k)
+            y_error = tree_sub(y1_unfinished, group.act(tree_sub(u, u_error), y0))
+        dense_info = dict(y0=y0, u=u, k=k_dense, group=group)
         return y1, y_error, dense_info, f1, RESULTS.successful
 
     def func(self, terms, t0, y0, args):
