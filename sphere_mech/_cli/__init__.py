@@ -13,17 +13,17 @@ that could not be computed is `null`, with the reason under `"not_computed"`.
 
 Compiled programs are kept in the user's cache directory (`$XDG_CACHE_HOME/sphere_mech/jax`,
 default `~/.cache/sphere_mech/jax`; macOS `~/Library/Caches/sphere_mech/jax`; Windows
-`%LOCALAPPDATA%\\sphere_mech\\jax`): the integration program, which calls nothing back in
-Python, compiled in `programs/` (see `program`), the others in JAX's persistent
-compilation cache. A second run of the same file loads the stored integration program
-and starts integrating before diffrax is imported: on the default scene 1.2 s from
-process start to the first step, against 8.4 s on the first run (2-core machine, load
-average about 4; `benchmarks/cli_startup.py`). `--no-cache` or the environment
+`%LOCALAPPDATA%\\sphere_mech\\jax`): JAX's persistent compilation cache, the integration
+program (see `program`) included. A second run of the same file traces again but
+compiles nothing: on the default scene 1.4 s from process start to the first step,
+against 2.7 s on the first run (2-core machine, load average about 1;
+`benchmarks/cli_startup.py`). `--no-cache` or the environment
 variable `SPHERE_MECH_CACHE_DIR=off` turns it off; `SPHERE_MECH_CACHE_DIR=<dir>` puts it
 elsewhere. Deleting the folder is always safe. In a fresh process the command sets
 `EQX_ON_ERROR=nan` (unless set) before equinox is imported, so that its programs hold no
 run-time check that calls back to Python: the scene file's values are checked when it
-is loaded."""
+is loaded. SIGINT (Ctrl-C) and SIGTERM print one line and exit 130 and 143, removing the
+run's temporary folder; a later run removes those of killed runs."""
 
 import argparse
 import json
