@@ -315,7 +315,7 @@ def test_repeated_runs_are_served_by_the_cache_and_never_fail(tmp_path):
 def test_sigint_is_one_line_and_status_130(tmp_path):
     """Ctrl-C while compiling or integrating (issue 28 item 7: a traceback, sometimes a
     segfault): one line, exit status 130, no temporary folder left."""
-    long = _bad(tmp_path, GOOD.replace("t1 = 0.5", "t1 = 1e4"))
+    long = _bad(tmp_path, GOOD.replace("t1 = 0.5", "t1 = 1e5\nmax_steps = 100_000_000"))
     out = tmp_path / "out"
     argv = [sys.executable, "-c", "import sys; from sphere_mech._cli import main; "
             "sys.exit(main())", "run", str(long), "--out", str(out), "--no-progress"]
