@@ -1,6 +1,6 @@
 """Start-up of `sphere-mech run` on the default scene: the first run in a row (an empty
-cache folder: trace, compile, store) against the second (the stored integration program
-and JAX's compilation cache), each in a fresh process.
+cache folder: trace, compile) against the second (trace, every program from JAX's
+persistent compilation cache), each in a fresh process.
 
 Measured from just before the process is started to the first output of the progress
 bar (printed when the first segment of the integration is dispatched: "time to first

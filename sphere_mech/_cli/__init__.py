@@ -13,24 +13,28 @@ that could not be computed is `null`, with the reason under `"not_computed"`.
 
 Compiled programs are kept in the user's cache directory (`$XDG_CACHE_HOME/sphere_mech/jax`,
 default `~/.cache/sphere_mech/jax`; macOS `~/Library/Caches/sphere_mech/jax`; Windows
-`%LOCALAPPDATA%\\sphere_mech\\jax`): the integration program, which calls nothing back in
-Python, compiled in `programs/` (see `program`), the others in JAX's persistent
-compilation cache. A second run of the same file loads the stored integration program
-and starts integrating before diffrax is imported: on the default scene 1.2 s from
-process start to the first step, against 8.4 s on the first run (2-core machine, load
-average about 4; `benchmarks/cli_startup.py`). `--no-cache` or the environment
+`%LOCALAPPDATA%\\sphere_mech\\jax`): JAX's persistent compilation cache, the integration
+program (see `program`) included. A second run of the same file traces again but
+compiles nothing: on the default scene 1.4 s from process start to the first step,
+against 2.7 s on the first run (2-core machine, load average about 1;
+`benchmarks/cli_startup.py`). `--no-cache` or the environment
 variable `SPHERE_MECH_CACHE_DIR=off` turns it off; `SPHERE_MECH_CACHE_DIR=<dir>` puts it
 elsewhere. Deleting the folder is always safe. In a fresh process the command sets
 `EQX_ON_ERROR=nan` (unless set) before equinox is imported, so that its programs hold no
 run-time check that calls back to Python: the scene file's values are checked when it
-is loaded."""
+is loaded. SIGINT (Ctrl-C) and SIGTERM print one line and exit 130 and 143, removing the
+run's temporary folder; a later run removes those of killed runs."""
 
 import argparse
 import json
 import math
 import os
+import shutil
+import signal
 import sys
 import tempfile
+import threading
+import time
 from pathlib import Path
 
 import jax
@@ -40,6 +44,12 @@ DEFAULT_SCENE = Path(__file__).resolve().parents[1] / "scenes" / "default.toml"
 
 
 CACHE_ENV = "SPHERE_MECH_CACHE_DIR"
+TEMP_PREFIX = ".sphere-mech-"
+"""The prefix of the hidden folders in which a run completes its files:
+`.sphere-mech-<pid>-<random>`."""
+STALE_AFTER_S = 24 * 3600
+"""A temporary folder whose process is gone, or older than this, is removed by a later run."""
+_WRITING: set[Path] = set()  # this process's temporary folders, removed on a signal
 
 
 def cache_dir() -> Path | None:
@@ -79,12 +89,41 @@ def check_out(out: Path) -> None:
     integrating; raises `CommandError` naming `--out` if it cannot be done."""
     try:
         out.mkdir(parents=True, exist_ok=True)
+        remove_stale(out)
         with tempfile.TemporaryFile(dir=out, prefix=".sphere-mech-probe-") as f:
             f.write(bytes(65536))  # a full disk fails here
             f.flush()
             os.fsync(f.fileno())
     except OSError as e:
         raise CommandError(f"--out: cannot create or write the folder {out} ({e})") from None
+
+
+def remove_stale(out: Path) -> None:
+    """Remove the temporary folders a killed run left in `out` (SIGKILL, a power cut):
+    those whose process (the pid in the name) no longer runs, and any older than
+    `STALE_AFTER_S`; a concurrent live run's folder stays."""
+    now = time.time()
+    for folder in out.glob(f"{TEMP_PREFIX}*"):
+        pid = folder.name.removeprefix(TEMP_PREFIX).split("-")[0]
+        try:
+            old = now - folder.stat().st_mtime > STALE_AFTER_S
+        except OSError:  # removed meanwhile
+            continue
+        if folder.is_dir() and (old or not (pid.isdigit() and _alive(int(pid)))):
+            shutil.rmtree(folder, ignore_errors=True)
+
+
+def _alive(pid: int) -> bool:
+    """Whether a process `pid` exists (on this machine)."""
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):  # another user's, or no way to tell: keep it
+        return True
+    return True
 
 
 def output_names(animation: bool = True) -> tuple[str, ...]:
@@ -102,8 +141,9 @@ def write_outputs(out: Path, result, scene, *, animation: bool = True) -> None:
     from .skeleton import skeleton
 
     out.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(dir=out, prefix=".sphere-mech-") as tmp:
-        tmp = Path(tmp)
+    tmp = Path(tempfile.mkdtemp(dir=out, prefix=f"{TEMP_PREFIX}{os.getpid()}-"))
+    _WRITING.add(tmp)
+    try:
         np.savez(tmp / "trajectory.npz", t=result.t, **flat("q", result.q),
                  **flat("v", result.v), x=result.x, energy=result.energy,
                  error_t=result.error_t, error=result.error)
@@ -116,6 +156,9 @@ def write_outputs(out: Path, result, scene, *, animation: bool = True) -> None:
             (tmp / "animation.html").write_text(page(html, name), encoding="utf-8")
         for name in output_names(animation):
             os.replace(tmp / name, out / name)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+        _WRITING.discard(tmp)
     if not animation:  # the folder describes one run
         (out / "animation.html").unlink(missing_ok=True)
 
@@ -132,31 +175,19 @@ def _print_summary(s: dict, out: Path, animation: bool) -> None:
     print(f"wrote {out}/" + ", ".join(output_names(animation)))
 
 
-def run(scene=None, out=Path("sphere_mech_out"), *, t1=None, progress=True, animation=True,
-        programs: Path | None = None):
+def run(scene=None, out=Path("sphere_mech_out"), *, t1=None, progress=True, animation=True):
     """Run a scene file (default: the packaged default scene), optionally up to another
-    end time `t1`, keeping its compiled integration program in the folder `programs`
-    (if given; see `program`); returns the summary."""
-    from . import program
+    end time `t1`; returns the summary. Compiled programs are served from JAX's persistent
+    compilation cache where `enable_compilation_cache` turned it on."""
+    from .._scene_files import load_scene
+    from .program import build
+    from .report import scene_result
 
     jax.config.update("jax_enable_x64", True)
     path = DEFAULT_SCENE if scene is None else Path(scene)
-    name = program.key(path, t1) if programs is not None else None
-    stored = program.load(programs, name) if name is not None else None
-    # a stored program starts before diffrax is imported; the file is checked after it
-    if stored is not None:  # (a file that was valid when its program was stored)
-        check_out(Path(out))
-    integrated = stored.integrate(progress) if stored is not None else None
-    from .._scene_files import load_scene
-    from .report import scene_result
-
     spec = load_scene(path, t1)
-    if integrated is None:
-        check_out(Path(out))
-        stored, compiled = program.build(spec, t1)
-        if name is not None:
-            program.store(programs, name, stored, compiled)
-        integrated = stored.integrate(progress)
+    check_out(Path(out))
+    integrated = build(spec, t1)[0].integrate(progress)
     result = scene_result(spec, integrated, t1)
     try:
         write_outputs(Path(out), result, spec.scene, animation=animation)
@@ -170,7 +201,59 @@ def _fail(message: str, status: int) -> int:
     return status
 
 
+_SIGNALS = {signal.SIGINT: "interrupted", signal.SIGTERM: "terminated"}
+
+
+def _stop(signum: int) -> None:
+    """Remove this run's temporary folders, print one line and exit `128 + signum` at
+    once (no traceback, no interpreter shutdown amid a compilation or a write)."""
+    for folder in list(_WRITING):
+        shutil.rmtree(folder, ignore_errors=True)
+    what = _SIGNALS.get(signum, f"signal {signum}")
+    os.write(2, f"\n{PROG}: {what}; earlier outputs kept\n".encode())
+    os._exit(128 + signum)
+
+
+def _on_signals():
+    """Catch SIGINT (Ctrl-C) and SIGTERM for `_stop`, in a thread woken by the signal
+    itself (`signal.set_wakeup_fd`), so that it acts even while the main thread is in a
+    compilation; returns a function that restores the previous handlers."""
+    if threading.current_thread() is not threading.main_thread():
+        return lambda: None
+    read, write = os.pipe()
+    os.set_blocking(write, False)
+    previous = {s: signal.signal(s, lambda *_: None) for s in _SIGNALS}
+    wakeup = signal.set_wakeup_fd(write, warn_on_full_buffer=False)
+
+    def watch():
+        while (byte := os.read(read, 1)) and byte[0] != 0:  # 0: restored
+            if byte[0] in _SIGNALS:
+                _stop(byte[0])
+        os.close(read)
+
+    threading.Thread(target=watch, daemon=True).start()
+
+    def restore():
+        signal.set_wakeup_fd(wakeup)
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+        os.write(write, b"\0")
+        os.close(write)
+
+    return restore
+
+
 def main(argv=None) -> int:
+    """The command line (see the module's docstring); returns the exit status. SIGINT
+    (Ctrl-C) and SIGTERM print one line and exit 130 and 143."""
+    restore = _on_signals()
+    try:
+        return _main(argv)
+    finally:
+        restore()
+
+
+def _main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog=PROG, description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     p_run = sub.add_parser("run", help="simulate a scene file and write results")
@@ -196,7 +279,7 @@ def main(argv=None) -> int:
         return _fail(f"--t1 must be a finite time in s (got {ns.t1})", 2)
     try:
         summary = run(ns.scene, ns.out, t1=ns.t1, progress=not ns.no_progress,
-                      animation=not ns.no_animation, programs=folder)
+                      animation=not ns.no_animation)
     except CommandError as e:
         return _fail(str(e), e.status)
     except Exception as e:

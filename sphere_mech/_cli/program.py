@@ -3,11 +3,10 @@
 A run integrates the scene segment by segment (at most `SEGMENTS`, each a whole number of
 save intervals) with one compiled program that calls nothing back in Python: the
 progress bar moves between segments, and a failure comes back as a result code that is
-raised after the run with `simulate`'s message. Such a program can be stored: with a
-cache folder the compiled program is written to `<folder>/programs/<key>.bin` (with its
-inputs in `<key>.npz`), `key` a hash of the scene file's bytes, `--t1`, the package's
-source and the versions of JAX and its libraries, and a later run of the same file loads
-it and starts integrating before importing diffrax or tracing anything.
+raised after the run with `simulate`'s message. It is traced in every run and compiled
+through JAX's persistent compilation cache where the command line turned it on (a later
+run of the same scene compiles nothing: JAX loads the executable it stored, keyed by the
+traced program, so editing a comment or the `name` of a file does not recompile).
 
 Each segment is `simulate`'s core (`_solve.solve`) from the state the previous one
 reached. Adaptive solvers choose the segment's first step afresh, so their steps differ
@@ -18,21 +17,15 @@ else steps slightly shorter than `dt0`.
 """
 
 import dataclasses
-import hashlib
-import importlib.metadata
 import math
-import os
 import time
 from collections.abc import Callable
-from pathlib import Path
 
 import jax
 import numpy as np
 
 SEGMENTS = 100
 """The most segments a run is cut into: the steps of the progress bar."""
-LIBRARIES = ("jax", "jaxlib", "diffrax", "equinox", "optimistix", "lineax", "numpy")
-"""The libraries whose versions are part of a stored program's key."""
 _BAR = "{percentage:.2f}%|{bar}| [{elapsed}<{remaining}, {rate_fmt}{postfix}]"  # diffrax's
 
 
@@ -154,7 +147,7 @@ def build(spec, t1=None) -> tuple[Program, jax.stages.Compiled]:
     """Trace and compile the segment program of a scene file (`load_scene`'s
     `SceneSpec`), optionally up to another end time `t1`.
 
-    **Returns:** the `Program` and the compiled program (for `store`).
+    **Returns:** the `Program` and the compiled program.
     """
     import diffrax
     import equinox as eqx
@@ -197,96 +190,9 @@ def build(spec, t1=None) -> tuple[Program, jax.stages.Compiled]:
     return program, compiled
 
 
-def key(path, t1=None) -> str | None:
-    """The name of a scene file's stored program: a hash of the file's bytes, `t1`, the
-    package's source, the libraries' versions and the device; `None` if the file
-    cannot be read (`load_scene` then says why)."""
-    try:
-        digest = hashlib.sha256(Path(path).read_bytes())
-    except OSError:
-        return None
-    package = Path(__file__).resolve().parents[1]
-    for file in sorted(package.rglob("*.py")):
-        digest.update(f"{file.relative_to(package)}\0".encode() + file.read_bytes())
-    versions = [f"{lib}={importlib.metadata.version(lib)}" for lib in LIBRARIES]
-    device = jax.devices()[0]
-    digest.update(repr((t1, versions, device.platform, device.device_kind,
-                        jax.config.jax_enable_x64)).encode())
-    return digest.hexdigest()[:32]
-
-
-def _files(folder: Path, name: str) -> tuple[Path, Path]:
-    return folder / "programs" / f"{name}.npz", folder / "programs" / f"{name}.bin"
-
-
-def store(folder: Path, name: str, program: Program, compiled) -> bool:
-    """Write a program for `load` (not one that calls back to Python, e.g. with
-    `EQX_ON_ERROR=raise`: such a program only runs in the process that compiled it).
-
-    **Returns:** whether it was written.
-    """
-    from jax.experimental.serialize_executable import serialize
-
-    if "callback" in compiled.as_text():
-        return False
-    payload, in_tree, out_tree = serialize(compiled)
-    if (in_tree, out_tree) != _trees(program):
-        return False
-    arrays, binary = _files(folder, name)
-    params = {f"param{i}": p for i, p in enumerate(program.params)}
-    try:  # a folder that cannot be written keeps nothing, as JAX's cache
-        arrays.parent.mkdir(parents=True, exist_ok=True)
-        for path, write in ((arrays, lambda f: np.savez(
-                f, ts=program.ts, count=program.count, **flat("q0", program.q0),
-                **flat("v0", program.v0),
-                steps=[program.max_steps, program.max_steps_code, program.forced],
-                **params)), (binary, lambda f: f.write(payload))):
-            partial = path.with_name(f"{path.name}.{os.getpid()}.tmp")
-            with open(partial, "wb") as f:
-                write(f)
-            os.replace(partial, path)
-    except OSError:
-        return False
-    return True
-
-
-def _trees(program: Program):
-    state = (program.q0, program.v0)
-    inputs = (program.ts[0, 0], program.ts[0], *state, program.params)
-    outputs = (*state, 0, 0, 0, 0, *((0,) if program.forced else ()))
-    return jax.tree.structure((inputs, {})), jax.tree.structure(outputs)
-
-
 def flat(name: str, tree) -> dict[str, np.ndarray]:
     """The arrays of a state named for an `.npz` file: `{name: x}` for an array, and
     `{"name.key": x[key]}` for a dict of arrays (a state on a product space)."""
     if isinstance(tree, dict):
         return {f"{name}.{k}": np.asarray(x) for k, x in tree.items()}
     return {name: np.asarray(tree)}
-
-
-def unflat(data, name: str):
-    """The state `flat` named `name` in an `.npz` file's `data`."""
-    keys = [f.removeprefix(f"{name}.") for f in data.files if f.startswith(f"{name}.")]
-    return {k: data[f"{name}.{k}"] for k in keys} if keys else data[name]
-
-
-def load(folder: Path, name: str) -> Program | None:
-    """The program `store` wrote under `name`, ready to run; `None` if there is none."""
-    from jax.experimental.serialize_executable import deserialize_and_load
-
-    arrays, binary = _files(folder, name)
-    if not (arrays.exists() and binary.exists()):
-        return None
-    try:
-        with np.load(arrays) as data:
-            params = [data[f"param{i}"] for i in
-                      range(sum(f.startswith("param") for f in data.files))]
-            max_steps, max_steps_code, forced = (int(x) for x in data["steps"])
-            program = Program(None, data["ts"], data["count"], unflat(data, "q0"),
-                              unflat(data, "v0"), params, max_steps, max_steps_code,
-                              bool(forced))
-        program.call = deserialize_and_load(binary.read_bytes(), *_trees(program))
-    except Exception:  # unreadable (e.g. written by another jaxlib build): compile again
-        return None
-    return program
