@@ -55,8 +55,9 @@ def simulate(
       `diffrax.ConstantStepSize()` with `dt0`); fixed-step solvers (`RK4`,
       `Projected(RK4())`, `Variational()`, ...) get `ConstantStepSize` automatically.
     - `saveat`: a `diffrax.SaveAt`; default: the final state only. Saved states are put
-      back on the tangent bundle (dense output between steps is a polynomial that
-      leaves the spheres by the local error).
+      back on the tangent bundle: the dense output of `Projected` and plain diffrax
+      solvers between steps is a polynomial that leaves the spheres by the local error
+      (`LieRK`'s lies on them: the group action of its algebra polynomial).
     - `max_steps`: maximum number of steps (default 100 000).
     - `progress`: show a tqdm progress bar (diffrax's `TqdmProgressMeter`).
     - `adjoint`: a diffrax adjoint for derivatives. Default (`None`): reverse mode

@@ -361,7 +361,9 @@ def solve_with(adjoint, system, y0, t0, t1, dt0, args, opts: Options) -> diffrax
         progress_meter=opts.meter, adjoint=adjoint, event=opts.event, throw=False,
     )
     # Unreached save times are `inf` in diffrax, never NaN: only NaN is looked for.
-    has_nan = jnp.any(jnp.stack([jnp.any(jnp.isnan(y)) for y in jax.tree.leaves(sol.ys)]))
+    # A dense-only SaveAt saves no values (`sol.ys` is None): nothing to look at.
+    has_nan = functools.reduce(jnp.logical_or, [jnp.any(jnp.isnan(y)) for y in
+                                                jax.tree.leaves(sol.ys)], jnp.array(False))
     result = RESULTS.promote(sol.result)
     if opts.event is not None and not isinstance(opts.solver, diffrax.AbstractImplicitSolver):
         # An explicit solver solves nothing: a nonlinear failure is the event's root finder.

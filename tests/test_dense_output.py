@@ -160,3 +160,19 @@ def test_jit_vmap_grad_through_dense_output():
     eps = 1e-5
     fd = (jax.vmap(q_at)(speeds + eps) - jax.vmap(q_at)(speeds - eps)) / (2 * eps)
     np.testing.assert_allclose(grads, fd, rtol=1e-6, atol=1e-8)
+
+
+def test_simulate_with_dense_output_only():
+    """`simulate` with `SaveAt(dense=True)` and nothing else to save (it raised "Need at
+    least one array to stack"): `sol.evaluate` gives LieRK's dense points, the values
+    that `SaveAt(ts)` saves at the same times, on the spheres."""
+    kwargs = dict(solver=sm.LieRK(diffrax.Tsit5()), rtol=1e-9, atol=1e-9)
+    dense = sm.simulate(bench.PENDULUM, _pendulum_state(), 0.7,
+                        saveat=diffrax.SaveAt(dense=True), **kwargs)
+    saved = sm.simulate(bench.PENDULUM, _pendulum_state(), 0.7,
+                        saveat=diffrax.SaveAt(ts=TS[:20]), **kwargs)
+    assert dense.result == sm.RESULTS.successful
+    q, v = jax.vmap(dense.evaluate)(TS[:20])
+    np.testing.assert_allclose(q, saved.ys[0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(v, saved.ys[1], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(jnp.linalg.norm(q, axis=-1), 1.0, rtol=0, atol=1e-14)
