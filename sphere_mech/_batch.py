@@ -13,6 +13,7 @@ from ._results import RESULTS, raise_on_failure
 from ._solve import (
     DEFAULT_MAX_STEPS,
     as_array,
+    forward_mode_hint,
     initial_states,
     prepare,
     rows,
@@ -196,5 +197,6 @@ def simulate_batch(
     # an invalid state is NaN (so its run stops at once) and gets its own code.
     y0 = jax.tree.map(lambda x: x.astype(dtype), (q0, v0))
     y0, valid = initial_states(system.space, system.state_name, y0, "simulate_batch", throw)
-    sol = _solve_batch(static, chunk, mesh, shared, batched, y0, valid, size, padded)
+    with forward_mode_hint():
+        sol = _solve_batch(static, chunk, mesh, shared, batched, y0, valid, size, padded)
     return raise_on_failure(sol, max_steps, "simulate_batch") if throw else sol

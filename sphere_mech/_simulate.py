@@ -4,7 +4,14 @@ import diffrax
 import equinox as eqx
 
 from ._results import raise_on_failure
-from ._solve import DEFAULT_MAX_STEPS, initial_state, prepare, solve, state_dtype
+from ._solve import (
+    DEFAULT_MAX_STEPS,
+    forward_mode_hint,
+    initial_state,
+    prepare,
+    solve,
+    state_dtype,
+)
 from ._system import AbstractSystem
 
 _solve = eqx.filter_jit(solve)
@@ -95,5 +102,6 @@ def simulate(
     system, args, opts, t0, t1, dt0 = prepare(
         system, args, state_dtype(y0), t0, t1, dt0, solver, rtol, atol, stepsize_controller,
         saveat, max_steps, adjoint, progress, event)
-    sol = _solve(system, y0, t0, t1, dt0, args, opts)
+    with forward_mode_hint():
+        sol = _solve(system, y0, t0, t1, dt0, args, opts)
     return raise_on_failure(sol, max_steps, "simulate") if throw else sol

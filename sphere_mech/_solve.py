@@ -1,6 +1,7 @@
 """The one solve core: `simulate` and `simulate_batch` both run `solve`, with the same
 options, the same result codes and the same errors."""
 
+import contextlib
 import functools
 import math
 
@@ -251,6 +252,22 @@ def state_dtype(y):
 
 def _all_finite(tree) -> jax.Array:
     return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree)]))
+
+
+@contextlib.contextmanager
+def forward_mode_hint():
+    """Around a run: JAX's refusal of forward mode through the default adjoint (a
+    `jax.custom_vjp`, as is `diffrax.RecursiveCheckpointAdjoint`) becomes an error that
+    says what to pass instead."""
+    try:
+        yield
+    except TypeError as error:
+        if "custom_vjp" not in str(error):
+            raise
+        raise TypeError(
+            "forward-mode differentiation (jax.jvp, jax.jacfwd) of a run needs "
+            "adjoint=diffrax.ForwardMode(); the default adjoint is reverse mode"
+        ) from error
 
 
 def solve(system, y0, t0, t1, dt0, args, opts: Options) -> diffrax.Solution:

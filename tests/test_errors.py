@@ -235,3 +235,26 @@ def test_nan_parameter_is_named_not_the_mass_matrix(state):
         system.acceleration(0.0, q, v, jnp.asarray(jnp.nan))
     with pytest.raises(eqx.EquinoxRuntimeError, match="args or the system's parameters"):
         sm.Hamiltonian(lambda t, q, mu, g: g * jnp.sum(mu**2)).vector_field(0.0, q, v, jnp.inf)
+
+
+def test_forward_mode_without_forward_adjoint_says_what_to_pass():
+    """`jax.jacfwd` through `simulate` and `simulate_batch` with the default (reverse-mode)
+    adjoint names the fix, `adjoint=diffrax.ForwardMode()`, instead of JAX's bare
+    "can't apply forward-mode autodiff (jvp) to a custom_vjp function"; with it, it works."""
+    import diffrax
+
+    system = sm.Lagrangian(lambda t, q, v, g: 0.5 * jnp.sum(v * v) - g * q[0, 2])
+    q0, v0 = jnp.array([[1.0, 0.0, 0.0]]), jnp.array([[0.0, 1.0, 0.0]])
+
+    def final(g, adjoint=None):
+        return sm.simulate(system, (q0, v0), 0.2, args=g, adjoint=adjoint).ys[0][-1, 0, 0]
+
+    def batch_final(g):
+        y0 = (q0[None], v0[None])
+        return sm.simulate_batch(system, y0, 0.2, args=g[None]).ys[0][0, -1, 0, 0]
+
+    for f in (final, batch_final):
+        with pytest.raises(TypeError, match=r"adjoint=diffrax\.ForwardMode\(\)"):
+            jax.jacfwd(f)(jnp.asarray(9.81))
+    forward = jax.jacfwd(lambda g: final(g, diffrax.ForwardMode()))(jnp.asarray(9.81))
+    assert jnp.isfinite(forward)
