@@ -13,8 +13,9 @@ def parse_options(description, add_arguments=None, argv=None):
     parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--quick", action="store_true", help="fewer sizes and steps")
     parser.add_argument("--device", choices=("cpu", "gpu"), default="cpu")
-    parser.add_argument("--dtype", choices=("float32", "float64"),
-                        help="default: float64 on cpu, float32 on gpu")
+    parser.add_argument(
+        "--dtype", choices=("float32", "float64"), help="default: float64 on cpu, float32 on gpu"
+    )
     parser.add_argument("--mjx", action="store_true", help="also run MJX on the CPU")
     if add_arguments is not None:
         add_arguments(parser)

@@ -38,8 +38,9 @@ def rk4_step(f, y, dt=DT):
     k2 = f(jax.tree.map(lambda a, b: a + 0.5 * dt * b, y, k1))
     k3 = f(jax.tree.map(lambda a, b: a + 0.5 * dt * b, y, k2))
     k4 = f(jax.tree.map(lambda a, b: a + dt * b, y, k3))
-    return jax.tree.map(lambda a, b1, b2, b3, b4: a + dt / 6 * (b1 + 2 * b2 + 2 * b3 + b4),
-                        y, k1, k2, k3, k4)
+    return jax.tree.map(
+        lambda a, b1, b2, b3, b4: a + dt / 6 * (b1 + 2 * b2 + 2 * b3 + b4), y, k1, k2, k3, k4
+    )
 
 
 def fixed_step_loop(step):
@@ -64,8 +65,9 @@ class SphereMech:
         return q, v
 
     def run(self, y, nsteps):
-        sol = sm.simulate_batch(self.system, y, nsteps * DT, solver=self.solver, dt0=DT,
-                                max_steps=100_000)
+        sol = sm.simulate_batch(
+            self.system, y, nsteps * DT, solver=self.solver, dt0=DT, max_steps=100_000
+        )
         jax.block_until_ready(sol.ys)
         return sol, int(np.max(sol.stats["num_steps"]))
 
@@ -110,19 +112,25 @@ def chain_xml(lengths, masses, base_mass=None, slides=(), actuators="", inertia=
         if i == len(lengths):
             return ""
         pos = "0 0 0" if i == 0 else f"0 0 {-float(lengths[i - 1])!r}"
-        return (f'<body pos="{pos}"><joint type="ball"/>'
-                f'<inertial pos="0 0 {-float(lengths[i])!r}" mass="{float(masses[i])!r}" '
-                f"{diag}/>{body(i + 1)}</body>")
+        return (
+            f'<body pos="{pos}"><joint type="ball"/>'
+            f'<inertial pos="0 0 {-float(lengths[i])!r}" mass="{float(masses[i])!r}" '
+            f"{diag}/>{body(i + 1)}</body>"
+        )
 
     tree = body(0)
     if slides:
-        joints = "".join(f'<joint name="slide{k}" type="slide" axis="{axis}"/>'
-                         for k, axis in enumerate(slides))
-        tree = (f'<body>{joints}<inertial pos="0 0 0" mass="{float(base_mass)!r}" {diag}/>'
-                f"{tree}</body>")
-    return (f'<mujoco><option timestep="{DT}" integrator="RK4" gravity="0 0 {-G}">'
-            '<flag contact="disable" constraint="disable"/></option>'
-            f"<worldbody>{tree}</worldbody>{actuators}</mujoco>")
+        joints = "".join(
+            f'<joint name="slide{k}" type="slide" axis="{axis}"/>' for k, axis in enumerate(slides)
+        )
+        tree = (
+            f'<body>{joints}<inertial pos="0 0 0" mass="{float(base_mass)!r}" {diag}/>{tree}</body>'
+        )
+    return (
+        f'<mujoco><option timestep="{DT}" integrator="RK4" gravity="0 0 {-G}">'
+        '<flag contact="disable" constraint="disable"/></option>'
+        f"<worldbody>{tree}</worldbody>{actuators}</mujoco>"
+    )
 
 
 def rotation_to(q):
@@ -154,8 +162,10 @@ def joint_state(q, v, base=None, base_v=None):
             R_prev, w_prev = R, w
     if base is None:
         return qpos, qvel
-    return (np.concatenate([np.asarray(base, dtype=float), qpos], axis=1),
-            np.concatenate([np.asarray(base_v, dtype=float), qvel], axis=1))
+    return (
+        np.concatenate([np.asarray(base, dtype=float), qpos], axis=1),
+        np.concatenate([np.asarray(base_v, dtype=float), qvel], axis=1),
+    )
 
 
 def mass_positions(model, qpos):

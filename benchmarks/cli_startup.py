@@ -30,14 +30,20 @@ COMMAND = "import sys; from sphere_mech._cli import main; sys.exit(main())"
 
 def timed_run(cache: pathlib.Path, out: pathlib.Path) -> tuple[float, float]:
     """One `sphere-mech run` of the default scene: (time to first step, total) in s."""
-    env = {**os.environ, "SPHERE_MECH_CACHE_DIR": str(cache),
-           "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get(
-               "PYTHONPATH")]))}
+    env = {
+        **os.environ,
+        "SPHERE_MECH_CACHE_DIR": str(cache),
+        "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])),
+    }
     env.pop("EQX_ON_ERROR", None)
     first = []
     start = time.perf_counter()
-    proc = subprocess.Popen([sys.executable, "-c", COMMAND, "run", "--out", str(out)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", COMMAND, "run", "--out", str(out)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        env=env,
+    )
 
     def watch():  # the bar's first frame, "0.00%|", marks the first segment
         seen = b""
@@ -67,19 +73,32 @@ def main():
             cache, out = pathlib.Path(tmp) / f"cache{k}", pathlib.Path(tmp) / f"out{k}"
             for run in ("first", "second"):
                 rows[run].append(timed_run(cache, out))
-                print(f"repeat {k + 1}/{repeats} {run}: first step {rows[run][-1][0]:.2f} s, "
-                      f"total {rows[run][-1][1]:.2f} s", file=sys.stderr)
+                print(
+                    f"repeat {k + 1}/{repeats} {run}: first step {rows[run][-1][0]:.2f} s, "
+                    f"total {rows[run][-1][1]:.2f} s",
+                    file=sys.stderr,
+                )
             load.append(os.getloadavg()[0])
     med = {run: [statistics.median(r[i] for r in rows[run]) for i in (0, 1)] for run in rows}
-    ratio = [statistics.median(b[i] / a[i] for a, b in zip(rows["first"], rows["second"],
-                                                            strict=True)) for i in (0, 1)]
-    machine = (f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
-               f"load average {min(load):.1f}-{max(load):.1f} during the runs")
-    table = "\n".join([
-        f"`sphere-mech run` (default scene), medians of {repeats} pairs; {machine}.", "",
-        "| run | time to first step (s) | total (s) |", "|---|---|---|",
-        *(f"| {run} | {med[run][0]:.2f} | {med[run][1]:.2f} |" for run in rows),
-        f"| second / first | {ratio[0]:.2f} | {ratio[1]:.2f} |", ""])
+    ratio = [
+        statistics.median(b[i] / a[i] for a, b in zip(rows["first"], rows["second"], strict=True))
+        for i in (0, 1)
+    ]
+    machine = (
+        f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+        f"load average {min(load):.1f}-{max(load):.1f} during the runs"
+    )
+    table = "\n".join(
+        [
+            f"`sphere-mech run` (default scene), medians of {repeats} pairs; {machine}.",
+            "",
+            "| run | time to first step (s) | total (s) |",
+            "|---|---|---|",
+            *(f"| {run} | {med[run][0]:.2f} | {med[run][1]:.2f} |" for run in rows),
+            f"| second / first | {ratio[0]:.2f} | {ratio[1]:.2f} |",
+            "",
+        ]
+    )
     print(table)
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / "cli_startup.md").write_text(table)

@@ -40,14 +40,22 @@ def _per_step(t, y, args):
 def run(solver, dt, t1):
     """Fixed steps with diffrax directly, so that nothing retracts the saved states."""
     saveat = diffrax.SaveAt(steps=True, fn=_per_step)
-    return diffrax.diffeqsolve(sm.MechanicsTerm(CHAIN), solver, 0.0, t1, dt, (Q0, V0),
-                               saveat=saveat, stepsize_controller=diffrax.ConstantStepSize(),
-                               max_steps=STEPS, throw=False)
+    return diffrax.diffeqsolve(
+        sm.MechanicsTerm(CHAIN),
+        solver,
+        0.0,
+        t1,
+        dt,
+        (Q0, V0),
+        saveat=saveat,
+        stepsize_controller=diffrax.ConstantStepSize(),
+        max_steps=STEPS,
+        throw=False,
+    )
 
 
 def methods():
-    out = {"RK4 (plain)": sm.RK4(), "Projected(RK4)": sm.Projected(sm.RK4()),
-           "LieRK4": sm.LieRK4()}
+    out = {"RK4 (plain)": sm.RK4(), "Projected(RK4)": sm.Projected(sm.RK4()), "LieRK4": sm.LieRK4()}
     if hasattr(sm, "Variational"):
         out["Variational(order=4)"] = sm.Variational(order=4)
     return out
@@ -72,22 +80,31 @@ def main():
         finite = np.isfinite(c) & np.isfinite(energy)
         blew_up = not finite.all()
         t_end = ts[finite][-1] if finite.any() else 0.0
-        rows.append(dict(
-            name=name, steps=int(done.sum()), max_c=float(np.max(c[finite])),
-            c_10=float(np.max(c[finite & (ts <= 10.0)])),
-            energy=float(np.max(np.abs(energy[finite] - e0)) / abs(e0)),
-            wall=min(times), note=f"NaN after t = {t_end:.1f} s" if blew_up else "",
-        ))
+        rows.append(
+            dict(
+                name=name,
+                steps=int(done.sum()),
+                max_c=float(np.max(c[finite])),
+                c_10=float(np.max(c[finite & (ts <= 10.0)])),
+                energy=float(np.max(np.abs(energy[finite] - e0)) / abs(e0)),
+                wall=min(times),
+                note=f"NaN after t = {t_end:.1f} s" if blew_up else "",
+            )
+        )
         curves[name] = (ts[finite], c[finite])
     baseline = next(r for r in rows if r["name"] == "Projected(RK4)")
     print(f"Double spherical pendulum, dt = {DT:g}, {STEPS} steps ({T1:g} s).\n")
-    print("| method | steps | max abs(abs(q_i)-1), t <= 10 s | max abs(abs(q_i)-1) "
-          "| max rel. energy error | wall (s) | wall / Projected(RK4) | note |")
+    print(
+        "| method | steps | max abs(abs(q_i)-1), t <= 10 s | max abs(abs(q_i)-1) "
+        "| max rel. energy error | wall (s) | wall / Projected(RK4) | note |"
+    )
     print("|---|---:|---:|---:|---:|---:|---:|---|")
     for r in rows:
-        print(f"| {r['name']} | {r['steps']} | {r['c_10']:.2e} | {r['max_c']:.2e} | "
-              f"{r['energy']:.2e} | {r['wall']:.2f} | {r['wall'] / baseline['wall']:.2f} | "
-              f"{r['note']} |")
+        print(
+            f"| {r['name']} | {r['steps']} | {r['c_10']:.2e} | {r['max_c']:.2e} | "
+            f"{r['energy']:.2e} | {r['wall']:.2f} | {r['wall'] / baseline['wall']:.2f} | "
+            f"{r['note']} |"
+        )
     plot(curves)
 
 

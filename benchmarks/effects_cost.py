@@ -56,8 +56,9 @@ def step_runner():
     @eqx.filter_jit
     @eqx.debug.assert_max_traces(max_traces=1)
     def solve(scene, y0):  # one compiled program per scene structure
-        return sm.simulate(scene, y0, STEPS * DT, solver=sm.Projected(sm.RK4()), dt0=DT,
-                           max_steps=STEPS + 1).ys
+        return sm.simulate(
+            scene, y0, STEPS * DT, solver=sm.Projected(sm.RK4()), dt0=DT, max_steps=STEPS + 1
+        ).ys
 
     return solve
 
@@ -66,8 +67,10 @@ def main():
     q0 = sm.normalize(jnp.tile(jnp.array([[0.3, 0.1, -1.0]]), (N_LINKS, 1)))
     y0 = (q0, sm.project(q0, jnp.tile(jnp.array([[0.0, 1.0, 0.0]]), (N_LINKS, 1))))
     cases = [(name, scene, step_runner()) for name, scene in scenes()]
-    eqns = [count_equations(jax.make_jaxpr(lambda y, sc=sc: sc.rates(0.1, y, None))(y0).jaxpr)
-            for _, sc, _ in cases]
+    eqns = [
+        count_equations(jax.make_jaxpr(lambda y, sc=sc: sc.rates(0.1, y, None))(y0).jaxpr)
+        for _, sc, _ in cases
+    ]
     for _, scene, solve in cases:
         jax.block_until_ready(solve(scene, y0))  # compile everything first
     best = [float("inf")] * len(cases)
@@ -78,9 +81,11 @@ def main():
             best[k] = min(best[k], (time.perf_counter() - start) / STEPS)
     rows = [(name, e, t) for (name, _, _), e, t in zip(cases, eqns, best, strict=True)]
     base = rows[0]
-    print(f"Cost of effects, {N_LINKS}-link chain, fixed-step Projected(RK4), dt={DT}, "
-          f"{STEPS} steps, best of {REPEATS} interleaved rounds; ratios to gravity-only "
-          f"in the same run\n")
+    print(
+        f"Cost of effects, {N_LINKS}-link chain, fixed-step Projected(RK4), dt={DT}, "
+        f"{STEPS} steps, best of {REPEATS} interleaved rounds; ratios to gravity-only "
+        f"in the same run\n"
+    )
     print("| scene | jaxpr equations of the vector field | ratio | time per step (us) | ratio |")
     print("|---|---:|---:|---:|---:|")
     for name, e, t in rows:

@@ -67,9 +67,12 @@ def base_systems(n, axes):
     """A chain (tip force, gravity) hanging from a `Base` moving along `axes`, and the
     same energies and forces through the general path on the product space."""
     rng = np.random.default_rng(n)
-    scene = sm.Scene(sm.Base(1.5, axes=axes),
-                     sm.Chain(rng.uniform(0.5, 2.0, n), rng.uniform(0.5, 2.0, n)),
-                     sm.Gravity(9.81), sm.TipForce(jnp.array([0.5, 0.0, -0.4])))
+    scene = sm.Scene(
+        sm.Base(1.5, axes=axes),
+        sm.Chain(rng.uniform(0.5, 2.0, n), rng.uniform(0.5, 2.0, n)),
+        sm.Gravity(9.81),
+        sm.TipForce(jnp.array([0.5, 0.0, -0.4])),
+    )
     lagrangian = lambda t, q, qdot, args: scene.kinetic_energy(q, qdot) - scene.potential(t, q)
     return scene, sm.Lagrangian(lagrangian, scene.forces, space=scene.space)
 
@@ -92,12 +95,17 @@ def base_rows(ns, batch, repeats):
             fast, _ = time_per_evaluation(fast_fn, q, v, repeats)
             slow, _ = time_per_evaluation(general_fn, q, v, repeats)
             a, b = fast_fn(q, v)[1], general_fn(q, v)[1]
-            error = max(float(jnp.max(jnp.abs(x - y)) / jnp.max(jnp.abs(y)))
-                        for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True))
+            error = max(
+                float(jnp.max(jnp.abs(x - y)) / jnp.max(jnp.abs(y)))
+                for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True)
+            )
             assert error < 1e-10, f"paths disagree for the {name} at n={n}: {error}"
             rows.append((name, n, fast, slow, pivot, error))
-            print(f"{name} n={n}: fast {fast * 1e6:.2f} us, general {slow * 1e6:.2f} us, "
-                  f"fixed pivot {pivot * 1e6:.2f} us", flush=True)
+            print(
+                f"{name} n={n}: fast {fast * 1e6:.2f} us, general {slow * 1e6:.2f} us, "
+                f"fixed pivot {pivot * 1e6:.2f} us",
+                flush=True,
+            )
     return rows
 
 
@@ -113,8 +121,8 @@ def base_table(rows, batch, repeats):
         "|---|---:|---:|---:|---:|---:|---:|\n"
     )
     return header + "".join(
-        f"| {name} | {n} | {f * 1e6:.3f} | {s * 1e6:.3f} | {s / f:.1f}x | {f / p:.2f} "
-        f"| {e:.1e} |\n" for name, n, f, s, p, e in rows
+        f"| {name} | {n} | {f * 1e6:.3f} | {s * 1e6:.3f} | {s / f:.1f}x | {f / p:.2f} | {e:.1e} |\n"
+        for name, n, f, s, p, e in rows
     )
 
 
@@ -155,8 +163,14 @@ def time_per_step(system, solver, y0, dt, steps, repeats):
     compilation and one run)."""
 
     def run():
-        sol = sm.simulate(system, y0, jnp.asarray(dt * steps), solver=solver,
-                          dt0=jnp.asarray(dt), max_steps=steps + 1)
+        sol = sm.simulate(
+            system,
+            y0,
+            jnp.asarray(dt * steps),
+            solver=solver,
+            dt0=jnp.asarray(dt),
+            max_steps=steps + 1,
+        )
         return jax.block_until_ready(sol.ys)
 
     t0 = time.perf_counter()
@@ -182,14 +196,18 @@ def variational_rows(ns, dt, steps, repeats):
         var4, _, _ = time_per_step(chain, sm.Variational(4), y0, dt, steps, repeats)
         dense, difference = float("nan"), float("nan")
         if n <= 32:
-            dense, (qd, _), _ = time_per_step(chain, sm.Variational(fast_path=False), y0, dt,
-                                              steps, repeats)
+            dense, (qd, _), _ = time_per_step(
+                chain, sm.Variational(fast_path=False), y0, dt, steps, repeats
+            )
             difference = float(jnp.max(jnp.abs(q2[-1] - qd[-1])))
             assert difference < 1e-9, f"O(n) and dense variational steps disagree: {difference}"
         rows.append((n, rk4, var2, var4, dense, difference, compile2))
-        print(f"n={n}: Projected(RK4) {rk4 * 1e6:.1f} us/step, Variational(2) "
-              f"{var2 * 1e6:.1f}, Variational(4) {var4 * 1e6:.1f}, dense Variational(2) "
-              f"{dense * 1e6:.1f}", flush=True)
+        print(
+            f"n={n}: Projected(RK4) {rk4 * 1e6:.1f} us/step, Variational(2) "
+            f"{var2 * 1e6:.1f}, Variational(4) {var4 * 1e6:.1f}, dense Variational(2) "
+            f"{dense * 1e6:.1f}",
+            flush=True,
+        )
     return rows
 
 
@@ -218,8 +236,9 @@ def main():
     parser.add_argument("--batch", type=int, default=256)
     parser.add_argument("--dt", type=float, default=1e-3, help="variational table: step")
     parser.add_argument("--steps", type=int, default=1000, help="variational table: steps")
-    parser.add_argument("--base", action="store_true",
-                        help="only the table of chains on a moving base")
+    parser.add_argument(
+        "--base", action="store_true", help="only the table of chains on a moving base"
+    )
     opts = parser.parse_args()
     ns = [1, 2, 4, 8] if opts.quick else [1, 2, 4, 8, 16, 32, 64]
     repeats = 5 if opts.quick else 20
@@ -246,10 +265,14 @@ def main():
         assert error < 1e-10 * scale, f"paths disagree at n={n}: {error}"
         legendre_error = float(jnp.max(jnp.abs(hamilton_fn(q, mu)[0] - qdot)))
         assert legendre_error < 1e-10 * float(jnp.max(jnp.abs(qdot))), legendre_error
-        rows.append((n, fast, slow, slow / fast, fast_compile, slow_compile, error / scale,
-                     ham, ham / fast))
-        print(f"n={n}: fast {fast * 1e6:.2f} us, general {slow * 1e6:.2f} us, "
-              f"legendre {ham * 1e6:.2f} us", flush=True)
+        rows.append(
+            (n, fast, slow, slow / fast, fast_compile, slow_compile, error / scale, ham, ham / fast)
+        )
+        print(
+            f"n={n}: fast {fast * 1e6:.2f} us, general {slow * 1e6:.2f} us, "
+            f"legendre {ham * 1e6:.2f} us",
+            flush=True,
+        )
 
     header = (
         f"Acceleration evaluations, float64, jit(vmap) over a batch of {opts.batch} states, "
@@ -289,16 +312,21 @@ def main():
     ax2.set_ylabel("speed-up of the fast path (x)")
     ax2.grid(True, which="both", alpha=0.3)
     n_var = np.array([r[0] for r in var_rows])
-    for k, label in ((1, "Projected(RK4())"), (2, "Variational(2), O(n)"),
-                     (3, "Variational(4), O(n)"), (4, "Variational(2), dense Newton")):
+    for k, label in (
+        (1, "Projected(RK4())"),
+        (2, "Variational(2), O(n)"),
+        (3, "Variational(4), O(n)"),
+        (4, "Variational(2), dense Newton"),
+    ):
         ax3.loglog(n_var, [r[k] * 1e6 for r in var_rows], "o-", label=label)
     ax3.set_xscale("log", base=2)
     ax3.set_xlabel("links n")
     ax3.set_ylabel(f"time per step, one trajectory (us), dt = {opts.dt:g}")
     ax3.legend()
     ax3.grid(True, which="both", alpha=0.3)
-    fig.suptitle(f"Chain pendulum, float64: accelerations (batch {opts.batch}) and "
-                 "integrator steps")
+    fig.suptitle(
+        f"Chain pendulum, float64: accelerations (batch {opts.batch}) and integrator steps"
+    )
     fig.tight_layout()
     fig.savefig(RESULTS / "fast_path.png", dpi=120)
     print(f"wrote {RESULTS / 'fast_path.png'} and {RESULTS / 'fast_path.md'}")

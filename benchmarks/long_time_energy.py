@@ -38,12 +38,28 @@ def run(solver, dt, steps, system=CHAIN, y0=(Q0, V0)):
     """`steps` fixed steps through `sm.simulate`; returns times, relative energy errors,
     constraint errors, the result code and the wall time (after compilation)."""
     saveat = diffrax.SaveAt(steps=True, fn=_energy)
-    go = lambda: sm.simulate(system, y0, jnp.asarray(dt * steps), solver=solver,
-                             dt0=jnp.asarray(dt), saveat=saveat, max_steps=steps,
-                             throw=False)
-    jax.block_until_ready(sm.simulate(system, y0, jnp.asarray(dt * 10), solver=solver,
-                                      dt0=jnp.asarray(dt), saveat=saveat, max_steps=steps,
-                                      throw=False).ys)  # compile once (same shapes)
+    go = lambda: sm.simulate(
+        system,
+        y0,
+        jnp.asarray(dt * steps),
+        solver=solver,
+        dt0=jnp.asarray(dt),
+        saveat=saveat,
+        max_steps=steps,
+        throw=False,
+    )
+    jax.block_until_ready(
+        sm.simulate(
+            system,
+            y0,
+            jnp.asarray(dt * 10),
+            solver=solver,
+            dt0=jnp.asarray(dt),
+            saveat=saveat,
+            max_steps=steps,
+            throw=False,
+        ).ys
+    )  # compile once (same shapes)
     start = time.perf_counter()
     sol = go()
     jax.block_until_ready(sol.ys)
@@ -83,16 +99,22 @@ def main():
         results[name] = run(solver, opts.dt, opts.steps)
         print(f"ran {name}", flush=True)
     base_wall = results["Projected(RK4)"][4]  # plain RK4 may stop early (it diverges)
-    print(f"\nDouble spherical pendulum, {opts.steps} steps of dt = {opts.dt} "
-          f"(T = {opts.steps * opts.dt:g} s), E0 = {float(CHAIN.energy(0.0, Q0, V0)):.4f}\n")
-    print("| method | result | max rel. energy error | envelope slope (1/s) | envelope growth "
-          "over run | max constraint error | wall time (s) | time / Projected(RK4) |")
+    print(
+        f"\nDouble spherical pendulum, {opts.steps} steps of dt = {opts.dt} "
+        f"(T = {opts.steps * opts.dt:g} s), E0 = {float(CHAIN.energy(0.0, Q0, V0)):.4f}\n"
+    )
+    print(
+        "| method | result | max rel. energy error | envelope slope (1/s) | envelope growth "
+        "over run | max constraint error | wall time (s) | time / Projected(RK4) |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     for name, (t, err, cons, result, wall) in results.items():
         _, _, slope, growth = envelope_trend(t, err)
         status = "ok" if result == sm.RESULTS.successful else "failed"
-        print(f"| {name} | {status} | {np.nanmax(err):.3e} | {slope:.3e} | {growth:+.3f} | "
-              f"{np.nanmax(cons):.1e} | {wall:.1f} | {wall / base_wall:.2f} |")
+        print(
+            f"| {name} | {status} | {np.nanmax(err):.3e} | {slope:.3e} | {growth:+.3f} | "
+            f"{np.nanmax(cons):.1e} | {wall:.1f} | {wall / base_wall:.2f} |"
+        )
     plot(results, opts)
 
 
@@ -108,12 +130,14 @@ def plot(results, opts):
         (line,) = ax.semilogy(centres, maxima, label=name)
         if np.isfinite(slope):
             fit = np.polyval(np.polyfit(centres, maxima, 1), centres)
-            ax.semilogy(centres, np.where(fit > 0, fit, np.nan), "--", color=line.get_color(),
-                        lw=0.8)
+            ax.semilogy(
+                centres, np.where(fit > 0, fit, np.nan), "--", color=line.get_color(), lw=0.8
+            )
     ax.set_xlabel("t (s)")
     ax.set_ylabel("max |E - E0| / |E0| per window")
-    ax.set_title(f"Double spherical pendulum, {opts.steps:.0e} steps, dt = {opts.dt}"
-                 " (dashed: fitted trend)")
+    ax.set_title(
+        f"Double spherical pendulum, {opts.steps:.0e} steps, dt = {opts.dt} (dashed: fitted trend)"
+    )
     ax.legend()
     out = Path(__file__).parent / "results" / "long_time_energy.png"
     out.parent.mkdir(exist_ok=True)

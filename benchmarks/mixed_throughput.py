@@ -95,8 +95,13 @@ class Setup(NamedTuple):
 
 SYSTEMS = {
     "cart pendulum": Setup(((1.0, 0.0, 0.0),), 1.0, (0.5,), (0.8,), None),
-    "drone with a cable": Setup(((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)), 1.5,
-                                (0.02,) * 4 + (0.32,), (0.2,) * 5, (20.0, 8.0)),
+    "drone with a cable": Setup(
+        ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)),
+        1.5,
+        (0.02,) * 4 + (0.32,),
+        (0.2,) * 5,
+        (20.0, 8.0),
+    ),
 }
 
 
@@ -111,8 +116,13 @@ def our_system(kind):
     effects = [sm.Base(s.base_mass, axes=s.axes), sm.Chain(s.masses, s.lengths), sm.Gravity(G)]
     if s.gains:
         E, weight = np.asarray(s.axes), (s.base_mass + sum(s.masses)) * G
-        effects.append(sm.BaseForce(sm.PDPosition(*s.gains, target=E @ np.asarray(s.target),
-                                                  feedforward=weight * E[:, 2])))
+        effects.append(
+            sm.BaseForce(
+                sm.PDPosition(
+                    *s.gains, target=E @ np.asarray(s.target), feedforward=weight * E[:, 2]
+                )
+            )
+        )
     return sm.Scene(*effects)
 
 
@@ -132,10 +142,15 @@ def mujoco_xml(kind):
     if s.gains:
         kp, kd = s.gains
         weight = (s.base_mass + sum(s.masses)) * G
-        actuators = "<actuator>" + "".join(
-            f'<general joint="slide{k}" biastype="affine" '
-            f'biasprm="{float(kp * np.dot(a, s.target) + weight * a[2])!r} {-kp!r} {-kd!r}"/>'
-            for k, a in enumerate(s.axes)) + "</actuator>"
+        actuators = (
+            "<actuator>"
+            + "".join(
+                f'<general joint="slide{k}" biastype="affine" '
+                f'biasprm="{float(kp * np.dot(a, s.target) + weight * a[2])!r} {-kp!r} {-kd!r}"/>'
+                for k, a in enumerate(s.axes)
+            )
+            + "</actuator>"
+        )
     slides = [" ".join(map(str, a)) for a in s.axes]
     return chain_xml(s.lengths, s.masses, s.base_mass, slides, actuators, inertia=INERTIA)
 
@@ -164,9 +179,11 @@ def random_states(kind, batch, seed=0):
 def methods(kind):
     """The methods this run compares; the first is the peer that ratios divide by."""
     system = our_system(kind)
-    ours = [peers.SphereMech(system, system.points),
-            peers.SphereMech(general_twin(system), system.points, GENERAL),
-            peers.BareScan(system, system.points)]
+    ours = [
+        peers.SphereMech(system, system.points),
+        peers.SphereMech(general_twin(system), system.points, GENERAL),
+        peers.BareScan(system, system.points),
+    ]
     if OPTS.device == "gpu":
         return ([peers.MJX(mujoco_xml(kind), to_joints)] if HAVE_MJX else []) + ours
     mjx = [peers.MJX(mujoco_xml(kind), to_joints)] if OPTS.mjx else []
@@ -176,8 +193,15 @@ def methods(kind):
 def exact_positions(kind, y, t1):
     """The point masses' positions at `t1` by `Projected(Dopri8())` at tolerance 1e-13."""
     system = our_system(kind)
-    sol = sm.simulate_batch(system, y, t1, solver=sm.Projected(diffrax.Dopri8()),
-                            rtol=1e-13, atol=1e-13, max_steps=100_000)
+    sol = sm.simulate_batch(
+        system,
+        y,
+        t1,
+        solver=sm.Projected(diffrax.Dopri8()),
+        rtol=1e-13,
+        atol=1e-13,
+        max_steps=100_000,
+    )
     final = jax.tree.map(lambda a: a[:, -1], sol.ys[0])
     return np.asarray(jax.vmap(system.points)(final))
 
@@ -194,16 +218,28 @@ def check_agreement(kind, batch=4, nsteps=200):
     exact = exact_positions(kind, y, nsteps * DT)
     diff = lambda a, b: float(np.max(np.abs(a - b)))
     ours = pos["sphere_mech"]
-    errors = {name: {"difference": diff(p, ours), "rk4_error": diff(p, exact)}
-              for name, p in pos.items()}
-    print(f"\n{kind}, after {nsteps * DT:g} s ({batch} random states): "
-          + "; ".join(f"{name} {e['difference']:.1e} from sphere_mech, {e['rk4_error']:.1e} "
-                      "from the exact solution" for name, e in errors.items()), flush=True)
+    errors = {
+        name: {"difference": diff(p, ours), "rk4_error": diff(p, exact)} for name, p in pos.items()
+    }
+    print(
+        f"\n{kind}, after {nsteps * DT:g} s ({batch} random states): "
+        + "; ".join(
+            f"{name} {e['difference']:.1e} from sphere_mech, {e['rk4_error']:.1e} "
+            "from the exact solution"
+            for name, e in errors.items()
+        ),
+        flush=True,
+    )
     slack = AGREEMENT + 2 * errors["sphere_mech"]["rk4_error"]
     # The general path equals the fast path on the tangent bundle (to 1e-12, tested) but
     # not at the RK4 stages' points off it (|q| != 1): a difference within the RK4 error.
-    bound = {"sphere_mech": 0.0, GENERAL: slack, "bare scan": AGREEMENT, "MuJoCo": slack,
-             "MJX": max(MJX_AGREEMENT, slack)}
+    bound = {
+        "sphere_mech": 0.0,
+        GENERAL: slack,
+        "bare scan": AGREEMENT,
+        "MuJoCo": slack,
+        "MJX": max(MJX_AGREEMENT, slack),
+    }
     assert all(e["difference"] <= bound[name] for name, e in errors.items()), errors
     return errors
 
@@ -241,27 +277,37 @@ def report(records, stem, setting):
             base = by_method[peer][batch][0]
             for name in (name for name in names if batch in by_method[name]):
                 rate, compile_s = by_method[name][batch]
-                lines.append(f"| {kind} | {batch} | {name} | {rate:.3g} | {rate / base:.2f} "
-                             f"| {compile_s:.1f} |")
-    table = (f"| system | batch | method | system-steps/s | ratio to {peer} | compile (s) |\n"
-             "|---|---|---|---|---|---|\n" + "\n".join(lines))
-    agreement = ("| system | method | from sphere_mech | from the exact solution |\n"
-                 "|---|---|---|---|\n" + "\n".join(
-                     f"| {kind} | {name} | {e['difference']:.1e} | {e['rk4_error']:.1e} |"
-                     for kind, errs in records["agreement"].items()
-                     for name, e in errs.items() if name != "sphere_mech"))
+                lines.append(
+                    f"| {kind} | {batch} | {name} | {rate:.3g} | {rate / base:.2f} "
+                    f"| {compile_s:.1f} |"
+                )
+    table = (
+        f"| system | batch | method | system-steps/s | ratio to {peer} | compile (s) |\n"
+        "|---|---|---|---|---|---|\n" + "\n".join(lines)
+    )
+    agreement = (
+        "| system | method | from sphere_mech | from the exact solution |\n"
+        "|---|---|---|---|\n"
+        + "\n".join(
+            f"| {kind} | {name} | {e['difference']:.1e} | {e['rk4_error']:.1e} |"
+            for kind, errs in records["agreement"].items()
+            for name, e in errs.items()
+            if name != "sphere_mech"
+        )
+    )
     load = " and ".join(f"{x:.1f}" for x in records["load"])
-    text = (f"Command: `{records['command']}`. Measured on {setting}, {records['date']} "
-            f"(1-minute load average {load} at the start and the end).\n\n"
-            "Agreement: max position difference after 0.2 s (4 random states), from "
-            "sphere_mech and from the exact solution (`Projected(Dopri8())` at 1e-13); "
-            f"sphere_mech's own RK4 error is the bare scan's.\n\n{agreement}\n\n"
-            f"Throughput:\n\n{table}\n")
+    text = (
+        f"Command: `{records['command']}`. Measured on {setting}, {records['date']} "
+        f"(1-minute load average {load} at the start and the end).\n\n"
+        "Agreement: max position difference after 0.2 s (4 random states), from "
+        "sphere_mech and from the exact solution (`Projected(Dopri8())` at 1e-13); "
+        f"sphere_mech's own RK4 error is the bare scan's.\n\n{agreement}\n\n"
+        f"Throughput:\n\n{table}\n"
+    )
     print("\n" + text)
     (RESULTS / f"{stem}.md").write_text(text)
 
-    colors = {"sphere_mech": "C0", GENERAL: "C2", "bare scan": "C1", "MuJoCo": "C3",
-              "MJX": "C4"}
+    colors = {"sphere_mech": "C0", GENERAL: "C2", "bare scan": "C1", "MuJoCo": "C3", "MJX": "C4"}
     kinds = list(records["batch"])
     fig, axes = plt.subplots(1, len(kinds), figsize=(5.5 * len(kinds), 4.2), sharey=True)
     for ax, kind in zip(axes, kinds, strict=True):
@@ -280,9 +326,11 @@ def report(records, stem, setting):
 def cpu_name():
     """The processor's model name (Linux), after the architecture."""
     info = pathlib.Path("/proc/cpuinfo")
-    names = [line.split(":", 1)[1].strip() for line in
-             (info.read_text().splitlines() if info.exists() else [])
-             if line.startswith("model name")]
+    names = [
+        line.split(":", 1)[1].strip()
+        for line in (info.read_text().splitlines() if info.exists() else [])
+        if line.startswith("model name")
+    ]
     return f"{platform.machine()} CPU" + (f" ({names[0]})" if names else "")
 
 
@@ -290,8 +338,9 @@ def main():
     if OPTS.device == "gpu" and jax.default_backend() != "gpu":
         raise SystemExit(f"--device gpu: JAX sees no GPU (its backend is {jax.default_backend()})")
     gpu = OPTS.device == "gpu"
-    batches = ((1, 64, 1024) if OPTS.quick else
-               (1, 64, 1024, 8192, 65536) if gpu else (1, 64, 1024, 8192))
+    batches = (
+        (1, 64, 1024) if OPTS.quick else (1, 64, 1024, 8192, 65536) if gpu else (1, 64, 1024, 8192)
+    )
     budget = (5e4 if OPTS.quick else 2e5) * (100 if gpu else 1)  # system-steps a run
     device = jax.devices()[0].device_kind if gpu else f"{cpu_name()}, {CORES} cores"
     setting = f"{device}, {OPTS.dtype}"

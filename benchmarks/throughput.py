@@ -36,8 +36,11 @@ def add_arguments(parser):
     parser.add_argument("--ns", type=int, nargs="*", help="links to measure (default 2 8 32)")
     parser.add_argument("--batches", type=int, nargs="*", help="batch sizes")
     parser.add_argument("--per-n", type=int, nargs="*", help="n for the single-trajectory cost")
-    parser.add_argument("--merge", action="store_true",
-                        help="add to the results of earlier runs in the results .json")
+    parser.add_argument(
+        "--merge",
+        action="store_true",
+        help="add to the results of earlier runs in the results .json",
+    )
 
 
 OPTS = parse_options(__doc__.splitlines()[0], add_arguments)
@@ -189,11 +192,12 @@ def check_agreement(n=3, batch=4, nsteps=200):
     y = random_states(n, batch, seed=7)
     others = [cls(n) for cls in methods() if cls is not SphereMech]
     pos = final_positions([SphereMech(n), *others], y, nsteps)
-    errors = {m.name: float(np.max(np.abs(pos[m.name] - pos[SphereMech.name])))
-              for m in others}
+    errors = {m.name: float(np.max(np.abs(pos[m.name] - pos[SphereMech.name]))) for m in others}
     lines = [f"| {name} | {err:.1e} |" for name, err in errors.items()]
-    print(f"\nAgreement with sphere_mech, max |x_i| difference after {nsteps * DT:g} s "
-          f"(n = {n}, {batch} random states):\n\n| method | difference |\n|---|---|")
+    print(
+        f"\nAgreement with sphere_mech, max |x_i| difference after {nsteps * DT:g} s "
+        f"(n = {n}, {batch} random states):\n\n| method | difference |\n|---|---|"
+    )
     print("\n".join(lines))
     bound = {name: MJX_AGREEMENT if name == MJX.name else AGREEMENT for name in errors}
     assert all(errors[name] < bound[name] for name in errors), errors
@@ -246,35 +250,57 @@ def report(records, errors, stem, setting):
         rows.append((int(n), int(batch), name, rate, rate / base, compile_s))
     order = {name: i for i, name in enumerate(names)}
     rows.sort(key=lambda r: (r[0], r[1], order.get(r[2], len(order))))
-    table = (f"| method | n | batch | pendulum-steps/s | ratio to {peer} | compile (s) |\n"
-             "|---|---|---|---|---|---|\n" + "\n".join(
-                 f"| {m} | {n} | {b} | {r:.3g} | {x:.2f} | {c:.1f} |"
-                 for n, b, m, r, x, c in rows))
+    table = (
+        f"| method | n | batch | pendulum-steps/s | ratio to {peer} | compile (s) |\n"
+        "|---|---|---|---|---|---|\n"
+        + "\n".join(
+            f"| {m} | {n} | {b} | {r:.3g} | {x:.2f} | {c:.1f} |" for n, b, m, r, x, c in rows
+        )
+    )
     cost = {}
     for key, value in records["cost"].items():
         name, n = key.split("|")
         cost.setdefault(int(n), {})[name] = value
     cost_names = [name for name in names if any(name in c for c in cost.values())]
-    cost_table = ("| n | " + " | ".join(f"{m} (us/step)" for m in cost_names) + " |\n|---|"
-                  + "---|" * len(cost_names) + "\n" + "\n".join(
-                      f"| {n} | " + " | ".join(f"{c.get(m, np.nan) * 1e6:.2f}"
-                                               for m in cost_names) + " |"
-                      for n, c in sorted(cost.items())))
+    cost_table = (
+        "| n | "
+        + " | ".join(f"{m} (us/step)" for m in cost_names)
+        + " |\n|---|"
+        + "---|" * len(cost_names)
+        + "\n"
+        + "\n".join(
+            f"| {n} | " + " | ".join(f"{c.get(m, np.nan) * 1e6:.2f}" for m in cost_names) + " |"
+            for n, c in sorted(cost.items())
+        )
+    )
     print("\n" + table + "\n\nOne trajectory, cost per RK4 step:\n\n" + cost_table)
 
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 4.2))
-    colors = dict(zip(["sphere_mech", "bare scan", "MuJoCo", "MJX", "angles (autodiff EL)"],
-                      ["C0", "C1", "C3", "C4", "C2"], strict=True))
+    colors = dict(
+        zip(
+            ["sphere_mech", "bare scan", "MuJoCo", "MJX", "angles (autodiff EL)"],
+            ["C0", "C1", "C3", "C4", "C2"],
+            strict=True,
+        )
+    )
     ns = sorted({r[0] for r in rows})
     styles = dict(zip(ns, ("-", "--", ":", "-.")[: len(ns)], strict=True))
     for name in names:
         for n in ns:
             pts = sorted((b, r) for nn, b, m, r, _, _ in rows if m == name and nn == n)
             if pts:
-                ax.loglog(*zip(*pts, strict=True), styles[n], marker="o", color=colors[name],
-                          label=f"{name}, n={n}")
-    ax.set(xlabel="batch size", ylabel="pendulum-steps per second",
-           title=f"Throughput (RK4, dt = 1e-3, {setting})")
+                ax.loglog(
+                    *zip(*pts, strict=True),
+                    styles[n],
+                    marker="o",
+                    color=colors[name],
+                    label=f"{name}, n={n}",
+                )
+    ax.set(
+        xlabel="batch size",
+        ylabel="pendulum-steps per second",
+        title=f"Throughput (RK4, dt = 1e-3, {setting})",
+    )
     ax.legend(fontsize=7)
     for name in cost_names:
         pts = sorted((n, c[name] * 1e6) for n, c in cost.items() if name in c)
@@ -297,17 +323,24 @@ def main():
         raise SystemExit(f"--device gpu: JAX sees no GPU (its backend is {jax.default_backend()})")
     quick, gpu = OPTS.quick, OPTS.device == "gpu"
     ns = OPTS.ns if OPTS.ns is not None else ((2, 8) if quick else (2, 8, 32))
-    batches = OPTS.batches or ((1, 1024) if quick else
-                               (1, 1024, 8192, 65536) if gpu else (1, 64, 1024, 8192))
-    per_n = OPTS.per_n if OPTS.per_n is not None else (
-        (1, 4, 16) if quick else (1, 2, 4, 8, 16, 32, 64))
+    batches = OPTS.batches or (
+        (1, 1024) if quick else (1, 1024, 8192, 65536) if gpu else (1, 64, 1024, 8192)
+    )
+    per_n = (
+        OPTS.per_n
+        if OPTS.per_n is not None
+        else ((1, 4, 16) if quick else (1, 2, 4, 8, 16, 32, 64))
+    )
     budget = (5e4 if quick else 2e5) * (100 if gpu else 1)  # pendulum-steps per run, n = 2
     device = jax.devices()[0].device_kind if gpu else f"{CORES}-core CPU"
     setting = f"{device}, {OPTS.dtype}"
     print(f"devices: {jax.devices()}; {setting}, RK4, dt = {DT}")
     RESULTS.mkdir(exist_ok=True)
-    stem = ("throughput" if (OPTS.device, OPTS.dtype) == ("cpu", "float64")
-            else f"throughput_{OPTS.device}_{OPTS.dtype}")
+    stem = (
+        "throughput"
+        if (OPTS.device, OPTS.dtype) == ("cpu", "float64")
+        else f"throughput_{OPTS.device}_{OPTS.dtype}"
+    )
     store = RESULTS / f"{stem}.json"
     records = {"batch": {}, "cost": {}, "agreement": {}}
     if OPTS.merge and store.exists():

@@ -186,12 +186,16 @@ def methods(quick: bool) -> list[Method]:
         Method("LieRK(Tsit5)", lambda s: sm.LieRK(diffrax.Tsit5()), ADAPTIVE_TOLS),
         Method("LieRK(Dopri8)", lambda s: sm.LieRK(diffrax.Dopri8()), (1e-6, 1e-8, 1e-10, 1e-12)),
         Method("Variational (order 2)", lambda s: sm.Variational(), max_fixed_steps=20_000),
-        Method("Variational (order 4)", lambda s: sm.Variational(order=4),
-               max_fixed_steps=4_000),
+        Method("Variational (order 4)", lambda s: sm.Variational(order=4), max_fixed_steps=4_000),
         Method("Projected(RK4)", lambda s: P(sm.RK4())),
         Method("RK4 (no projection)", lambda s: sm.RK4()),
-        Method("angles + Tsit5 (LNN-style)", lambda s: diffrax.Tsit5(), ADAPTIVE_TOLS,
-               angles=True, quick=True),
+        Method(
+            "angles + Tsit5 (LNN-style)",
+            lambda s: diffrax.Tsit5(),
+            ADAPTIVE_TOLS,
+            angles=True,
+            quick=True,
+        ),
     ]
     if quick:
         ms = [m for m in ms if m.quick]
@@ -213,8 +217,7 @@ def _chain_state(thetas, phis, speeds_theta, speeds_phi):
 def double_pendulum_scene(t1):
     chain = sm.chain_pendulum(jnp.ones(2), jnp.ones(2))
     y0 = chain.space.retract(*_chain_state([0.9, 1.2], [0.0, 0.5], [0.0, -0.3], [2.0, 1.5]))
-    return Scene("double pendulum", chain, y0, t1, (1e-2, 3e-3, 1e-3, 3e-4),
-                 angle_baseline=True)
+    return Scene("double pendulum", chain, y0, t1, (1e-2, 3e-3, 1e-3, 3e-4), angle_baseline=True)
 
 
 def triple_pendulum_state():
@@ -225,15 +228,22 @@ def triple_pendulum_state():
 
 def triple_pendulum_scene(t1):
     chain = sm.chain_pendulum(jnp.ones(3), jnp.ones(3))
-    return Scene("chaotic triple pendulum", chain, triple_pendulum_state(), t1,
-                 (3e-3, 1e-3, 3e-4, 1e-4))
+    return Scene(
+        "chaotic triple pendulum", chain, triple_pendulum_state(), t1, (3e-3, 1e-3, 3e-4, 1e-4)
+    )
 
 
 def hanging_chain_scene(t1, n=16):
     chain = sm.chain_pendulum(jnp.full(n, 1.0 / n), jnp.full(n, 1.0 / n))
     i = np.arange(n)
-    y0 = chain.space.retract(*_chain_state(0.6 * np.sin(np.pi * (i + 1) / (n + 1)), 0.2 * i / n,
-                                           np.zeros(n), 0.5 * np.cos(np.pi * i / n)))
+    y0 = chain.space.retract(
+        *_chain_state(
+            0.6 * np.sin(np.pi * (i + 1) / (n + 1)),
+            0.2 * i / n,
+            np.zeros(n),
+            0.5 * np.cos(np.pi * i / n),
+        )
+    )
     return Scene(f"{n}-link hanging chain", chain, y0, t1, (1e-2, 3e-3, 1e-3, 3e-4))
 
 
@@ -246,8 +256,9 @@ def drone_cable_scene(t1, n=5):
     chain = sm.Scene(sm.Base(1.5), sm.Chain(0.02, 0.2, links=n, payload=0.3), sm.Gravity())
     i = np.arange(n)
     q, v = _chain_state(0.5 + 0.25 * i, 0.3 * i, 3.0 * np.cos(i), 4.0 - i)
-    y0 = chain.space.retract({"base": jnp.zeros(3), "spheres": q},
-                             {"base": jnp.array([0.5, -0.3, 14.0]), "spheres": v})
+    y0 = chain.space.retract(
+        {"base": jnp.zeros(3), "spheres": q}, {"base": jnp.array([0.5, -0.3, 14.0]), "spheres": v}
+    )
     return Scene(f"drone with a {n}-link cable", chain, y0, t1, (1e-2, 3e-3, 1e-3, 3e-4))
 
 
@@ -270,8 +281,9 @@ def _integrate(chain, solver, y0, t1, param, adaptive, diagnostics, max_steps):
         step = dict(rtol=param, atol=param)
     else:
         step = dict(dt0=param, stepsize_controller=diffrax.ConstantStepSize())
-    sol = sm.simulate(system, y0, t1, solver=solver, saveat=saveat, max_steps=max_steps,
-                      throw=False, **step)
+    sol = sm.simulate(
+        system, y0, t1, solver=solver, saveat=saveat, max_steps=max_steps, throw=False, **step
+    )
     ys = (sol.ys["q"], sol.ys["v"])
     return sol.ts, ys, sol.result == sm.RESULTS.successful, sol.stats["num_steps"]
 
@@ -284,16 +296,34 @@ def _integrate_angles(angle_chain, solver, y0, t1, param, adaptive, diagnostics,
         controller, dt0 = diffrax.PIDController(rtol=param, atol=param), None
     else:
         controller, dt0 = diffrax.ConstantStepSize(), param
-    sol = diffrax.diffeqsolve(diffrax.ODETerm(vf), solver, 0.0, t1, dt0, y0, args=angle_chain,
-                              saveat=saveat, stepsize_controller=controller,
-                              max_steps=max_steps, throw=False)
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(vf),
+        solver,
+        0.0,
+        t1,
+        dt0,
+        y0,
+        args=angle_chain,
+        saveat=saveat,
+        stepsize_controller=controller,
+        max_steps=max_steps,
+        throw=False,
+    )
     return sol.ts, sol.ys, sol.result == diffrax.RESULTS.successful, sol.stats["num_steps"]
 
 
 @eqx.filter_jit
 def _reference_solution(chain, y0, t1, tol):
-    return sm.simulate(chain, y0, t1, solver=sm.Projected(diffrax.Dopri8()), rtol=tol,
-                       atol=tol, max_steps=1_000_000, saveat=diffrax.SaveAt(t1=True, dense=True))
+    return sm.simulate(
+        chain,
+        y0,
+        t1,
+        solver=sm.Projected(diffrax.Dopri8()),
+        rtol=tol,
+        atol=tol,
+        max_steps=1_000_000,
+        saveat=diffrax.SaveAt(t1=True, dense=True),
+    )
 
 
 def reference_solution(scene, tol=REFERENCE_TOL):
@@ -317,8 +347,11 @@ def _timed(fn, repeats, budget=2.0, fast=0.3, most=30):
     jax.block_until_ready(fn())
     first = time.perf_counter() - start
     times = []
-    while not times or (len(times) < repeats and sum(times) < budget) or (
-            len(times) < most and sum(times) < fast):
+    while (
+        not times
+        or (len(times) < repeats and sum(times) < budget)
+        or (len(times) < most and sum(times) < fast)
+    ):
         start = time.perf_counter()
         jax.block_until_ready(fn())
         times.append(time.perf_counter() - start)
@@ -345,8 +378,9 @@ def measure(scene, method, param, ref_points, repeats, max_steps):
     if method.angles:
         angle_chain = AngleChain(scene.chain)
         y0 = angles_from_state(*scene.y0)
-        run = lambda diag: _integrate_angles(angle_chain, solver, y0, t1, p, adaptive, diag,
-                                             max_steps)
+        run = lambda diag: _integrate_angles(
+            angle_chain, solver, y0, t1, p, adaptive, diag, max_steps
+        )
         points = angle_chain.points
         energy = jax.tree_util.Partial(_mapped, angle_chain.energy)
         constraint = lambda ys: float("nan")
@@ -373,11 +407,19 @@ def measure(scene, method, param, ref_points, repeats, max_steps):
     if not ok:
         final_error = energy_error = float("nan")
     return dict(
-        scene=scene.name, method=method.label, adaptive=adaptive, param=float(param),
-        final_error=final_error, energy_error=energy_error, constraint_error=constraint(ys_all),
-        wall_time=wall, wall_time_min=fastest, compile_time=max(first - wall, 0.0),
+        scene=scene.name,
+        method=method.label,
+        adaptive=adaptive,
+        param=float(param),
+        final_error=final_error,
+        energy_error=energy_error,
+        constraint_error=constraint(ys_all),
+        wall_time=wall,
+        wall_time_min=fastest,
+        compile_time=max(first - wall, 0.0),
         evaluations=evaluations,
-        steps=int(num_steps), success=ok,
+        steps=int(num_steps),
+        success=ok,
     )
 
 
@@ -389,12 +431,19 @@ def predictability_time(scene, t_max, eps=1e-10, threshold=1e-2):
     """First time at which a 1e-10 perturbation of `q0` moves some mass by more than
     `threshold` (in units of the chain's length)."""
     q0, v0 = scene.y0
-    q1, v1 = scene.chain.space.retract(q0 + eps * jnp.array([[0.0, 1.0, 0.0]] * q0.shape[0]),
-                                       v0)
+    q1, v1 = scene.chain.space.retract(q0 + eps * jnp.array([[0.0, 1.0, 0.0]] * q0.shape[0]), v0)
     ts = jnp.linspace(0.0, t_max, 2001)
     solver = sm.Projected(diffrax.Dopri8())
-    run = lambda y: sm.simulate(scene.chain, y, t_max, solver=solver, rtol=1e-13, atol=1e-13,
-                                saveat=diffrax.SaveAt(ts=ts), max_steps=1_000_000).ys[0]
+    run = lambda y: sm.simulate(
+        scene.chain,
+        y,
+        t_max,
+        solver=solver,
+        rtol=1e-13,
+        atol=1e-13,
+        saveat=diffrax.SaveAt(ts=ts),
+        max_steps=1_000_000,
+    ).ys[0]
     xa = jax.vmap(scene.chain.points)(run((q0, v0)))
     xb = jax.vmap(scene.chain.points)(run((q1, v1)))
     sep = np.max(np.linalg.norm(np.asarray(xa - xb), axis=-1), axis=-1)
@@ -411,12 +460,18 @@ def pole_scene(t1, approach=1e-6, delta0=1e-3):
     chain = sm.chain_pendulum(jnp.ones(2), jnp.ones(2))
 
     def state(delta):
-        return chain.space.retract(*_chain_state([1.0, 1.0], [0.0, 0.0], [0.0, 0.0],
-                                                 [delta, 0.0]))
+        return chain.space.retract(*_chain_state([1.0, 1.0], [0.0, 0.0], [0.0, 0.0], [delta, 0.0]))
 
     def closest(delta):
-        scene = Scene("pole passage (double pendulum)", chain, state(delta), t1,
-                      (1e-2, 3e-3, 1e-3), angle_baseline=True, pole=True)
+        scene = Scene(
+            "pole passage (double pendulum)",
+            chain,
+            state(delta),
+            t1,
+            (1e-2, 3e-3, 1e-3),
+            angle_baseline=True,
+            pole=True,
+        )
         return scene, _closest_approach(scene, reference_solution(scene, 1e-12))
 
     _, d0 = closest(delta0)  # the out-of-plane excursion is linear in delta
@@ -451,8 +506,10 @@ def _fmt(x, spec=".1e"):
 
 
 def markdown_table(rows):
-    head = ("| scene | method | tol / dt | error at t1 | max energy error | max constraint "
-            "error | time (ms) | compile (s) | force evals | steps |")
+    head = (
+        "| scene | method | tol / dt | error at t1 | max energy error | max constraint "
+        "error | time (ms) | compile (s) | force evals | steps |"
+    )
     lines = [head, "|" + "---|" * 10]
     for r in rows:
         compile_s = "cached" if r["compile_time"] < 0.05 else f"{r['compile_time']:.1f}"
@@ -461,15 +518,18 @@ def markdown_table(rows):
             f"| {r['scene']} | {r['method']} | {param} | {_fmt(r['final_error'])} | "
             f"{_fmt(r['energy_error'])} | {_fmt(r['constraint_error'])} | "
             f"{1e3 * r['wall_time']:.2f} | {compile_s} | {r['evaluations']} | {r['steps']}"
-            + ("" if r["success"] else " (failed)") + " |"
+            + ("" if r["success"] else " (failed)")
+            + " |"
         )
     return "\n".join(lines)
 
 
 def ratio_table(rows, base="Projected(Tsit5)", other="angles + Tsit5 (LNN-style)"):
     """Same-tolerance comparison of the angle baseline against `base`, per scene."""
-    lines = [f"| scene | tol | {other}: time / ours | evals / ours | its error | our error |",
-             "|---|---|---|---|---|---|"]
+    lines = [
+        f"| scene | tol | {other}: time / ours | evals / ours | its error | our error |",
+        "|---|---|---|---|---|---|",
+    ]
     index = {(r["scene"], r["method"], r["param"]): r for r in rows}
     for (scene, method, param), r in index.items():
         ours = index.get((scene, base, param))
@@ -478,7 +538,8 @@ def ratio_table(rows, base="Projected(Tsit5)", other="angles + Tsit5 (LNN-style)
         lines.append(
             f"| {scene} | {param:.0e} | {r['wall_time'] / ours['wall_time']:.1f} | "
             f"{r['evaluations'] / max(ours['evaluations'], 1):.1f} | "
-            f"{_fmt(r['final_error'])} | {_fmt(ours['final_error'])} |")
+            f"{_fmt(r['final_error'])} | {_fmt(ours['final_error'])} |"
+        )
     return "\n".join(lines)
 
 
@@ -495,19 +556,24 @@ def figure(rows, path=None):
     colors = {m: palette[i % len(palette)] for i, m in enumerate(labels)}
     ncols = min(2, len(scenes))
     nrows = -(-len(scenes) // ncols)
-    fig, axes = plt.subplots(nrows, ncols, figsize=(5.2 * ncols, 3.9 * nrows + 0.8),
-                             squeeze=False)
-    for ax in axes.flat[len(scenes):]:
+    fig, axes = plt.subplots(nrows, ncols, figsize=(5.2 * ncols, 3.9 * nrows + 0.8), squeeze=False)
+    for ax in axes.flat[len(scenes) :]:
         ax.set_visible(False)
     for ax, scene in zip(axes.flat, scenes, strict=False):
         for m in labels:
-            pts = sorted((r["wall_time"], r["final_error"]) for r in rows
-                         if r["scene"] == scene and r["method"] == m and r["success"]
-                         and r["final_error"] > 0)
+            pts = sorted(
+                (r["wall_time"], r["final_error"])
+                for r in rows
+                if r["scene"] == scene
+                and r["method"] == m
+                and r["success"]
+                and r["final_error"] > 0
+            )
             if pts:
                 style = "--" if "angles" in m or "no projection" in m else "-"
-                ax.loglog(*zip(*pts, strict=True), style, marker="o", ms=3, color=colors[m],
-                          label=m)
+                ax.loglog(
+                    *zip(*pts, strict=True), style, marker="o", ms=3, color=colors[m], label=m
+                )
         ax.set_title(scene, fontsize=10)
         ax.set_xlabel("wall time after compilation (s)")
         ax.grid(True, which="major", alpha=0.3)
@@ -519,8 +585,9 @@ def figure(rows, path=None):
             if n not in names:
                 handles.append(h)
                 names.append(n)
-    fig.legend(handles, names, loc="lower center", ncol=min(4, len(names)), fontsize=8,
-               frameon=False)
+    fig.legend(
+        handles, names, loc="lower center", ncol=min(4, len(names)), fontsize=8, frameon=False
+    )
     legend_height = 0.3 + 0.2 * -(-len(names) // 4)  # inches, 4 names a row
     fig.tight_layout(rect=(0, legend_height / fig.get_figheight(), 1, 1))
     if path is not None:
@@ -535,8 +602,10 @@ def figure(rows, path=None):
 def _triple(t1, info, log):
     triple = triple_pendulum_scene(t1)
     t_pred = predictability_time(triple, 20.0)
-    log(f"chaotic triple pendulum: a 1e-10 perturbation of q0 grows past 1% of the "
-        f"chain's length at t = {t_pred:.2f} s; horizon {triple.t1} s")
+    log(
+        f"chaotic triple pendulum: a 1e-10 perturbation of q0 grows past 1% of the "
+        f"chain's length at t = {t_pred:.2f} s; horizon {triple.t1} s"
+    )
     info["triple_predictability_time"] = t_pred
     return triple
 
@@ -557,21 +626,25 @@ def scenes_of(quick, keys, info, log):
     """The scenes named by `keys` (None: all) that the run (quick or full) has, built in
     order; what is measured on the way goes into `info`."""
     if quick:
-        builders = dict(double=lambda: double_pendulum_scene(2.0),
-                        pole=lambda: _pole(2.0, info, log))
+        builders = dict(
+            double=lambda: double_pendulum_scene(2.0), pole=lambda: _pole(2.0, info, log)
+        )
     else:
-        builders = dict(double=lambda: double_pendulum_scene(10.0),
-                        triple=lambda: _triple(5.0, info, log),
-                        chain=lambda: hanging_chain_scene(5.0),
-                        pole=lambda: _pole(5.0, info, log),
-                        drone=lambda: drone_cable_scene(3.0))
+        builders = dict(
+            double=lambda: double_pendulum_scene(10.0),
+            triple=lambda: _triple(5.0, info, log),
+            chain=lambda: hanging_chain_scene(5.0),
+            pole=lambda: _pole(5.0, info, log),
+            drone=lambda: drone_cable_scene(3.0),
+        )
     return [build() for key, build in builders.items() if keys is None or key in keys]
 
 
 def parameters(scene, method, quick):
     """The tolerances or step sizes `method` runs at on `scene` (empty: it does not)."""
     if (method.angles and not scene.angle_baseline) or (
-            scene.pole and not (method.angles or "Tsit5" in method.label)):
+        scene.pole and not (method.angles or "Tsit5" in method.label)
+    ):
         return []
     adaptive = method.tolerances is not None
     params = method.tolerances if adaptive else scene.steps
@@ -591,8 +664,7 @@ def measure_scene(scene, quick, repeats, info, log):
     check = final_points(reference_solution(scene, 100 * REFERENCE_TOL))
     ref_err = float(jnp.max(jnp.linalg.norm(ref - check, axis=-1)))
     info[f"reference_error[{scene.name}]"] = ref_err
-    log(f"{scene.name}: t1 = {scene.t1} s, reference (tol 1e-14 vs 1e-12) differs by "
-        f"{ref_err:.1e}")
+    log(f"{scene.name}: t1 = {scene.t1} s, reference (tol 1e-14 vs 1e-12) differs by {ref_err:.1e}")
     rows = []
     for method in methods(quick):
         params = parameters(scene, method, quick)
@@ -603,9 +675,11 @@ def measure_scene(scene, quick, repeats, info, log):
         for param in params:
             r = measure(scene, method, param, ref, repeats, max_steps)
             rows.append(r)
-            log(f"  {method.label:28s} {param:8.0e}  err {_fmt(r['final_error'])}  "
+            log(
+                f"  {method.label:28s} {param:8.0e}  err {_fmt(r['final_error'])}  "
                 f"dE {_fmt(r['energy_error'])}  |q|-1 {_fmt(r['constraint_error'])}  "
-                f"{1e3 * r['wall_time']:8.2f} ms  evals {r['evaluations']}")
+                f"{1e3 * r['wall_time']:8.2f} ms  evals {r['evaluations']}"
+            )
     return rows
 
 
@@ -640,9 +714,14 @@ def run(quick=False, out=None, log=print, scenes=None):
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
         (out / f"{stem}.md").write_text(
-            "# Work-precision results\n\n" + "\n".join(f"- {k}: {v}" for k, v in info.items())
-            + "\n\n" + table + "\n\n## Angle baseline / ours, same tolerance\n\n" + ratios
-            + "\n")
+            "# Work-precision results\n\n"
+            + "\n".join(f"- {k}: {v}" for k, v in info.items())
+            + "\n\n"
+            + table
+            + "\n\n## Angle baseline / ours, same tolerance\n\n"
+            + ratios
+            + "\n"
+        )
         (out / f"{stem}.json").write_text(json.dumps(results, indent=1))
         figure(rows, out / f"{stem}.png")
     return results
@@ -652,9 +731,14 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="small run (< 1 min)")
     parser.add_argument("--out", default=str(RESULTS_DIR), help="output directory")
-    parser.add_argument("--scenes", nargs="+", choices=SCENES, metavar="SCENE",
-                        help=f"run only these scenes ({', '.join(SCENES)}) and merge their "
-                        "rows into the results already in --out")
+    parser.add_argument(
+        "--scenes",
+        nargs="+",
+        choices=SCENES,
+        metavar="SCENE",
+        help=f"run only these scenes ({', '.join(SCENES)}) and merge their "
+        "rows into the results already in --out",
+    )
     args = parser.parse_args(argv)
     return run(quick=args.quick, out=args.out, scenes=args.scenes)
 

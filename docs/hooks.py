@@ -282,8 +282,10 @@ def scene_file_reference() -> str:
     from sphere_mech import _scene_files as files
 
     initial = [f"| `{key}` | {what} |" for key, (_, what, _) in files.INITIAL.items()]
-    initial += [f"| `{key}` | {what}, with a `base` effect (default zeros) |"
-                for key, what in files.BASE_INITIAL.items()]
+    initial += [
+        f"| `{key}` | {what}, with a `base` effect (default zeros) |"
+        for key, what in files.BASE_INITIAL.items()
+    ]
     simulate = [f"| `{key}` | {what} |" for key, what in files.SIMULATE.items()]
     return "\n".join(
         [
@@ -302,7 +304,7 @@ def scene_file_reference() -> str:
             "Either `q` (and optionally `qdot`), or `polar_deg` and `azimuth_deg` with optional "
             "rates; each one value for every sphere or a list with one per sphere. With a "
             "`base` effect, also `base` and `base_velocity`, one number per axis of the base "
-            "(the state is then `{\"base\": (m,), \"spheres\": (n, 3)}`).",
+            '(the state is then `{"base": (m,), "spheres": (n, 3)}`).',
             "",
             "| key | expected |",
             "|---|---|",

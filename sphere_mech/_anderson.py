@@ -56,8 +56,9 @@ class Anderson(optx.AbstractFixedPointSolver):
         flat, _ = ravel_pytree(y)
         history = jnp.zeros((self.depth, flat.size), dtype=flat.dtype)
         inf = jnp.array(jnp.inf, dtype=flat.dtype)
-        return _AndersonState(history, history, flat, jnp.zeros_like(flat), jnp.array(0),
-                              inf, jnp.ones_like(inf), inf)
+        return _AndersonState(
+            history, history, flat, jnp.zeros_like(flat), jnp.array(0), inf, jnp.ones_like(inf), inf
+        )
 
     def step(self, fn, y, args, options, state: _AndersonState, tags):
         g, aux = fn(y, args)
@@ -95,6 +96,7 @@ class Anderson(optx.AbstractFixedPointSolver):
     def terminate(self, fn, y, args, options, state: _AndersonState, tags):
         return state.relative_error < 1, optx.RESULTS.successful
 
-    def postprocess(self, fn, y, aux, args, options, state, tags, result
-                    ) -> tuple[Any, Any, dict[str, Any]]:
+    def postprocess(
+        self, fn, y, aux, args, options, state, tags, result
+    ) -> tuple[Any, Any, dict[str, Any]]:
         return y, aux, {}

@@ -69,18 +69,28 @@ def _solve_batch(static, chunk, mesh, shared, batched, y0, valid, size, padded):
     solve = lambda s, b, y: _local_solve(static, chunk, s, b, y)
     if mesh is not None:
         spec = PartitionSpec(BATCH_AXIS)
-        solve = jax.shard_map(solve, mesh=mesh, in_specs=(PartitionSpec(), spec, spec),
-                              out_specs=spec, check_vma=False)
+        solve = jax.shard_map(
+            solve,
+            mesh=mesh,
+            in_specs=(PartitionSpec(), spec, spec),
+            out_specs=spec,
+            check_vma=False,
+        )
     sol = jax.tree.map(lambda x: x[:size], solve(shared, batched, y0))
     # Invalid initial states ran a stand-in (`initial_states`): their own code, nothing
     # saved (`inf`, as for a run that fails at its initial state) and no steps.
     result = jax.vmap(lambda ok, r: RESULTS.where(ok, r, RESULTS.invalid_initial))(
-        valid, sol.result)
+        valid, sol.result
+    )
     discard = lambda fill: lambda x: jnp.where(rows(valid, x), x, fill)
     ts, ys = jax.tree.map(discard(jnp.inf), (sol.ts, sol.ys))
     stats = jax.tree.map(discard(0), sol.stats)
-    return eqx.tree_at(lambda s: (s.result, s.ts, s.ys, s.stats), sol, (result, ts, ys, stats),
-                       is_leaf=lambda x: x is None)
+    return eqx.tree_at(
+        lambda s: (s.result, s.ts, s.ys, s.stats),
+        sol,
+        (result, ts, ys, stats),
+        is_leaf=lambda x: x is None,
+    )
 
 
 def _chunk_size(chunk_size, n, local, platform):
@@ -165,8 +175,10 @@ def simulate_batch(
     q0, v0 = jax.tree.map(as_array, tuple(y0), is_leaf=lambda x: isinstance(x, list))
     leading = {jnp.shape(x)[:1] for x in jax.tree.leaves((q0, v0))}
     if len(leading) != 1 or leading == {()} or leading == {(0,)}:
-        raise ValueError("y0 must have a leading batch axis (batch >= 1), the same on every "
-                         f"array, got shapes {jax.tree.map(jnp.shape, (q0, v0))}.")
+        raise ValueError(
+            "y0 must have a leading batch axis (batch >= 1), the same on every "
+            f"array, got shapes {jax.tree.map(jnp.shape, (q0, v0))}."
+        )
     size = leading.pop()[0]
     one_state = jax.tree.map(lambda x: x[0], (q0, v0))
     system.space.check_shapes(*one_state, system.state_name)
@@ -177,8 +189,23 @@ def simulate_batch(
     if batch_system:
         _leading(eqx.filter(system, eqx.is_array), size, "system")
     system, args, opts, t0, t1, dt0 = prepare(
-        system, args, dtype, t0, t1, dt0, solver, rtol, atol, stepsize_controller, saveat,
-        max_steps, adjoint, progress, event, batched=True)
+        system,
+        args,
+        dtype,
+        t0,
+        t1,
+        dt0,
+        solver,
+        rtol,
+        atol,
+        stepsize_controller,
+        saveat,
+        max_steps,
+        adjoint,
+        progress,
+        event,
+        batched=True,
+    )
     dynamic, static = eqx.partition((system, args, t0, t1, dt0, opts), eqx.is_array)
     mask = jax.tree.map(lambda _: False, dynamic)
     mask = (batch_system, batch_args) + mask[2:]  # prefixes: all of system / args or none

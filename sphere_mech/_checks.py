@@ -107,8 +107,9 @@ def check_scalar(value, what: str):
 def check_finite(x, message: str):
     """Error (at run time) when `x` (an array or a dict of arrays) has a NaN or infinity;
     `message` names the cause."""
-    finite = functools.reduce(jnp.logical_and, [jnp.all(jnp.isfinite(a))
-                                                for a in jax.tree.leaves(x)])
+    finite = functools.reduce(
+        jnp.logical_and, [jnp.all(jnp.isfinite(a)) for a in jax.tree.leaves(x)]
+    )
     return eqx.error_if(x, ~finite, message)
 
 
@@ -125,5 +126,7 @@ def check_function(fn, name: str, spelled: str, arity: int) -> None:
     try:
         signature.bind(*range(arity))
     except TypeError:
-        raise ValueError(f"{name} must be a function {spelled} ({arity} arguments), got "
-                         f"one with signature {signature}.") from None
+        raise ValueError(
+            f"{name} must be a function {spelled} ({arity} arguments), got "
+            f"one with signature {signature}."
+        ) from None

@@ -201,8 +201,11 @@ class AbstractConstantInertiaLagrangian(AbstractLagrangianSystem):
                 S = S - column[0] * jnp.outer(c, c) * sPs
             else:
                 S_diag = S_diag.at[0].add(-column[0] * c[0] ** 2 * sPs[0, 0])
-        solve = ((lambda r: spd_solve(S, r)) if bands is None
-                 else (lambda r: tridiagonal_spd_solve(S_diag, S_off, r)))
+        solve = (
+            (lambda r: spd_solve(S, r))
+            if bands is None
+            else (lambda r: tridiagonal_spd_solve(S_diag, S_off, r))
+        )
 
         def multiplier_solve(rhs, target=None):
             y = apply(self.lift(rhs))
@@ -227,8 +230,9 @@ class AbstractConstantInertiaLagrangian(AbstractLagrangianSystem):
         qdot_s = self.spheres(qdot)
         return self.multiplier_solver(q, args)(g, -jnp.sum(qdot_s * qdot_s, axis=-1))
 
-    def velocity_from_momentum(self, t, q, p, args=None, *, guess=None, quadratic=None,
-                               tol=None, max_steps=32):
+    def velocity_from_momentum(
+        self, t, q, p, args=None, *, guess=None, quadratic=None, tol=None, max_steps=32
+    ):
         """The fast path of the inverse Legendre map: the tangent `qdot` with
         `P M qdot = p`, exact, by the same multiplier solve as the accelerations (O(n) when
         `M^-1` is tridiagonal).
@@ -280,8 +284,10 @@ class ConstantInertiaLagrangian(AbstractConstantInertiaLagrangian):
                 M = np.asarray(self.inertia_matrix, dtype=float)
                 smallest = np.linalg.eigvalsh(M)[0] if np.all(np.isfinite(M)) else np.nan
                 if not (np.max(np.abs(M - M.T)) <= 1e-10 * np.max(np.abs(M)) and smallest > 0):
-                    raise ValueError(f"inertia must be a symmetric positive-definite matrix "
-                                     f"(got smallest eigenvalue {smallest:g} of {M.tolist()}).")
+                    raise ValueError(
+                        f"inertia must be a symmetric positive-definite matrix "
+                        f"(got smallest eigenvalue {smallest:g} of {M.tolist()})."
+                    )
         else:
             check_function(self.inertia_matrix, "inertia", "inertia(args)", 1)
         check_function(self.potential_fn, "potential", "U(t, q, args)", 3)

@@ -92,13 +92,16 @@ def angular(system: AbstractSystem) -> AbstractSystem:
     **Returns:** an `AngularLagrangian` or an `AngularHamiltonian`.
     """
     if system.angular:
-        raise TypeError(f"angular() takes a form-1 or form-3 system; {type(system).__name__} "
-                        "is in angular variables already.")
+        raise TypeError(
+            f"angular() takes a form-1 or form-3 system; {type(system).__name__} "
+            "is in angular variables already."
+        )
     space = system.space
     forces = _Reparametrized(system.generalized_force, space) if system.has_forces else None
     if isinstance(system, AbstractLagrangianSystem):
-        return AngularLagrangian(_Reparametrized(system.lagrangian, space), forces,
-                                 system.quadratic_in_velocity, space)
+        return AngularLagrangian(
+            _Reparametrized(system.lagrangian, space), forces, system.quadratic_in_velocity, space
+        )
     if isinstance(system, AbstractHamiltonianSystem):
         return AngularHamiltonian(_Reparametrized(system.H, space), forces, space)
     raise TypeError(f"angular() takes a Lagrangian or Hamiltonian system, got {type(system)}.")

@@ -37,12 +37,18 @@ _NEWTON = (
     "step with a smaller one), or a root finder with more iterations."
 )
 _HINTS = (
-    (RESULTS.max_steps_reached, " If most steps were rejected (sol.stats with throw=False) "
-     "the step size collapsed, which happens when the vector field is NaN or singular near "
-     "the state reached; otherwise loosen rtol/atol."),
-    (RESULTS.nonfinite, " The state became NaN (the step diverged or the vector field is "
-     "not defined there: a singular mass matrix, NaN parameters or forces): use a smaller "
-     "dt0 or an adaptive step-size controller."),
+    (
+        RESULTS.max_steps_reached,
+        " If most steps were rejected (sol.stats with throw=False) "
+        "the step size collapsed, which happens when the vector field is NaN or singular near "
+        "the state reached; otherwise loosen rtol/atol.",
+    ),
+    (
+        RESULTS.nonfinite,
+        " The state became NaN (the step diverged or the vector field is "
+        "not defined there: a singular mass matrix, NaN parameters or forces): use a smaller "
+        "dt0 or an adaptive step-size controller.",
+    ),
     (RESULTS.nonlinear_max_steps_reached, _NEWTON),
     (RESULTS.nonlinear_divergence, _NEWTON),
     (RESULTS.singular, _NEWTON),
@@ -66,8 +72,11 @@ def _messages(max_steps) -> list[str]:
     item = jax.tree.structure(RESULTS.successful)
     items = [jax.tree.unflatten(item, [np.asarray(i, np.int32)]) for i in range(len(RESULTS))]
     limit = {int(code(RESULTS.max_steps_reached)): f"max_steps={max_steps}; "}
-    return [f"{RESULTS[item]}{hints.get(i, '')} ({limit.get(i, '')}with throw=False "
-            "nothing is raised and sol.result holds the code)" for i, item in enumerate(items)]
+    return [
+        f"{RESULTS[item]}{hints.get(i, '')} ({limit.get(i, '')}with throw=False "
+        "nothing is raised and sol.result holds the code)"
+        for i, item in enumerate(items)
+    ]
 
 
 def raise_on_failure(sol: diffrax.Solution, max_steps, what: str) -> diffrax.Solution:

@@ -63,9 +63,24 @@ def _snake(name: str) -> str:
     return re.sub(r"(?<=[a-z0-9])(?=[A-Z])|(?<=[A-Z])(?=[A-Z][a-z])", "_", name).lower()
 
 
-EFFECTS = {_snake(c.__name__): c for c in (
-    Chain, Particles, SharedSphere, Base, Gravity, Spring, Bending, PairInteraction,
-    JointDamping, BaseTorque, TipForce, VibratingSupport, BaseForce)}
+EFFECTS = {
+    _snake(c.__name__): c
+    for c in (
+        Chain,
+        Particles,
+        SharedSphere,
+        Base,
+        Gravity,
+        Spring,
+        Bending,
+        PairInteraction,
+        JointDamping,
+        BaseTorque,
+        TipForce,
+        VibratingSupport,
+        BaseForce,
+    )
+}
 DRIVES = {_snake(c.__name__): c for c in (PDTorque, PDPosition, Harmonic)}
 """Controllers, written as inline tables where Python takes a function."""
 
@@ -81,8 +96,12 @@ def _numbers(x) -> bool:
         return abs(x) <= MAX_MAGNITUDE  # a float: TOML integers may be longer
     if isinstance(x, float):
         return math.isfinite(x)
-    return (isinstance(x, list) and len(x) > 0 and all(_numbers(a) for a in x)
-            and len({np.shape(a) for a in x}) == 1)
+    return (
+        isinstance(x, list)
+        and len(x) > 0
+        and all(_numbers(a) for a in x)
+        and len({np.shape(a) for a in x}) == 1
+    )
 
 
 def _number(x) -> bool:
@@ -95,11 +114,14 @@ def _integer(x) -> bool:
 
 KINDS = {
     int: ("an integer", lambda x: x if _integer(x) else None),
-    jax.Array: ("a number or an array of numbers",
-                lambda x: np.asarray(x, dtype=float) if _numbers(x) else None),
-    tuple[int, ...]: ("an array of integers",
-                      lambda x: tuple(x) if isinstance(x, list) and all(map(_integer, x))
-                      else None),
+    jax.Array: (
+        "a number or an array of numbers",
+        lambda x: np.asarray(x, dtype=float) if _numbers(x) else None,
+    ),
+    tuple[int, ...]: (
+        "an array of integers",
+        lambda x: tuple(x) if isinstance(x, list) and all(map(_integer, x)) else None,
+    ),
     Callable: (f"an inline table {{ type = ... }} ({', '.join(DRIVES)})", lambda x: None),
 }
 """Annotation -> (what a file must give, the TOML value converted or `None`)."""
@@ -120,21 +142,26 @@ def schema(cls) -> dict[str, tuple[tuple, object]]:
 def _no_unknown(path, where: str, table: dict, allowed, expected: str = "") -> None:
     extra = [k for k in table if k not in allowed]
     if extra:
-        raise SceneFileError(path, f"{where}.{extra[0]}" if where else extra[0], "no such "
-                             f"field (expected {expected or 'one of ' + ', '.join(allowed)})")
+        raise SceneFileError(
+            path,
+            f"{where}.{extra[0]}" if where else extra[0],
+            f"no such field (expected {expected or 'one of ' + ', '.join(allowed)})",
+        )
 
 
 def _module(path, where: str, table, registry: dict, what: str):
     """Build the Module a table describes; its own checks speak for it."""
     kind = table.get("type") if isinstance(table, dict) else table
     if kind not in registry:
-        raise SceneFileError(path, f"{where}.type", f"{what}, one of {', '.join(registry)}; "
-                             f"got {_show(kind)}")
+        raise SceneFileError(
+            path, f"{where}.type", f"{what}, one of {', '.join(registry)}; got {_show(kind)}"
+        )
     cls, values = registry[kind], {}
     fields = schema(cls)
     summary = " ".join(cls.__doc__.split()).split(". ")[0]  # the docstring's first sentence
-    _no_unknown(path, where, table, ["type", *fields],
-                f"one of {', '.join(fields)}; {kind}: {summary}")
+    _no_unknown(
+        path, where, table, ["type", *fields], f"one of {', '.join(fields)}; {kind}: {summary}"
+    )
     for key, (kinds, default) in fields.items():
         expected, x = " or ".join(KINDS[k][0] for k in kinds), table.get(key)
         if key not in table and default is inspect.Parameter.empty:
@@ -144,8 +171,7 @@ def _module(path, where: str, table, registry: dict, what: str):
         elif key in table:
             values[key] = next((v for k in kinds if (v := KINDS[k][1](x)) is not None), None)
             if values[key] is None:
-                raise SceneFileError(path, f"{where}.{key}", f"expected {expected}, got "
-                                     f"{_show(x)}")
+                raise SceneFileError(path, f"{where}.{key}", f"expected {expected}, got {_show(x)}")
     try:
         return cls(**values)
     except ParameterError as e:
@@ -156,16 +182,19 @@ def _module(path, where: str, table, registry: dict, what: str):
 
 def _scene(path, tables) -> Scene:
     if not isinstance(tables, list) or not tables:
-        raise SceneFileError(path, "effects", "an array of effect tables ([[effects]] with "
-                             "a type field)")
-    effects = [_module(path, f"effects[{k}]", t, EFFECTS, "an effect type")
-               for k, t in enumerate(tables)]
+        raise SceneFileError(
+            path, "effects", "an array of effect tables ([[effects]] with a type field)"
+        )
+    effects = [
+        _module(path, f"effects[{k}]", t, EFFECTS, "an effect type") for k, t in enumerate(tables)
+    ]
     try:
         return Scene(*effects)
     except ParameterError as e:
         k = next(k for k, effect in enumerate(effects) if effect is e.effect)
-        raise SceneFileError(path, f"effects[{k}]" + (f".{e.field}" if e.field else ""),
-                             str(e)) from None
+        raise SceneFileError(
+            path, f"effects[{k}]" + (f".{e.field}" if e.field else ""), str(e)
+        ) from None
     except ValueError as e:
         raise SceneFileError(path, "effects", str(e)) from None
 
@@ -179,8 +208,10 @@ INITIAL = {
     "azimuth_rate_deg": ((), "rates in deg/s", None),
 }
 """`[initial]` keys -> (shape of one entry (for every sphere), what is expected, range)."""
-BASE_INITIAL = {"base": "the base's coordinates (m), one per axis of the Base",
-                "base_velocity": "the base's velocity (m/s), one per axis of the Base"}
+BASE_INITIAL = {
+    "base": "the base's coordinates (m), one per axis of the Base",
+    "base_velocity": "the base's velocity (m/s), one per axis of the Base",
+}
 """`[initial]` keys of a scene with a `Base` (default zeros)."""
 
 
@@ -189,67 +220,99 @@ def _per_sphere(path, table, key: str, n: int) -> np.ndarray:
     x = table[key]
     ok = _numbers(x) and np.shape(x) in (item, (n, *item))
     if bounds is None:
-        bounds, expected = (-MAX_MAGNITUDE, MAX_MAGNITUDE), f"{expected} (at most " \
-            f"{MAX_MAGNITUDE:g} in magnitude)"
+        bounds, expected = (
+            (-MAX_MAGNITUDE, MAX_MAGNITUDE),
+            f"{expected} (at most {MAX_MAGNITUDE:g} in magnitude)",
+        )
     if not (ok and bounds[0] <= np.min(x) <= np.max(x) <= bounds[1]):
-        raise SceneFileError(path, f"initial.{key}", f"{expected}: one for all spheres or "
-                             f"an array of {n} (one per sphere), got {_show(x)}")
+        raise SceneFileError(
+            path,
+            f"initial.{key}",
+            f"{expected}: one for all spheres or an array of {n} (one per sphere), got {_show(x)}",
+        )
     return np.broadcast_to(np.asarray(x, dtype=float), (n, *item))
 
 
 def _initial(path, table, scene: Scene):
     """The initial state `[initial]` gives: `(q0, qdot0)`, dicts with a `Base`."""
     if not isinstance(table, dict):
-        raise SceneFileError(path, "initial", "a table with q or polar_deg and azimuth_deg, "
-                             f"got {_show(table)}")
+        raise SceneFileError(
+            path, "initial", f"a table with q or polar_deg and azimuth_deg, got {_show(table)}"
+        )
     base = {} if scene.base is None else BASE_INITIAL
-    _no_unknown(path, "initial", table, [*INITIAL, *base], "q and qdot, or polar_deg and "
-                "azimuth_deg with optional rates" + (", and base and base_velocity" if base
-                                                     else " (base: the scene has no Base)"))
+    _no_unknown(
+        path,
+        "initial",
+        table,
+        [*INITIAL, *base],
+        "q and qdot, or polar_deg and "
+        "azimuth_deg with optional rates"
+        + (", and base and base_velocity" if base else " (base: the scene has no Base)"),
+    )
     q, qdot = _spheres_initial(path, table, scene.n)
     if scene.base is None:
         return q, qdot
     x = {}
     for key, expected in BASE_INITIAL.items():
         value = table.get(key, [0.0] * scene.base.m)
-        if not (_numbers(value) and np.shape(value) == (scene.base.m,)
-                and np.max(np.abs(value)) <= MAX_MAGNITUDE):
+        if not (
+            _numbers(value)
+            and np.shape(value) == (scene.base.m,)
+            and np.max(np.abs(value)) <= MAX_MAGNITUDE
+        ):
             count = f"{scene.base.m} number" + "s" * (scene.base.m > 1)
-            raise SceneFileError(path, f"initial.{key}", f"{expected}: {count} (at most "
-                                 f"{MAX_MAGNITUDE:g} in magnitude), got {_show(value)}")
+            raise SceneFileError(
+                path,
+                f"initial.{key}",
+                f"{expected}: {count} (at most {MAX_MAGNITUDE:g} in magnitude), got {_show(value)}",
+            )
         x[key] = jnp.asarray(value, dtype=q.dtype)
     return {"base": x["base"], "spheres": q}, {"base": x["base_velocity"], "spheres": qdot}
 
 
 def _spheres_initial(path, table, n: int):
-    if any(v in table and any(k.endswith(e) for k in table) for v, e in
-           (("q", "_deg"), ("qdot", "_rate_deg"))):
+    if any(
+        v in table and any(k.endswith(e) for k in table)
+        for v, e in (("q", "_deg"), ("qdot", "_rate_deg"))
+    ):
         raise SceneFileError(path, "initial", "either q and qdot, or angles and rates")
     if "q" in table:
         q, qdot = _per_sphere(path, table, "q", n), np.zeros((n, 3))
         norms = np.linalg.norm(q, axis=-1)
         bad = int(np.argmax(np.abs(norms - 1.0)))
         if abs(norms[bad] - 1.0) > UNIT_TOLERANCE:
-            raise SceneFileError(path, "initial.q", f"unit vectors (length 1 within "
-                                 f"{UNIT_TOLERANCE:g}), got length {norms[bad]:.6g} for "
-                                 f"q[{bad}]")
+            raise SceneFileError(
+                path,
+                "initial.q",
+                f"unit vectors (length 1 within "
+                f"{UNIT_TOLERANCE:g}), got length {norms[bad]:.6g} for "
+                f"q[{bad}]",
+            )
     else:
         for key in ("polar_deg", "azimuth_deg"):
             if key not in table:
-                raise SceneFileError(path, f"initial.{key}", "missing; expected q (unit "
-                                     "vectors) or polar_deg and azimuth_deg")
-        th, ph, rate_th, rate_ph = (np.radians(_per_sphere(path, table, k, n)) if k in table
-                                    else np.zeros(n) for k in list(INITIAL)[2:])
+                raise SceneFileError(
+                    path,
+                    f"initial.{key}",
+                    "missing; expected q (unit vectors) or polar_deg and azimuth_deg",
+                )
+        th, ph, rate_th, rate_ph = (
+            np.radians(_per_sphere(path, table, k, n)) if k in table else np.zeros(n)
+            for k in list(INITIAL)[2:]
+        )
         st, ct, sp, cp = np.sin(th), np.cos(th), np.sin(ph), np.cos(ph)
         q = np.stack([st * cp, st * sp, ct], axis=-1)
-        qdot = (rate_th[:, None] * np.stack([ct * cp, ct * sp, -st], axis=-1)
-                + rate_ph[:, None] * np.stack([-st * sp, st * cp, np.zeros(n)], axis=-1))
+        qdot = rate_th[:, None] * np.stack([ct * cp, ct * sp, -st], axis=-1) + rate_ph[
+            :, None
+        ] * np.stack([-st * sp, st * cp, np.zeros(n)], axis=-1)
     if "qdot" in table:
         qdot = _per_sphere(path, table, "qdot", n)
-    if np.any(np.abs(np.sum(q * qdot, axis=-1))
-              > UNIT_TOLERANCE * (1.0 + np.linalg.norm(qdot, axis=-1))):
-        raise SceneFileError(path, "initial.qdot", "velocities tangent to the spheres "
-                             "(q_i . qdot_i = 0)")
+    if np.any(
+        np.abs(np.sum(q * qdot, axis=-1)) > UNIT_TOLERANCE * (1.0 + np.linalg.norm(qdot, axis=-1))
+    ):
+        raise SceneFileError(
+            path, "initial.qdot", "velocities tangent to the spheres (q_i . qdot_i = 0)"
+        )
     return jnp.asarray(q / np.linalg.norm(q, axis=-1, keepdims=True)), jnp.asarray(qdot)
 
 
@@ -258,9 +321,15 @@ MAX_SAVED = 10**8
 `qdot`), 800 MB in float64."""
 
 
-SIMULATE = {"solver": "a solver name", "t0": "a time in s", "t1": "a time in s after t0",
-            "dt0": "a step > 0 (s)", "rtol": "a number > 0", "atol": "a number > 0",
-            "max_steps": "an integer >= 1"}
+SIMULATE = {
+    "solver": "a solver name",
+    "t0": "a time in s",
+    "t1": "a time in s after t0",
+    "dt0": "a step > 0 (s)",
+    "rtol": "a number > 0",
+    "atol": "a number > 0",
+    "max_steps": "an integer >= 1",
+}
 """The keys of `[simulate]`: keyword arguments of `sm.simulate` (defaults as there)."""
 
 
@@ -315,14 +384,21 @@ def _simulate_args(path, data, t1=None) -> dict:
     out = {k: table.get(k, defaults[k].default) for k in SIMULATE if k != "t1"}
     out |= {"t1": table["t1"], "solver_name": table.get("solver", "Projected(Tsit5)")}
     number = lambda x: x is None or _number(x)
-    checks = {"t0": _number, "t1": lambda x: _number(x) and x > out["t0"], "dt0": number,
-              "rtol": number, "atol": number, "max_steps": _integer,
-              "solver_name": lambda x: isinstance(x, str)}
+    checks = {
+        "t0": _number,
+        "t1": lambda x: _number(x) and x > out["t0"],
+        "dt0": number,
+        "rtol": number,
+        "atol": number,
+        "max_steps": _integer,
+        "solver_name": lambda x: isinstance(x, str),
+    }
     for key, ok in checks.items():
         if not ok(out[key]):
             field = key.removesuffix("_name")
-            raise SceneFileError(path, f"simulate.{field}", f"expected {SIMULATE[field]}, got "
-                                 f"{_show(out[key])}")
+            raise SceneFileError(
+                path, f"simulate.{field}", f"expected {SIMULATE[field]}, got {_show(out[key])}"
+            )
     try:  # the values simulate would refuse, with its words
         check_values(*(out[k] for k in ("t0", "t1", "dt0", "rtol", "atol", "max_steps")))
     except OptionError as e:
@@ -333,11 +409,26 @@ def _simulate_args(path, data, t1=None) -> dict:
         raise SceneFileError(path, "simulate.solver", str(e)) from None
     for key, unit in (("t0", " s"), ("t1", " s"), ("dt0", " s"), ("rtol", ""), ("atol", "")):
         if out[key] is not None and not abs(out[key]) <= MAX_MAGNITUDE:
-            raise SceneFileError(path, f"simulate.{key}", f"{key} must be at most "
-                                 f"{MAX_MAGNITUDE:g}{unit} in magnitude (got {_show(out[key])})")
+            raise SceneFileError(
+                path,
+                f"simulate.{key}",
+                f"{key} must be at most "
+                f"{MAX_MAGNITUDE:g}{unit} in magnitude (got {_show(out[key])})",
+            )
     try:  # the options simulate would refuse, with its words
-        opts = options(out["solver"], out["dt0"], out["rtol"], out["atol"], None, None,
-                       out["max_steps"], None, False, None, np.float64)
+        opts = options(
+            out["solver"],
+            out["dt0"],
+            out["rtol"],
+            out["atol"],
+            None,
+            None,
+            out["max_steps"],
+            None,
+            False,
+            None,
+            np.float64,
+        )
     except ValueError as e:
         raise SceneFileError(path, "simulate", str(e)) from None
     out["file_t1"] = out["t1"]
@@ -345,17 +436,24 @@ def _simulate_args(path, data, t1=None) -> dict:
         out["t1"] = _end_time(path, t1, out["t0"])
     steps = (out["t1"] - out["t0"]) / out["dt0"] if out["dt0"] else 0.0
     if isinstance(opts.controller, diffrax.ConstantStepSize) and steps > out["max_steps"]:
-        raise SceneFileError(path, "simulate.dt0", f"dt0 must give at most max_steps = "
-                             f"{out['max_steps']} fixed steps from t0 to t1 (got "
-                             f"{out['dt0']:g}: {steps:.3g} steps)")
+        raise SceneFileError(
+            path,
+            "simulate.dt0",
+            f"dt0 must give at most max_steps = "
+            f"{out['max_steps']} fixed steps from t0 to t1 (got "
+            f"{out['dt0']:g}: {steps:.3g} steps)",
+        )
     return out
 
 
 def _end_time(path, t1, t0: float) -> float:
     """The command line's `--t1`, checked as `[simulate] t1` (errors name `--t1`)."""
     if not (isinstance(t1, int | float) and t0 < t1 <= MAX_MAGNITUDE):
-        raise SceneFileError(path, "--t1", f"--t1 must be a time in s after t0 = {t0:g} and "
-                             f"at most {MAX_MAGNITUDE:g} (got {t1})")
+        raise SceneFileError(
+            path,
+            "--t1",
+            f"--t1 must be a time in s after t0 = {t0:g} and at most {MAX_MAGNITUDE:g} (got {t1})",
+        )
     return float(t1)
 
 
@@ -364,14 +462,19 @@ def _save_dt(path, table: dict, args: dict, numbers: int) -> float:
     `MAX_SAVED` numbers saved from `t0` to `t1` (`numbers` per state)."""
     save_dt = table.get("save_dt", (args["file_t1"] - args["t0"]) / 1000)
     if not (_number(save_dt) and save_dt > 0):
-        raise SceneFileError(path, "output.save_dt", f"expected a step > 0 (s), got "
-                             f"{_show(save_dt)}")
+        raise SceneFileError(
+            path, "output.save_dt", f"expected a step > 0 (s), got {_show(save_dt)}"
+        )
     intervals = (args["t1"] - args["t0"]) / save_dt
     if not (intervals + 1) * numbers <= MAX_SAVED:
-        raise SceneFileError(path, "output.save_dt", f"save_dt must give at most "
-                             f"{MAX_SAVED:.0e} saved numbers from t0 to t1 ((t1 - t0) / "
-                             f"save_dt = {intervals:.3g} intervals, {numbers} numbers a "
-                             f"state) (got {save_dt:g})")
+        raise SceneFileError(
+            path,
+            "output.save_dt",
+            f"save_dt must give at most "
+            f"{MAX_SAVED:.0e} saved numbers from t0 to t1 ((t1 - t0) / "
+            f"save_dt = {intervals:.3g} intervals, {numbers} numbers a "
+            f"state) (got {save_dt:g})",
+        )
     return save_dt
 
 
@@ -382,8 +485,9 @@ def _read(path: Path) -> dict:
     except tomllib.TOMLDecodeError as e:
         raise SceneFileError(path, "(syntax)", f"valid TOML ({e})") from None
     except (OSError, UnicodeDecodeError) as e:
-        raise SceneFileError(path, "(file)", f"an existing, readable UTF-8 text file ({e})") \
-            from None
+        raise SceneFileError(
+            path, "(file)", f"an existing, readable UTF-8 text file ({e})"
+        ) from None
 
 
 def load_scene(path, t1=None) -> SceneSpec:

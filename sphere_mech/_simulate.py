@@ -100,8 +100,22 @@ def simulate(
         system.check_size(y0[0])
     y0 = initial_state(system.space, system.state_name, y0)
     system, args, opts, t0, t1, dt0 = prepare(
-        system, args, state_dtype(y0), t0, t1, dt0, solver, rtol, atol, stepsize_controller,
-        saveat, max_steps, adjoint, progress, event)
+        system,
+        args,
+        state_dtype(y0),
+        t0,
+        t1,
+        dt0,
+        solver,
+        rtol,
+        atol,
+        stepsize_controller,
+        saveat,
+        max_steps,
+        adjoint,
+        progress,
+        event,
+    )
     with forward_mode_hint():
         sol = _solve(system, y0, t0, t1, dt0, args, opts)
     return raise_on_failure(sol, max_steps, "simulate") if throw else sol

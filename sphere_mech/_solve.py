@@ -58,20 +58,34 @@ class Options(eqx.Module):
     batched: bool = eqx.field(static=True)  # one trajectory of `simulate_batch`'s vmap
 
 
-def options(solver, dt0, rtol, atol, stepsize_controller, saveat, max_steps, adjoint,
-            progress, event, dtype, batched=False) -> Options:
+def options(
+    solver,
+    dt0,
+    rtol,
+    atol,
+    stepsize_controller,
+    saveat,
+    max_steps,
+    adjoint,
+    progress,
+    event,
+    dtype,
+    batched=False,
+) -> Options:
     """Check and complete the options of `simulate` (`batched=False`) or
     `simulate_batch` (`batched=True`) (static errors; values: `check_values`)."""
     solver = default_solver() if solver is None else as_solver(solver)
     if stepsize_controller is not None:
         if rtol is not None or atol is not None:
-            raise ValueError("Give rtol/atol either to simulate or to stepsize_controller, "
-                             "not both.")
+            raise ValueError(
+                "Give rtol/atol either to simulate or to stepsize_controller, not both."
+            )
         controller = stepsize_controller
     elif isinstance(solver, diffrax.AbstractAdaptiveSolver):
         default_rtol, default_atol = DEFAULT_TOLERANCES.get(np.dtype(dtype), (1e-5, 1e-6))
-        controller = diffrax.PIDController(rtol=default_rtol if rtol is None else rtol,
-                                           atol=default_atol if atol is None else atol)
+        controller = diffrax.PIDController(
+            rtol=default_rtol if rtol is None else rtol, atol=default_atol if atol is None else atol
+        )
     else:
         if rtol is not None or atol is not None:
             raise ValueError(
@@ -92,10 +106,14 @@ def options(solver, dt0, rtol, atol, stepsize_controller, saveat, max_steps, adj
             f"{type(solver).__name__} with fixed steps needs a step size: pass dt0=..."
         )
     return Options(
-        solver, controller, diffrax.SaveAt(t1=True) if saveat is None else saveat,
+        solver,
+        controller,
+        diffrax.SaveAt(t1=True) if saveat is None else saveat,
         adjoint,
-        diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter(), event,
-        max_steps, batched,
+        diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter(),
+        event,
+        max_steps,
+        batched,
     )
 
 
@@ -131,27 +149,62 @@ def check_values(t0, t1, dt0, rtol, atol, max_steps) -> None:
         if not (math.isfinite(dt0) and dt0 != 0):
             raise OptionError("dt0", f"dt0 must be a finite, nonzero step (got {dt0:g})")
         if t0 is not None and t1 is not None and (t1 - t0) * dt0 < 0:
-            raise OptionError("dt0", f"dt0 must have the sign of t1 - t0, the direction of "
-                              f"integration (got {dt0:g} with t0 = {t0:g}, t1 = {t1:g})")
+            raise OptionError(
+                "dt0",
+                f"dt0 must have the sign of t1 - t0, the direction of "
+                f"integration (got {dt0:g} with t0 = {t0:g}, t1 = {t1:g})",
+            )
     for name, tol in (("rtol", rtol), ("atol", atol)):
         if tol is not None and not (math.isfinite(tol) and tol > 0):
             raise OptionError(name, f"{name} must be a finite number > 0 (got {tol:g})")
-    if max_steps is not None and not (isinstance(max_steps, int | np.integer)
-                                      and not isinstance(max_steps, bool) and max_steps >= 1):
-        raise OptionError("max_steps", f"max_steps must be an integer >= 1 or None (got "
-                          f"{max_steps!r})")
+    if max_steps is not None and not (
+        isinstance(max_steps, int | np.integer)
+        and not isinstance(max_steps, bool)
+        and max_steps >= 1
+    ):
+        raise OptionError(
+            "max_steps", f"max_steps must be an integer >= 1 or None (got {max_steps!r})"
+        )
 
 
-def prepare(system, args, dtype, t0, t1, dt0, solver, rtol, atol, stepsize_controller,
-            saveat, max_steps, adjoint, progress, event, batched=False):
+def prepare(
+    system,
+    args,
+    dtype,
+    t0,
+    t1,
+    dt0,
+    solver,
+    rtol,
+    atol,
+    stepsize_controller,
+    saveat,
+    max_steps,
+    adjoint,
+    progress,
+    event,
+    batched=False,
+):
     """The one prologue of `simulate` and `simulate_batch` after their states: check the
     options' values (`check_values`) and complete them (`options`), Python floats among
     the system and `args` as arrays (`as_arrays`), times in the state's dtype (`times`).
 
     **Returns:** `(system, args, opts, t0, t1, dt0)`."""
     check_values(t0, t1, dt0, rtol, atol, max_steps)
-    opts = options(solver, dt0, rtol, atol, stepsize_controller, saveat, max_steps, adjoint,
-                   progress, event, dtype, batched)
+    opts = options(
+        solver,
+        dt0,
+        rtol,
+        atol,
+        stepsize_controller,
+        saveat,
+        max_steps,
+        adjoint,
+        progress,
+        event,
+        dtype,
+        batched,
+    )
     system, args = as_arrays((system, args))
     return system, args, opts, *times(dtype, t0, t1, dt0)
 
@@ -160,8 +213,7 @@ def as_arrays(tree):
     """Python floats among the leaves of `tree` (a system and `args`) become arrays, so
     a new value reuses the compiled program instead of compiling another. Ints and
     bools stay static: they may describe structure."""
-    return jax.tree.map(lambda x: jnp.asarray(x) if isinstance(x, float | complex) else x,
-                        tree)
+    return jax.tree.map(lambda x: jnp.asarray(x) if isinstance(x, float | complex) else x, tree)
 
 
 def times(dtype, *ts):
@@ -178,8 +230,9 @@ def initial_state(space, state_name: str, y0, what: str = "simulate"):
     and corrected (`q_i / |q_i|`, normal part of `v_i` removed); farther ones (and NaN)
     raise a `ValueError` prefixed `what: ` (inside `jax.jit`, an equinox runtime error)."""
     if not (isinstance(y0, tuple | list) and len(y0) == 2):
-        raise ValueError("y0 must be a pair (q0, v0) of (n, 3) arrays (dicts of arrays on "
-                         "a mixed space).")
+        raise ValueError(
+            "y0 must be a pair (q0, v0) of (n, 3) arrays (dicts of arrays on a mixed space)."
+        )
     q0, v0 = jax.tree.map(as_array, tuple(y0), is_leaf=lambda x: isinstance(x, list))
     space.check_shapes(q0, v0, state_name)
     dtype = state_dtype((q0, v0))  # one floating dtype for the whole state
@@ -202,14 +255,14 @@ def initial_states(space, state_name: str, y0, what: str, check: bool):
     With `check`, an invalid state raises: a `ValueError` naming how many, which and the
     first one's problem (prefixed `what: `) when the states are concrete, an equinox
     runtime error with the problem's message when traced."""
-    y0, problem, messages = _initial_states(space, state_name, y0,
-                                            check and _traced(y0))
+    y0, problem, messages = _initial_states(space, state_name, y0, check and _traced(y0))
     problem = problem if _traced(problem) else np.asarray(problem)
     if check and not _traced(problem):
         bad = np.flatnonzero(problem >= 0)
         if bad.size:
-            where = describe_failures(bad, problem.size, "initial states are invalid",
-                                      "initial state")
+            where = describe_failures(
+                bad, problem.size, "initial states are invalid", "initial state"
+            )
             raise ValueError(f"{what}:{where} {messages[problem[bad[0]]]}")
     return y0, problem < 0
 
@@ -373,27 +426,41 @@ def solve_with(adjoint, system, y0, t0, t1, dt0, args, opts: Options) -> diffrax
         saveat = eqx.tree_at(_save_times, saveat, replace_fn=lambda ts: jnp.where(ok, ts, t0))
         t1 = jnp.where(ok, t1, t0)
     sol = diffrax.diffeqsolve(
-        MechanicsTerm(system), opts.solver, t0, t1, dt0, y0, args=args,
-        saveat=saveat, stepsize_controller=opts.controller, max_steps=opts.max_steps,
-        progress_meter=opts.meter, adjoint=adjoint, event=opts.event, throw=False,
+        MechanicsTerm(system),
+        opts.solver,
+        t0,
+        t1,
+        dt0,
+        y0,
+        args=args,
+        saveat=saveat,
+        stepsize_controller=opts.controller,
+        max_steps=opts.max_steps,
+        progress_meter=opts.meter,
+        adjoint=adjoint,
+        event=opts.event,
+        throw=False,
     )
     # Unreached save times are `inf` in diffrax, never NaN: only NaN is looked for.
     # A dense-only SaveAt saves no values (`sol.ys` is None): nothing to look at.
-    has_nan = functools.reduce(jnp.logical_or, [jnp.any(jnp.isnan(y)) for y in
-                                                jax.tree.leaves(sol.ys)], jnp.array(False))
+    has_nan = functools.reduce(
+        jnp.logical_or, [jnp.any(jnp.isnan(y)) for y in jax.tree.leaves(sol.ys)], jnp.array(False)
+    )
     result = RESULTS.promote(sol.result)
     if opts.event is not None and not isinstance(opts.solver, diffrax.AbstractImplicitSolver):
         # An explicit solver solves nothing: a nonlinear failure is the event's root finder.
-        root = [RESULTS.nonlinear_max_steps_reached, RESULTS.nonlinear_divergence,
-                RESULTS.singular]
+        root = [RESULTS.nonlinear_max_steps_reached, RESULTS.nonlinear_divergence, RESULTS.singular]
         failed_root = functools.reduce(jnp.logical_or, [result == r for r in root])
         result = RESULTS.where(failed_root, RESULTS.event_root_failed, result)
     result = RESULTS.where((result == RESULTS.successful) & has_nan, RESULTS.nonfinite, result)
     result = RESULTS.where(ok, result, RESULTS.nonfinite_initial)
-    ts, ys = jax.tree.map(lambda x: jnp.where(ok, x, jnp.inf),
-                          (sol.ts, _retract_saved(system.space, opts.saveat, sol.ys)))
-    return eqx.tree_at(lambda s: (s.result, s.ts, s.ys), sol, (result, ts, ys),
-                       is_leaf=lambda x: x is None)
+    ts, ys = jax.tree.map(
+        lambda x: jnp.where(ok, x, jnp.inf),
+        (sol.ts, _retract_saved(system.space, opts.saveat, sol.ys)),
+    )
+    return eqx.tree_at(
+        lambda s: (s.result, s.ts, s.ys), sol, (result, ts, ys), is_leaf=lambda x: x is None
+    )
 
 
 def _save_times(saveat: diffrax.SaveAt) -> list:

@@ -213,8 +213,12 @@ class Spheres(AbstractFactor):
         check_shapes(q, v, v_name, q_name)
 
     def problems(self, q, v, v_name="v", q_name="q"):
-        return [nonfinite(q, q_name), off_unit(q, q_name), nonfinite(v, v_name),
-                off_tangent(q, v, v_name)]
+        return [
+            nonfinite(q, q_name),
+            off_unit(q, q_name),
+            nonfinite(v, v_name),
+            off_tangent(q, v, v_name),
+        ]
 
     def check_forces(self, f, q, q_name="q"):
         if jnp.shape(f) != jnp.shape(q):
@@ -398,8 +402,11 @@ class Product(AbstractSpace):
             f.check_shapes(q[k], v[k], f"{v_name}[{k!r}]", f"{q_name}[{k!r}]")
 
     def problems(self, q, v, v_name="v", q_name="q"):
-        return [p for k, f in self.factors.items()
-                for p in f.problems(q[k], v[k], f"{v_name}[{k!r}]", f"{q_name}[{k!r}]")]
+        return [
+            p
+            for k, f in self.factors.items()
+            for p in f.problems(q[k], v[k], f"{v_name}[{k!r}]", f"{q_name}[{k!r}]")
+        ]
 
     def check_forces(self, f, q, q_name="q"):
         _check_keys(f, self.factors, "forces(t, q, v, args)")

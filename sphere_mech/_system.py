@@ -29,12 +29,14 @@ def check_rates(x, message: str, system, args):
     """Error (at run time) when the rates `x` are not finite: blaming NaN or infinite
     array leaves of `args` or of `system` when there are any, else `message` (a singular
     mass matrix, a degenerate Hamiltonian)."""
-    finite = lambda tree: jnp.all(jnp.stack([jnp.all(jnp.isfinite(jnp.asarray(a)))
-                                             for a in jax.tree.leaves(tree)] or [True]))
+    finite = lambda tree: jnp.all(
+        jnp.stack([jnp.all(jnp.isfinite(jnp.asarray(a))) for a in jax.tree.leaves(tree)] or [True])
+    )
     inexact = lambda x: eqx.is_inexact_array(x) or isinstance(x, float | complex)
     params = eqx.filter((system, args), inexact)
-    return eqx.branched_error_if(x, ~finite(x), jnp.where(finite(params), 1, 0),
-                                 [NONFINITE_PARAMETERS, message])
+    return eqx.branched_error_if(
+        x, ~finite(x), jnp.where(finite(params), 1, 0), [NONFINITE_PARAMETERS, message]
+    )
 
 
 def as_time(t, like: jax.Array) -> jax.Array:
@@ -151,8 +153,10 @@ class AbstractSystem(eqx.Module):
         if self.n is None or isinstance(q, Mapping):
             return  # a mixed space's factors check their own sizes
         if jnp.ndim(q) == 2 and jnp.shape(q)[0] != self.n:
-            raise ValueError(f"the state has {jnp.shape(q)[0]} spheres but the system has "
-                             f"{self.n}: q must have shape ({self.n}, 3), got {jnp.shape(q)}.")
+            raise ValueError(
+                f"the state has {jnp.shape(q)[0]} spheres but the system has "
+                f"{self.n}: q must have shape ({self.n}, 3), got {jnp.shape(q)}."
+            )
 
     def check_state(self, q: Points, v: Tangents) -> State:
         """Raise a clear error if `(q, v)` is not a valid state (shape, number of
@@ -278,9 +282,18 @@ class AbstractLagrangianSystem(AbstractSystem):
         """
         return tree_vdot(v, self._dL_dv(t, q, v, args)) - self.lagrangian(t, q, v, args)
 
-    def velocity_from_momentum(self, t, q: Points, p: Tangents, args: Args = None, *,
-                               guess=None, quadratic: bool | None = None, tol=None,
-                               max_steps: int = 32):
+    def velocity_from_momentum(
+        self,
+        t,
+        q: Points,
+        p: Tangents,
+        args: Args = None,
+        *,
+        guess=None,
+        quadratic: bool | None = None,
+        tol=None,
+        max_steps: int = 32,
+    ):
         """The inverse Legendre map: the tangent velocity `v` with `P dL/dv = p`.
 
         One linear solve around `guess` when `L` is quadratic, otherwise refined by Newton's
@@ -299,10 +312,16 @@ class AbstractLagrangianSystem(AbstractSystem):
         here).
         """
         return invert_momentum(
-            self.lagrangian, self.space, t, q, p, args,
+            self.lagrangian,
+            self.space,
+            t,
+            q,
+            p,
+            args,
             guess=tree_zeros_like(q) if guess is None else guess,
             quadratic=self.quadratic_in_velocity if quadratic is None else quadratic,
-            tol=newton_tolerance(tree_dtype(q)) if tol is None else tol, max_steps=max_steps,
+            tol=newton_tolerance(tree_dtype(q)) if tol is None else tol,
+            max_steps=max_steps,
         )
 
 

@@ -56,7 +56,9 @@ def form_outputs(systems, variables, t, q, qdot, qddot, p):
         energy_fn = lambda t_, q_, v_, system=system: system.energy(t_, q_, v_, p)
         energy, dE = jax.jvp(energy_fn, (t, q, v), (jnp.ones_like(t), *rates))
         f = system.generalized_force(t, q, v, p)
-        power = sum(jnp.sum(a * b) for a, b in
-                    zip(jtu.tree_leaves(f), jtu.tree_leaves(rates[0]), strict=True))
+        power = sum(
+            jnp.sum(a * b)
+            for a, b in zip(jtu.tree_leaves(f), jtu.tree_leaves(rates[0]), strict=True)
+        )
         out[name] = dict(rates=rates, energy=energy, dE=dE, power=power)
     return out

@@ -60,8 +60,11 @@ def test_animate_any_system_draws_points_on_the_unit_sphere():
 
 
 def test_skeleton_of_scenes():
-    beads = sm.Scene(sm.SharedSphere(1.0, radius=2.0, count=3), sm.Particles(1.0, 0.5, count=2),
-                     sm.Chain(1.0, 1.0, links=2, base=(0.0, 0.0, 1.0)))
+    beads = sm.Scene(
+        sm.SharedSphere(1.0, radius=2.0, count=3),
+        sm.Particles(1.0, 0.5, count=2),
+        sm.Chain(1.0, 1.0, links=2, base=(0.0, 0.0, 1.0)),
+    )
     skel = skeleton(beads, beads.n)
     np.testing.assert_allclose(skel.anchors, [[0.0, 0.0, 0.0], [0.0, 0.0, 1.0]], atol=0)
     assert [list(link) for link in skel.links] == [[0, 5], [0, 6], [1, 7, 8]]
@@ -107,23 +110,51 @@ def test_animation_html_in_headless_chromium(tmp_path):
 
     browser = _chromium()
     out = tmp_path / "out"
-    assert main(["run", str(EXAMPLES / "double_pendulum.toml"), "--out", str(out),
-                 "--t1", "2", "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "run",
+                str(EXAMPLES / "double_pendulum.toml"),
+                "--out",
+                str(out),
+                "--t1",
+                "2",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     page = out / "animation.html"
     html = page.read_text()
     assert html.startswith("<!DOCTYPE html>") and "://" not in html
     _controls(html)
-    flags = [browser, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
-             "--virtual-time-budget=3000", "--window-size=640,640"]
+    flags = [
+        browser,
+        "--headless",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--hide-scrollbars",
+        "--virtual-time-budget=3000",
+        "--window-size=640,640",
+    ]
     shot = tmp_path / "shot.png"
-    subprocess.run(flags + [f"--screenshot={shot}", page.as_uri()], capture_output=True,
-                   timeout=120, check=True)
+    subprocess.run(
+        flags + [f"--screenshot={shot}", page.as_uri()],
+        capture_output=True,
+        timeout=120,
+        check=True,
+    )
     pixels = matplotlib.image.imread(shot)[..., :3]
     assert pixels.shape[:2] == (640, 640)
     assert pixels.std() > 0.05  # not blank: a white page has 0
     assert np.mean(np.all(pixels < 0.3, axis=-1)) > 1e-3  # dark ink: axes, links, buttons
-    dom = subprocess.run(flags + ["--dump-dom", page.as_uri()], capture_output=True, text=True,
-                         timeout=120, check=True).stdout
+    dom = subprocess.run(
+        flags + ["--dump-dom", page.as_uri()],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=True,
+    ).stdout
     _controls(dom)
     assert re.search(r"t = 0\.0* s</span>", dom)  # the script ran: the first frame's time
     assert re.search(r'class="sm-frame"[^>]*src="data:image/png;base64,', dom)

@@ -18,8 +18,12 @@ from sphere_mech._solvers.discrete_mechanics import substep
 def base_scene(model, forced, *extra):
     """The model as a `Scene`: a `Base` moving along the columns of `E`, a `Chain`
     hanging from it, gravity and the model's drive as a `BaseForce`."""
-    effects = [sm.Base(model.M, axes=np.asarray(model.E).T),
-               sm.Chain(model.masses, model.lengths), sm.Gravity(G), *extra]
+    effects = [
+        sm.Base(model.M, axes=np.asarray(model.E).T),
+        sm.Chain(model.masses, model.lengths),
+        sm.Gravity(G),
+        *extra,
+    ]
     if forced:
         effects.append(sm.BaseForce(lambda t, q, qdot, args: model.drive(t)))
     return sm.Scene(*effects)
@@ -31,16 +35,18 @@ def as_scene_state(y):
 
 def general_twin(scene):
     """The same energies and forces through the general path (Hessians of `L`)."""
-    lagrangian = lambda t, q, qdot, args: (scene.kinetic_energy(q, qdot)
-                                           - scene.potential(t, q))
+    lagrangian = lambda t, q, qdot, args: scene.kinetic_energy(q, qdot) - scene.potential(t, q)
     return sm.Lagrangian(lagrangian, scene.forces, space=scene.space)
 
 
 DENSE_PRIMITIVES = {"lu", "cholesky", "triangular_solve", "lu_pivots_to_permutation"}
 
 
-@pytest.mark.parametrize("axes", [[[1.0, 0.0, 0.0]], [[0.6, 0.8, 0.0], [0.0, 0.0, 1.0]],
-                                  np.eye(3)], ids=["line", "plane", "space"])
+@pytest.mark.parametrize(
+    "axes",
+    [[[1.0, 0.0, 0.0]], [[0.6, 0.8, 0.0], [0.0, 0.0, 1.0]], np.eye(3)],
+    ids=["line", "plane", "space"],
+)
 def test_base_scene_fast_path_equals_general_path(axes):
     """A cart (line), a trolley (tilted plane) and a drone (space) carrying a 3-link chain
     with a payload, with every force on bases and chains: the O(n) fast path gives the
@@ -50,17 +56,23 @@ def test_base_scene_fast_path_equals_general_path(axes):
     scene = sm.Scene(
         sm.Base(1.3, axes=axes, position=(0.0, 0.1, 0.2)),
         sm.Chain([0.2, 0.3, 0.4], [0.5, 0.7, 0.6], base=(0.1, 0.0, 0.0), payload=0.25),
-        sm.Gravity(G), sm.JointDamping(0.1), sm.Bending(0.3), sm.TipForce([0.0, 1.0, 0.5]),
+        sm.Gravity(G),
+        sm.JointDamping(0.1),
+        sm.Bending(0.3),
+        sm.TipForce([0.0, 1.0, 0.5]),
         sm.BaseTorque(sm.Harmonic([0.0, 0.0, 1.0], 2.0)),
-        sm.BaseForce(sm.PDPosition(20.0, 8.0, target=target, feedforward=2.0,
-                                   step=0.5, step_time=0.2)),
+        sm.BaseForce(
+            sm.PDPosition(20.0, 8.0, target=target, feedforward=2.0, step=0.5, step_time=0.2)
+        ),
     )
     assert scene.space.factors == {"base": sm.Euclidean(m), "spheres": sm.Spheres()}
     k = jax.random.split(jax.random.PRNGKey(m), 4)
     s = sm.normalize(jax.random.normal(k[1], (3, 3)))
     q = {"base": jax.random.normal(k[0], (m,)), "spheres": s}
-    v = {"base": jax.random.normal(k[2], (m,)),
-         "spheres": sm.project(s, jax.random.normal(k[3], (3, 3)))}
+    v = {
+        "base": jax.random.normal(k[2], (m,)),
+        "spheres": sm.project(s, jax.random.normal(k[3], (3, 3))),
+    }
     twin = general_twin(scene)
     for t in (0.1, 0.3):  # before and after the controller's step
         fast, general = scene.rates(t, (q, v), None), twin.rates(t, (q, v), None)
@@ -76,8 +88,10 @@ def test_base_scene_fast_path_equals_general_path(axes):
 
 
 def max_abs_diff(a, b):
-    return max(float(jnp.max(jnp.abs(x - y))) for x, y in
-               zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True))
+    return max(
+        float(jnp.max(jnp.abs(x - y)))
+        for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True)
+    )
 
 
 @pytest.mark.parametrize("make", [cart_pendulum, flying_chain])
@@ -106,10 +120,18 @@ def drone_scene(params):
     payload on a damped 5-link cable (as in examples/drone_cable.toml)."""
     weight = (1.5 + 5 * 0.02 + 0.3) * G
     return sm.Scene(
-        sm.Base(1.5), sm.Chain(0.02, 0.2, links=5, payload=params["payload"]), sm.Gravity(G),
+        sm.Base(1.5),
+        sm.Chain(0.02, 0.2, links=5, payload=params["payload"]),
+        sm.Gravity(G),
         sm.JointDamping(params["damping"]),
-        sm.BaseForce(sm.PDPosition(20.0, 8.0, feedforward=jnp.array([0.0, 0.0, weight]),
-                                   step=jnp.array([1.0, 0.0, 0.0]))),
+        sm.BaseForce(
+            sm.PDPosition(
+                20.0,
+                8.0,
+                feedforward=jnp.array([0.0, 0.0, weight]),
+                step=jnp.array([1.0, 0.0, 0.0]),
+            )
+        ),
     )
 
 
@@ -124,15 +146,31 @@ def test_fit_recovers_payload_and_cable_damping():
     Dopri8 run at 1e-12; the model integrates with RK4 at dt = 0.01)."""
     truth = {"payload": 0.3, "damping": 0.01}
     tilt = sm.normalize(jnp.array([0.1, 0.05, -1.0]))
-    y0 = ({"base": jnp.zeros(3), "spheres": jnp.tile(tilt, (5, 1))},
-          {"base": jnp.zeros(3), "spheres": jnp.zeros((5, 3))})
-    data = sm.simulate(drone_scene(truth), y0, DRONE_TS[-1], solver=sm.Projected(diffrax.Dopri8()),
-                       rtol=1e-12, atol=1e-12, saveat=diffrax.SaveAt(ts=jnp.asarray(DRONE_TS)))
+    y0 = (
+        {"base": jnp.zeros(3), "spheres": jnp.tile(tilt, (5, 1))},
+        {"base": jnp.zeros(3), "spheres": jnp.zeros((5, 3))},
+    )
+    data = sm.simulate(
+        drone_scene(truth),
+        y0,
+        DRONE_TS[-1],
+        solver=sm.Projected(diffrax.Dopri8()),
+        rtol=1e-12,
+        atol=1e-12,
+        saveat=diffrax.SaveAt(ts=jnp.asarray(DRONE_TS)),
+    )
     scene = drone_scene(truth)
     obs = jax.vmap(lambda q, v: observe_drone(scene, 0.0, q, v))(*data.ys)
-    result = sm.fit(drone_scene, {"payload": 0.45, "damping": 0.015}, DRONE_TS, obs,
-                    observe_drone, y0=y0, positive=True,
-                    simulate_options=dict(solver=sm.Projected(sm.RK4()), dt0=0.01))
+    result = sm.fit(
+        drone_scene,
+        {"payload": 0.45, "damping": 0.015},
+        DRONE_TS,
+        obs,
+        observe_drone,
+        y0=y0,
+        positive=True,
+        simulate_options=dict(solver=sm.Projected(sm.RK4()), dt0=0.01),
+    )
     assert bool(result.converged)
     for name, value in truth.items():
         assert abs(float(result.params[name]) / value - 1) < 1e-2, name
@@ -144,14 +182,20 @@ def test_variational_step_on_base_scene_fast_path():
     Newton path (to 1e-10: both solve to the Newton tolerance, eps^0.75 relative)."""
     for axes in ([[1.0, 0.0, 0.0]], np.eye(3)):
         m = len(axes)
-        scene = sm.Scene(sm.Base(1.2, axes=axes), sm.Chain([0.3, 0.2, 0.4], [0.5, 0.6, 0.4]),
-                         sm.Gravity(G), sm.JointDamping(0.05),
-                         sm.BaseForce(sm.Harmonic(jnp.ones(m), 2.0)))
+        scene = sm.Scene(
+            sm.Base(1.2, axes=axes),
+            sm.Chain([0.3, 0.2, 0.4], [0.5, 0.6, 0.4]),
+            sm.Gravity(G),
+            sm.JointDamping(0.05),
+            sm.BaseForce(sm.Harmonic(jnp.ones(m), 2.0)),
+        )
         q_s, v_s = sm.random_state(jax.random.PRNGKey(7), 3, speed=1.0)
         y = ({"base": jnp.zeros(m), "spheres": q_s}, {"base": jnp.ones(m), "spheres": v_s})
         t = jnp.asarray(0.1)
-        steps = [substep(scene, t, 0.05, *y, scene.rates(t, y, None), None, 1e-12, 32, fast)
-                 for fast in (True, False)]
+        steps = [
+            substep(scene, t, 0.05, *y, scene.rates(t, y, None), None, 1e-12, 32, fast)
+            for fast in (True, False)
+        ]
         assert all(result == diffrax.RESULTS.successful for _, _, result in steps)
         assert max_abs_diff(steps[0][0], steps[1][0]) < 1e-10
         assert max_abs_diff(steps[0][0], y) > 1e-3  # it moved
@@ -162,19 +206,28 @@ def test_gradient_through_base_scene_matches_finite_differences():
     the gradient of the payload's final x with respect to the payload mass and the
     cable damping equals central differences."""
     tilt = sm.normalize(jnp.array([0.1, 0.05, -1.0]))
-    y0 = ({"base": jnp.zeros(3), "spheres": jnp.tile(tilt, (5, 1))},
-          {"base": jnp.zeros(3), "spheres": jnp.zeros((5, 3))})
+    y0 = (
+        {"base": jnp.zeros(3), "spheres": jnp.tile(tilt, (5, 1))},
+        {"base": jnp.zeros(3), "spheres": jnp.zeros((5, 3))},
+    )
 
     def payload_x(p):
         scene = drone_scene({"payload": p[0], "damping": p[1]})
-        sol = sm.simulate(scene, y0, 0.5, solver=sm.Projected(sm.RK4()), dt0=0.01,
-                          adjoint=diffrax.RecursiveCheckpointAdjoint())
+        sol = sm.simulate(
+            scene,
+            y0,
+            0.5,
+            solver=sm.Projected(sm.RK4()),
+            dt0=0.01,
+            adjoint=diffrax.RecursiveCheckpointAdjoint(),
+        )
         return scene.positions(jax.tree.map(lambda x: x[-1], sol.ys[0]))[-1, 0]
 
     p = jnp.array([0.3, 0.01])
     grad = jax.grad(payload_x)(p)
     eps = 1e-6
-    fd = [(payload_x(p.at[i].add(eps)) - payload_x(p.at[i].add(-eps))) / (2 * eps)
-          for i in range(2)]
+    fd = [
+        (payload_x(p.at[i].add(eps)) - payload_x(p.at[i].add(-eps))) / (2 * eps) for i in range(2)
+    ]
     np.testing.assert_allclose(grad, np.array(fd), rtol=1e-6, atol=1e-10)
     assert np.min(np.abs(np.array(fd))) > 1e-4

@@ -57,8 +57,7 @@ def test_agrees_with_loop_over_simulate(chain):
 def test_batched_system_and_args_and_chunks(chain, masses):
     y0 = states(1)
     batch = sm.simulate_batch(chains(masses), y0, 1.0, batch_system=True, **FIXED)
-    chunked = sm.simulate_batch(chains(masses), y0, 1.0, batch_system=True, chunk_size=2,
-                                **FIXED)
+    chunked = sm.simulate_batch(chains(masses), y0, 1.0, batch_system=True, chunk_size=2, **FIXED)
     for i in range(BATCH):
         one = chains(masses[i : i + 1])
         one = jax.tree.map(lambda x: x[0] if eqx.is_array(x) else x, one)
@@ -82,8 +81,7 @@ def test_nan_trajectory_is_reported_and_isolated(masses):
     y0 = states(2)
     good = sm.simulate_batch(chains(masses), y0, 1.0, batch_system=True, **FIXED)
     bad_masses = masses.at[2, 1].set(jnp.nan)
-    sol = sm.simulate_batch(chains(bad_masses), y0, 1.0, batch_system=True, throw=False,
-                            **FIXED)
+    sol = sm.simulate_batch(chains(bad_masses), y0, 1.0, batch_system=True, throw=False, **FIXED)
     failed = np.asarray(sol.result != sm.RESULTS.successful)
     assert np.array_equal(failed, np.arange(BATCH) == 2)
     assert bool((sol.result == sm.RESULTS.nonfinite_initial)[2])
@@ -131,8 +129,9 @@ def test_invalid_initial_state_is_reported_and_isolated(chain, on_error):
         exec(script, {})
         return
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
-    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
-                         env=env, timeout=300)
+    out = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=300
+    )
     assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-3000:]
 
 
@@ -178,7 +177,8 @@ SHARDED = textwrap.dedent(
 
 def test_sharded_equals_unsharded_on_two_cpu_devices():
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
-    out = subprocess.run([sys.executable, "-c", SHARDED], env=env, capture_output=True,
-                         text=True, timeout=300)
+    out = subprocess.run(
+        [sys.executable, "-c", SHARDED], env=env, capture_output=True, text=True, timeout=300
+    )
     assert out.returncode == 0, out.stderr[-3000:]
     assert out.stdout.strip().endswith("ok")

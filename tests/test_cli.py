@@ -109,7 +109,8 @@ def test_default_run_writes_four_sane_files(default_run):
     assert 0 < summary["max_relative_energy_error"] < 1e-5
     energy = data["energy"]
     assert np.max(np.abs(energy - energy[0])) / abs(energy[0]) == pytest.approx(
-        summary["max_relative_energy_error"])
+        summary["max_relative_energy_error"]
+    )
     png = (out / "plot.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 20_000
     page = (out / "animation.html").read_text()
@@ -128,59 +129,119 @@ def _bad(tmp_path, text):
 
 
 ERRORS = {
-    "unknown effect": (GOOD.replace('type = "gravity"', 'type = "magnetism"'),
-                       "effects[1].type", "effect type"),
-    "unknown field": (GOOD.replace("masses = [1.0, 1.0]", "masses = [1.0, 1.0]\ncolour = 1"),
-                      "effects[0].colour", "no such field"),
-    "missing field": (GOOD.replace("lengths = [1.0, 1.0]\n", ""), "effects[0].lengths",
-                      "missing"),
-    "wrong type": (GOOD.replace("masses = [1.0, 1.0]", 'masses = "heavy"'),
-                   "effects[0].masses", "array of numbers"),
-    "wrong integer": (GOOD.replace("masses = [1.0, 1.0]", "masses = 1.0\nlinks = 2.5"),
-                      "effects[0].links", "an integer"),
+    "unknown effect": (
+        GOOD.replace('type = "gravity"', 'type = "magnetism"'),
+        "effects[1].type",
+        "effect type",
+    ),
+    "unknown field": (
+        GOOD.replace("masses = [1.0, 1.0]", "masses = [1.0, 1.0]\ncolour = 1"),
+        "effects[0].colour",
+        "no such field",
+    ),
+    "missing field": (GOOD.replace("lengths = [1.0, 1.0]\n", ""), "effects[0].lengths", "missing"),
+    "wrong type": (
+        GOOD.replace("masses = [1.0, 1.0]", 'masses = "heavy"'),
+        "effects[0].masses",
+        "array of numbers",
+    ),
+    "wrong integer": (
+        GOOD.replace("masses = [1.0, 1.0]", "masses = 1.0\nlinks = 2.5"),
+        "effects[0].links",
+        "an integer",
+    ),
     "old table": (GOOD.replace("[simulate]", "[integrator]"), "integrator", "no such field"),
-    "old key": (GOOD.replace("t1 = 0.5", "duration = 0.5"), "simulate.duration",
-                "no such field"),
-    "bad solver": (GOOD.replace("Projected(Tsit5)", "rk4"), "simulate.solver",
-                   "spelled as in Python"),
+    "old key": (GOOD.replace("t1 = 0.5", "duration = 0.5"), "simulate.duration", "no such field"),
+    "bad solver": (
+        GOOD.replace("Projected(Tsit5)", "rk4"),
+        "simulate.solver",
+        "spelled as in Python",
+    ),
     "syntax": (GOOD.replace("t1 = 0.5", "t1 = "), "(syntax)", "valid TOML"),
-    "link out of range": (GOOD + '[[effects]]\ntype = "base_torque"\ntorque = [0.0, 0.0, 1.0]\n'
-                          "link = 7\n", "effects[2].link", "got 7"),
-    "wrong unit": (GOOD.replace("polar_deg = [90.0, 120.0]", "polar_deg = [90.0, 240.0]"),
-                   "initial.polar_deg", "degrees"),
-    "non-unit direction": (GOOD.replace("polar_deg = [90.0, 120.0]\nazimuth_deg = [0.0, 90.0]",
-                                        "q = [[1.0, 0.0, 0.0], [1.0, 1.0, 0.0]]"),
-                           "initial.q", "unit vectors"),
-    "negative mass": (GOOD.replace("masses = [1.0, 1.0]", "masses = [1.0, -1.0]"),
-                      "effects[0].masses", "masses must be > 0 (kg), got [1.0, -1.0]"),
-    "negative length": (GOOD.replace("lengths = [1.0, 1.0]", "lengths = [-1.0, 1.0]"),
-                        "effects[0].lengths", "> 0"),
+    "link out of range": (
+        GOOD + '[[effects]]\ntype = "base_torque"\ntorque = [0.0, 0.0, 1.0]\nlink = 7\n',
+        "effects[2].link",
+        "got 7",
+    ),
+    "wrong unit": (
+        GOOD.replace("polar_deg = [90.0, 120.0]", "polar_deg = [90.0, 240.0]"),
+        "initial.polar_deg",
+        "degrees",
+    ),
+    "non-unit direction": (
+        GOOD.replace(
+            "polar_deg = [90.0, 120.0]\nazimuth_deg = [0.0, 90.0]",
+            "q = [[1.0, 0.0, 0.0], [1.0, 1.0, 0.0]]",
+        ),
+        "initial.q",
+        "unit vectors",
+    ),
+    "negative mass": (
+        GOOD.replace("masses = [1.0, 1.0]", "masses = [1.0, -1.0]"),
+        "effects[0].masses",
+        "masses must be > 0 (kg), got [1.0, -1.0]",
+    ),
+    "negative length": (
+        GOOD.replace("lengths = [1.0, 1.0]", "lengths = [-1.0, 1.0]"),
+        "effects[0].lengths",
+        "> 0",
+    ),
     # sizes and ranges: refused where read, before anything is allocated or integrated
-    "negative links": (GOOD.replace(ONE_VALUE, "masses = 1.0\nlengths = 1.0\nlinks = -2"),
-                       "effects[0].links", "links must be an integer from 1 to 100000, got -2"),
-    "huge links": (GOOD.replace(ONE_VALUE, f"masses = 1.0\nlengths = 1.0\nlinks = {2**63 - 1}"),
-                   "effects[0].links", "from 1 to 100000"),
-    "1e9 links": (GOOD.replace(ONE_VALUE, "masses = 1.0\nlengths = 1.0\nlinks = 1000000000"),
-                  "effects[0].links", "from 1 to 100000"),
-    "huge mass": (GOOD.replace("masses = [1.0, 1.0]", "masses = [1.0, 1e308]"),
-                  "effects[0].masses", "masses must be finite and at most 1e+100 in magnitude, "
-                  "got 1e+308"),
-    "huge g": (GOOD.replace('type = "gravity"', 'type = "gravity"\ng = 1e308'),
-               "effects[1].g", "g must be finite and at most 1e+100"),
-    "huge gain": (GOOD + '[[effects]]\ntype = "base_torque"\n'
-                  'torque = { type = "pd_torque", kp = 1e308 }\n', "effects[2].torque.kp",
-                  "kp must be finite and at most 1e+100"),
-    "huge t1": (GOOD.replace("t1 = 0.5", "t1 = 1e308"), "simulate.t1",
-                "t1 must be at most 1e+100 s"),
-    "tiny save_dt": (GOOD + "[output]\nsave_dt = 1e-300", "output.save_dt",
-                     "save_dt must give at most 1e+08 saved numbers"),
-    "tiny fixed step": (GOOD.replace('"Projected(Tsit5)"', '"RK4"\ndt0 = 1e-300'),
-                        "simulate.dt0", "dt0 must give at most max_steps = 100000 fixed steps"),
-    "deep solver": (GOOD.replace('"Projected(Tsit5)"',
-                                 '"' + "Projected(" * 3000 + "Tsit5" + ")" * 3000 + '"'),
-                    "simulate.solver", "solver must be at most 200 characters"),
-    "huge base velocity": (CART.replace("base_velocity = [0.0]", "base_velocity = [1e308]"),
-                           "initial.base_velocity", "at most 1e+100 in magnitude"),
+    "negative links": (
+        GOOD.replace(ONE_VALUE, "masses = 1.0\nlengths = 1.0\nlinks = -2"),
+        "effects[0].links",
+        "links must be an integer from 1 to 100000, got -2",
+    ),
+    "huge links": (
+        GOOD.replace(ONE_VALUE, f"masses = 1.0\nlengths = 1.0\nlinks = {2**63 - 1}"),
+        "effects[0].links",
+        "from 1 to 100000",
+    ),
+    "1e9 links": (
+        GOOD.replace(ONE_VALUE, "masses = 1.0\nlengths = 1.0\nlinks = 1000000000"),
+        "effects[0].links",
+        "from 1 to 100000",
+    ),
+    "huge mass": (
+        GOOD.replace("masses = [1.0, 1.0]", "masses = [1.0, 1e308]"),
+        "effects[0].masses",
+        "masses must be finite and at most 1e+100 in magnitude, got 1e+308",
+    ),
+    "huge g": (
+        GOOD.replace('type = "gravity"', 'type = "gravity"\ng = 1e308'),
+        "effects[1].g",
+        "g must be finite and at most 1e+100",
+    ),
+    "huge gain": (
+        GOOD + '[[effects]]\ntype = "base_torque"\ntorque = { type = "pd_torque", kp = 1e308 }\n',
+        "effects[2].torque.kp",
+        "kp must be finite and at most 1e+100",
+    ),
+    "huge t1": (
+        GOOD.replace("t1 = 0.5", "t1 = 1e308"),
+        "simulate.t1",
+        "t1 must be at most 1e+100 s",
+    ),
+    "tiny save_dt": (
+        GOOD + "[output]\nsave_dt = 1e-300",
+        "output.save_dt",
+        "save_dt must give at most 1e+08 saved numbers",
+    ),
+    "tiny fixed step": (
+        GOOD.replace('"Projected(Tsit5)"', '"RK4"\ndt0 = 1e-300'),
+        "simulate.dt0",
+        "dt0 must give at most max_steps = 100000 fixed steps",
+    ),
+    "deep solver": (
+        GOOD.replace('"Projected(Tsit5)"', '"' + "Projected(" * 3000 + "Tsit5" + ")" * 3000 + '"'),
+        "simulate.solver",
+        "solver must be at most 200 characters",
+    ),
+    "huge base velocity": (
+        CART.replace("base_velocity = [0.0]", "base_velocity = [1e308]"),
+        "initial.base_velocity",
+        "at most 1e+100 in magnitude",
+    ),
 }
 
 
@@ -200,8 +261,9 @@ def test_error_from_the_installed_command(tmp_path):
     """The real executable: exit status 2, one line on stderr, no traceback."""
     path = _bad(tmp_path, GOOD.replace('type = "gravity"', 'type = "magnetism"'))
     exe = Path(sys.executable).with_name("sphere-mech")
-    proc = subprocess.run([str(exe), "run", str(path)], capture_output=True, text=True,
-                          cwd=tmp_path, timeout=120)
+    proc = subprocess.run(
+        [str(exe), "run", str(path)], capture_output=True, text=True, cwd=tmp_path, timeout=120
+    )
     assert proc.returncode == 2
     assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
     assert f"{path}: effects[1].type" in proc.stderr
@@ -210,12 +272,12 @@ def test_error_from_the_installed_command(tmp_path):
 @pytest.mark.parametrize("example", EXAMPLES, ids=lambda p: p.stem)
 def test_every_example_runs(example, tmp_path, capsys):
     out = tmp_path / "out"
-    assert main(["run", str(example), "--out", str(out), "--t1", "0.1",
-                 "--no-progress"]) == 0
+    assert main(["run", str(example), "--out", str(out), "--t1", "0.1", "--no-progress"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["t1"] == 0.1 and summary["max_constraint_error"] < 1e-12
-    error = summary.get("max_relative_energy_error",
-                        summary.get("max_relative_work_energy_balance"))
+    error = summary.get(
+        "max_relative_energy_error", summary.get("max_relative_work_energy_balance")
+    )
     assert error < 1e-5
     assert "wrote" in capsys.readouterr().out
 
@@ -278,9 +340,13 @@ sys.exit(status)
 
 
 def _env(**extra):
-    env = {**os.environ, **extra,
-           "PYTHONPATH": os.pathsep.join([str(Path(__file__).parents[1]),
-                                          os.environ.get("PYTHONPATH", "")])}
+    env = {
+        **os.environ,
+        **extra,
+        "PYTHONPATH": os.pathsep.join(
+            [str(Path(__file__).parents[1]), os.environ.get("PYTHONPATH", "")]
+        ),
+    }
     env.pop("EQX_ON_ERROR", None)
     return env
 
@@ -294,8 +360,18 @@ def test_repeated_runs_are_served_by_the_cache_and_never_fail(tmp_path):
     env = _env(**{CACHE_ENV: str(cache)})
 
     def run(out, *extra):
-        argv = [sys.executable, "-c", CACHE_COUNTS, "run", str(good), "--out",
-                str(tmp_path / out), "--no-progress", "--no-animation", *extra]
+        argv = [
+            sys.executable,
+            "-c",
+            CACHE_COUNTS,
+            "run",
+            str(good),
+            "--out",
+            str(tmp_path / out),
+            "--no-progress",
+            "--no-animation",
+            *extra,
+        ]
         proc = subprocess.run(argv, capture_output=True, text=True, env=env, timeout=300)
         assert proc.returncode == 0, proc.stderr
         hits, misses = proc.stdout.strip().splitlines()[-1].split()[1:]
@@ -317,16 +393,24 @@ def test_sigint_is_one_line_and_status_130(tmp_path):
     segfault): one line, exit status 130, no temporary folder left."""
     long = _bad(tmp_path, GOOD.replace("t1 = 0.5", "t1 = 1e5\nmax_steps = 100_000_000"))
     out = tmp_path / "out"
-    argv = [sys.executable, "-c", "import sys; from sphere_mech._cli import main; "
-            "sys.exit(main())", "run", str(long), "--out", str(out), "--no-progress"]
-    proc = subprocess.Popen(argv, stderr=subprocess.PIPE, text=True,
-                            env=_env(**{CACHE_ENV: "off"}))
+    argv = [
+        sys.executable,
+        "-c",
+        "import sys; from sphere_mech._cli import main; sys.exit(main())",
+        "run",
+        str(long),
+        "--out",
+        str(out),
+        "--no-progress",
+    ]
+    proc = subprocess.Popen(argv, stderr=subprocess.PIPE, text=True, env=_env(**{CACHE_ENV: "off"}))
     time.sleep(3)
     proc.send_signal(signal.SIGINT)
     err = proc.communicate(timeout=60)[1]
     assert proc.returncode == 130, err
-    assert [line for line in err.splitlines() if line] == ["sphere-mech: interrupted; "
-                                                           "earlier outputs kept"]
+    assert [line for line in err.splitlines() if line] == [
+        "sphere-mech: interrupted; earlier outputs kept"
+    ]
     assert not list(out.glob(".sphere-mech-*"))
 
 
@@ -334,14 +418,19 @@ def test_stale_temporary_folders_are_removed(tmp_path, capsys):
     """A folder left by a killed run (its pid gone) is removed by the next run; one of a
     live process stays."""
     out = tmp_path / "out"
-    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
-                          capture_output=True, text=True).stdout.strip()
+    gone = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True
+    ).stdout.strip()
     stale, live = out / f".sphere-mech-{gone}-abc", out / f".sphere-mech-{os.getppid()}-x"
     for folder in (stale, live):
         folder.mkdir(parents=True)
         (folder / "trajectory.npz").write_bytes(b"partial")
-    assert main(["run", str(_bad(tmp_path, GOOD)), "--out", str(out), "--no-progress",
-                 "--no-animation"]) == 0
+    assert (
+        main(
+            ["run", str(_bad(tmp_path, GOOD)), "--out", str(out), "--no-progress", "--no-animation"]
+        )
+        == 0
+    )
     assert not stale.exists() and live.exists()
     assert sorted(p.name for p in out.glob(".sphere-mech-*")) == [live.name]
 
@@ -351,8 +440,20 @@ def test_no_cache_writes_nothing(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv(CACHE_ENV, str(tmp_path / "cache"))
     assert cache_dir() == tmp_path / "cache"
     good = _bad(tmp_path, GOOD)
-    assert main(["run", str(good), "--out", str(tmp_path / "out"), "--no-progress",
-                 "--no-animation", "--no-cache"]) == 0
+    assert (
+        main(
+            [
+                "run",
+                str(good),
+                "--out",
+                str(tmp_path / "out"),
+                "--no-progress",
+                "--no-animation",
+                "--no-cache",
+            ]
+        )
+        == 0
+    )
     assert not (tmp_path / "cache").exists()
     assert jax.config.jax_compilation_cache_dir is None
     monkeypatch.setenv(CACHE_ENV, "off")
@@ -367,8 +468,7 @@ def pendulum_result(tmp_path_factory):
     return run_scene(spec), spec.scene
 
 
-def test_figure_is_equal_aspect_and_shows_the_constraint_only_above_rounding(
-        pendulum_result):
+def test_figure_is_equal_aspect_and_shows_the_constraint_only_above_rounding(pendulum_result):
     import dataclasses
 
     result, scene = pendulum_result
@@ -394,7 +494,7 @@ def test_segments_cover_the_save_times_once():
         n_out = max(2, round(t1 / save_dt) + 1)
         assert len(ts) <= SEGMENTS and ts[0, 0] == 0.0 and ts[-1, -1] == t1
         rows = enumerate(zip(ts, count, strict=True))
-        joined = np.concatenate([row[(k > 0):c] for k, (row, c) in rows])
+        joined = np.concatenate([row[(k > 0) : c] for k, (row, c) in rows])
         np.testing.assert_array_equal(joined, np.linspace(0.0, t1, n_out))
         np.testing.assert_array_equal(ts[1:, 0], ts[:-1, -1])  # each starts where one ends
         assert np.all(np.diff(ts, axis=1) >= 0)  # padding repeats the end
@@ -411,16 +511,28 @@ def test_segmented_run_matches_one_simulate_call(pendulum_result, tmp_path):
 
     result, scene = pendulum_result
     spec = load_scene(_bad(tmp_path, GOOD))
-    sol = sm.simulate(scene, spec.y0, spec.t1, solver=spec.solver, saveat=diffrax.SaveAt(
-        ts=result.t))
+    sol = sm.simulate(
+        scene, spec.y0, spec.t1, solver=spec.solver, saveat=diffrax.SaveAt(ts=result.t)
+    )
     np.testing.assert_allclose(result.q, sol.ys[0], atol=1e-7)  # measured 2e-9
     np.testing.assert_allclose(result.v, sol.ys[1], atol=1e-6)  # measured 8e-8
-    fixed = load_scene(_bad(tmp_path, GOOD.replace('"Projected(Tsit5)"', '"Projected(RK4)"'
-                                                    "\ndt0 = 0.005") + "[output]\nsave_dt = 0.01"))
+    fixed = load_scene(
+        _bad(
+            tmp_path,
+            GOOD.replace('"Projected(Tsit5)"', '"Projected(RK4)"\ndt0 = 0.005')
+            + "[output]\nsave_dt = 0.01",
+        )
+    )
     program, compiled = build(fixed)
     run = program.integrate()
-    sol = sm.simulate(scene, fixed.y0, fixed.t1, solver=fixed.solver, dt0=fixed.dt0,
-                      saveat=diffrax.SaveAt(ts=run.t))
+    sol = sm.simulate(
+        scene,
+        fixed.y0,
+        fixed.t1,
+        solver=fixed.solver,
+        dt0=fixed.dt0,
+        saveat=diffrax.SaveAt(ts=run.t),
+    )
     assert run.steps == sol.stats["num_steps"] == 100 and len(run.t) == 51
     np.testing.assert_allclose(run.q, sol.ys[0], atol=1e-13)
     np.testing.assert_allclose(run.v, sol.ys[1], atol=1e-12)
@@ -434,8 +546,10 @@ def test_end_time_must_follow_t0(tmp_path, capsys):
     assert main(["run", str(path), "--out", str(out), "--t1", "5"]) == 2
     assert main(["run", str(path), "--out", str(out), "--t1", "inf"]) == 2
     err = capsys.readouterr().err.splitlines()
-    assert err[0] == (f"sphere-mech: error: {path}: --t1: --t1 must be a time in s after "
-                      "t0 = 10 and at most 1e+100 (got 5.0)")
+    assert err[0] == (
+        f"sphere-mech: error: {path}: --t1: --t1 must be a time in s after "
+        "t0 = 10 and at most 1e+100 (got 5.0)"
+    )
     assert err[1] == "sphere-mech: error: --t1 must be a finite time in s (got inf)"
     assert not out.exists()
     spec = load_scene(path, 12.0)  # the reader applies --t1; save_dt stays the file's
@@ -451,8 +565,9 @@ def test_output_folder_is_checked_before_integrating(tmp_path, capsys):
         assert main(["run", str(good), "--out", str(out), "--no-progress"]) == 2
         captured = capsys.readouterr()
         assert captured.out == "" and captured.err.count("\n") == 1
-        assert captured.err.startswith(f"sphere-mech: error: --out: cannot create or write "
-                                       f"the folder {out} (")
+        assert captured.err.startswith(
+            f"sphere-mech: error: --out: cannot create or write the folder {out} ("
+        )
     assert blocker.read_text() == "not a folder"
 
 
@@ -460,8 +575,19 @@ def test_still_forced_scene_writes_strict_json(tmp_path, capsys):
     """A forced scene in which nothing moves: the relative work-energy balance (0/0) is
     null with its reason, and summary.json is strict JSON (no NaN)."""
     out = tmp_path / "out"
-    assert main(["run", str(_bad(tmp_path, STILL)), "--out", str(out), "--no-progress",
-                 "--no-animation"]) == 0
+    assert (
+        main(
+            [
+                "run",
+                str(_bad(tmp_path, STILL)),
+                "--out",
+                str(out),
+                "--no-progress",
+                "--no-animation",
+            ]
+        )
+        == 0
+    )
     text = (out / "summary.json").read_text()
     summary = json.loads(text, parse_constant=lambda c: pytest.fail(f"{c} in summary.json"))
     assert summary["max_relative_work_energy_balance"] is None
@@ -473,11 +599,20 @@ def test_still_forced_scene_writes_strict_json(tmp_path, capsys):
 def test_strict_json_replaces_what_is_not_finite():
     from sphere_mech._cli.report import strict_json
 
-    out = strict_json({"a": 1.0, "b": float("inf"), "c": [0.0, float("nan")], "d": None},
-                      {"d": "why"})
-    assert out == {"a": 1.0, "b": None, "c": [0.0, None], "d": None, "not_computed": {
-        "b": "not finite (inf): the run overflowed", "c": "not finite (nan): the run "
-        "overflowed", "d": "why"}}
+    out = strict_json(
+        {"a": 1.0, "b": float("inf"), "c": [0.0, float("nan")], "d": None}, {"d": "why"}
+    )
+    assert out == {
+        "a": 1.0,
+        "b": None,
+        "c": [0.0, None],
+        "d": None,
+        "not_computed": {
+            "b": "not finite (inf): the run overflowed",
+            "c": "not finite (nan): the run overflowed",
+            "d": "why",
+        },
+    }
     json.dumps(out, allow_nan=False)
 
 
@@ -488,8 +623,9 @@ def test_forced_program_memory_does_not_grow_with_max_steps(tmp_path):
     damped = GOOD + '[[effects]]\ntype = "joint_damping"\ncoefficient = 0.1\n'
     sizes = []
     for max_steps in (1000, 10**6, 10**9):
-        spec = load_scene(_bad(tmp_path, damped.replace("t1 = 0.5",
-                                                        f"t1 = 0.5\nmax_steps = {max_steps}")))
+        spec = load_scene(
+            _bad(tmp_path, damped.replace("t1 = 0.5", f"t1 = 0.5\nmax_steps = {max_steps}"))
+        )
         program, compiled = build(spec)
         memory = compiled.memory_analysis()
         sizes.append((memory.temp_size_in_bytes, memory.output_size_in_bytes))
@@ -510,12 +646,18 @@ def test_work_summed_during_the_run_matches_the_steps(solver, tmp_path):
     from sphere_mech._solvers.work import WithWork, work_done
 
     text = GOOD.replace("Projected(Tsit5)", solver)
-    spec = load_scene(_bad(tmp_path, text + '[[effects]]\ntype = "joint_damping"\n'
-                           'coefficient = 0.3\n[[effects]]\ntype = "tip_force"\n'
-                           "force = [0.5, 0.0, 1.0]\n"))
+    spec = load_scene(
+        _bad(
+            tmp_path,
+            text + '[[effects]]\ntype = "joint_damping"\n'
+            'coefficient = 0.3\n[[effects]]\ntype = "tip_force"\n'
+            "force = [0.5, 0.0, 1.0]\n",
+        )
+    )
     saveat = diffrax.SaveAt(t0=True, steps=True, solver_state=True)
-    sol = sm.simulate(spec.scene, spec.y0, spec.t1, solver=WithWork(spec.solver),
-                      saveat=saveat, max_steps=1000)
+    sol = sm.simulate(
+        spec.scene, spec.y0, spec.t1, solver=WithWork(spec.solver), saveat=saveat, max_steps=1000
+    )
     keep = np.isfinite(np.asarray(sol.ts))
     q, v = (np.asarray(y)[keep] for y in sol.ys)
     _, W, balance = sm.work_energy_balance(spec.scene, np.asarray(sol.ts)[keep], q, v)

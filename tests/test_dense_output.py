@@ -167,10 +167,12 @@ def test_simulate_with_dense_output_only():
     least one array to stack"): `sol.evaluate` gives LieRK's dense points, the values
     that `SaveAt(ts)` saves at the same times, on the spheres."""
     kwargs = dict(solver=sm.LieRK(diffrax.Tsit5()), rtol=1e-9, atol=1e-9)
-    dense = sm.simulate(bench.PENDULUM, _pendulum_state(), 0.7,
-                        saveat=diffrax.SaveAt(dense=True), **kwargs)
-    saved = sm.simulate(bench.PENDULUM, _pendulum_state(), 0.7,
-                        saveat=diffrax.SaveAt(ts=TS[:20]), **kwargs)
+    dense = sm.simulate(
+        bench.PENDULUM, _pendulum_state(), 0.7, saveat=diffrax.SaveAt(dense=True), **kwargs
+    )
+    saved = sm.simulate(
+        bench.PENDULUM, _pendulum_state(), 0.7, saveat=diffrax.SaveAt(ts=TS[:20]), **kwargs
+    )
     assert dense.result == sm.RESULTS.successful
     q, v = jax.vmap(dense.evaluate)(TS[:20])
     np.testing.assert_allclose(q, saved.ys[0], rtol=0, atol=1e-12)

@@ -207,16 +207,25 @@ def test_functions_and_inertia_checked_at_construction():
     import functools
 
     hamiltonian = sm.Hamiltonian(lambda t, q, mu, args: 0.5 * jnp.sum(mu**2))
-    with pytest.raises(ValueError, match=r"^L must be a function L\(t, q, qdot, args\), got "
-                       r"Hamiltonian\.$"):
+    with pytest.raises(
+        ValueError,
+        match=r"^L must be a function L\(t, q, qdot, args\), got "
+        r"Hamiltonian\.$",
+    ):
         sm.Lagrangian(hamiltonian)
-    with pytest.raises(ValueError, match=r"^L must be a function L\(t, q, qdot, args\) \(4 "
-                       r"arguments\), got one with signature \(t, q, qdot\)\.$"):
+    with pytest.raises(
+        ValueError,
+        match=r"^L must be a function L\(t, q, qdot, args\) \(4 "
+        r"arguments\), got one with signature \(t, q, qdot\)\.$",
+    ):
         sm.Lagrangian(lambda t, q, qdot: 0.0)
     with pytest.raises(ValueError, match=r"^H must be a function H\(t, q, pi, args\)"):
         sm.AngularHamiltonian(lambda q, pi: 0.0)
-    with pytest.raises(ValueError, match=r"^inertia must be a symmetric positive-definite "
-                       r"matrix \(got smallest eigenvalue -1"):
+    with pytest.raises(
+        ValueError,
+        match=r"^inertia must be a symmetric positive-definite "
+        r"matrix \(got smallest eigenvalue -1",
+    ):
         sm.ConstantInertiaLagrangian(-jnp.eye(2), lambda t, q, args: 0.0)
     with pytest.raises(ValueError, match=r"^potential must be a function U\(t, q, args\)"):
         sm.ConstantInertiaLagrangian(jnp.eye(2), lambda t, q: 0.0)
@@ -224,14 +233,17 @@ def test_functions_and_inertia_checked_at_construction():
     sm.Lagrangian(lambda *a: 0.0)
     # Traced inertia (e.g. under vmap) is left to the run-time checks.
     eqx.filter_vmap(lambda m: sm.ConstantInertiaLagrangian(m, lambda t, q, a: 0.0))(
-        jnp.stack([jnp.eye(2), -jnp.eye(2)]))
+        jnp.stack([jnp.eye(2), -jnp.eye(2)])
+    )
 
 
 def test_nan_parameter_is_named_not_the_mass_matrix(state):
     q, v = state
     system = sm.Lagrangian(lambda t, q, qdot, g: 0.5 * jnp.sum(qdot**2) - g * jnp.sum(q[:, 2]))
-    with pytest.raises(eqx.EquinoxRuntimeError, match="args or the system's parameters "
-                       "contain NaN or infinite values"):
+    with pytest.raises(
+        eqx.EquinoxRuntimeError,
+        match="args or the system's parameters contain NaN or infinite values",
+    ):
         system.acceleration(0.0, q, v, jnp.asarray(jnp.nan))
     with pytest.raises(eqx.EquinoxRuntimeError, match="args or the system's parameters"):
         sm.Hamiltonian(lambda t, q, mu, g: g * jnp.sum(mu**2)).vector_field(0.0, q, v, jnp.inf)

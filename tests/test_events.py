@@ -19,8 +19,9 @@ NEWTON = optx.Newton(rtol=1e-13, atol=1e-13)
 
 def crossing(axis):
     """An event: the mass crosses the plane `x_axis = 0` downward."""
-    return diffrax.Event(lambda t, y, args, **kw: y[0][0, axis], root_finder=NEWTON,
-                         direction=False)
+    return diffrax.Event(
+        lambda t, y, args, **kw: y[0][0, axis], root_finder=NEWTON, direction=False
+    )
 
 
 def planar(theta0):
@@ -62,8 +63,9 @@ def test_batch_of_periods_and_saved_states():
     y0 = jax.vmap(planar)(thetas)
     ts = jnp.linspace(0.0, 2.0, 41)
     saveat = diffrax.SaveAt(subs=[diffrax.SubSaveAt(ts=ts), diffrax.SubSaveAt(t1=True)])
-    sol = sm.simulate_batch(PENDULUM, y0, 2.0, event=crossing(0), batch_args=False,
-                            saveat=saveat, **TOL)
+    sol = sm.simulate_batch(
+        PENDULUM, y0, 2.0, event=crossing(0), batch_args=False, saveat=saveat, **TOL
+    )
     assert np.all(np.asarray(sol.result == sm.RESULTS.event_occurred))
     expected = np.array([quarter_period(float(th)) for th in thetas])
     t_event = np.asarray(sol.ts[1])[:, 0]
@@ -93,11 +95,16 @@ def test_root_finder_failure_is_named():
     """An event whose root finder cannot converge (a cube root defeats Newton) gets its
     own code and message, not the implicit step's, and no max_steps in it."""
     q0 = jnp.array([[jnp.sin(0.5), 0.0, -jnp.cos(0.5)]])
-    cross = diffrax.Event(lambda t, y, args, **kw: jnp.cbrt(y[0][0, 0]),
-                          root_finder=optx.Newton(rtol=1e-13, atol=1e-13))
+    cross = diffrax.Event(
+        lambda t, y, args, **kw: jnp.cbrt(y[0][0, 0]),
+        root_finder=optx.Newton(rtol=1e-13, atol=1e-13),
+    )
     system = sm.chain_pendulum([1.0], [0.7])
     sol = sm.simulate(system, (q0, jnp.zeros_like(q0)), 10.0, event=cross, throw=False)
     assert bool(sol.result == sm.RESULTS.event_root_failed)
-    with pytest.raises(RuntimeError, match=r"^simulate: The root finder of `event` did not "
-                       r"converge.* \(with throw=False nothing is raised"):
+    with pytest.raises(
+        RuntimeError,
+        match=r"^simulate: The root finder of `event` did not "
+        r"converge.* \(with throw=False nothing is raised",
+    ):
         sm.simulate(system, (q0, jnp.zeros_like(q0)), 10.0, event=cross)

@@ -199,8 +199,14 @@ def _shooting(t1, segments, key, single_steps=30):
         **options,
     )
     single = sm.fit(
-        damped_chain, START_CHAOS, ts, obs, mass_positions, y0=(q[0], v[0]),
-        max_steps=single_steps, **options,
+        damped_chain,
+        START_CHAOS,
+        ts,
+        obs,
+        mass_positions,
+        y0=(q[0], v[0]),
+        max_steps=single_steps,
+        **options,
     )
     return multiple, single
 

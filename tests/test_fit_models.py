@@ -101,8 +101,14 @@ def pendulum_clean():
 def _fit_pendulum(obs, simulate_options=SIM, **kwargs):
     y0 = (Q_PENDULUM, V_PENDULUM)
     return sm.fit(
-        pendulum, START_PENDULUM, TS_PENDULUM, obs, bob, y0=y0,
-        simulate_options=simulate_options, **kwargs
+        pendulum,
+        START_PENDULUM,
+        TS_PENDULUM,
+        obs,
+        bob,
+        y0=y0,
+        simulate_options=simulate_options,
+        **kwargs,
     )
 
 
@@ -196,8 +202,13 @@ def test_fit_through_a_lie_group_solver(pendulum_clean):
     """`fit` differentiates through `LieRK` (adaptive, SE(3) action): noise-free data of the
     damped pendulum give back its length."""
     result = sm.fit(
-        lambda p: pendulum(dict(TRUE_PENDULUM, l=p)), 1.1 * TRUE_PENDULUM["l"], TS_PENDULUM,
-        pendulum_clean, bob, y0=(Q_PENDULUM, V_PENDULUM), max_steps=20,
+        lambda p: pendulum(dict(TRUE_PENDULUM, l=p)),
+        1.1 * TRUE_PENDULUM["l"],
+        TS_PENDULUM,
+        pendulum_clean,
+        bob,
+        y0=(Q_PENDULUM, V_PENDULUM),
+        max_steps=20,
         simulate_options=dict(SIM, solver=sm.LieRK(diffrax.Bosh3())),
     )
     assert bool(result.converged)

@@ -71,8 +71,11 @@ def test_default_gradient_matches_differences_and_old_adjoint(value_and_grad_def
     assert np.all(np.abs(grad) > 1e-2)  # a gradient that could be wrong
 
 
-@pytest.mark.parametrize(("batch", "kind"), [(True, "fixed"), (False, "adaptive")],
-                         ids=["simulate_batch-fixed", "simulate-adaptive"])
+@pytest.mark.parametrize(
+    ("batch", "kind"),
+    [(True, "fixed"), (False, "adaptive")],
+    ids=["simulate_batch-fixed", "simulate-adaptive"],
+)
 def test_default_gradient_matches_forward_mode_and_differences(batch, kind):
     loss = _loss(batch, kind, None)
     grad = eqx.filter_jit(jax.grad(loss))(LENGTHS)

@@ -31,11 +31,20 @@ def run(system, y0, t1, *, solver=None, rtol=RTOL, n_save=101, max_steps=100_000
     solution (stats, result). Tolerances and `t1` are passed as arrays, so runs of one
     system at different tolerances share one compiled program."""
     ts = jnp.linspace(0.0, t1, n_save)
-    saveat = diffrax.SaveAt(subs=[diffrax.SubSaveAt(steps=True, fn=_step_constraint),
-                                  diffrax.SubSaveAt(ts=ts)])
+    saveat = diffrax.SaveAt(
+        subs=[diffrax.SubSaveAt(steps=True, fn=_step_constraint), diffrax.SubSaveAt(ts=ts)]
+    )
     tol = jnp.asarray(rtol)
-    sol = sm.simulate(system, y0, jnp.asarray(t1), solver=solver, rtol=tol, atol=tol,
-                      saveat=saveat, max_steps=max_steps)
+    sol = sm.simulate(
+        system,
+        y0,
+        jnp.asarray(t1),
+        solver=solver,
+        rtol=tol,
+        atol=tol,
+        saveat=saveat,
+        max_steps=max_steps,
+    )
     step_errors, (q, v) = sol.ys
     step_errors = np.asarray(step_errors)
     constraint = float(np.max(step_errors[np.isfinite(step_errors)]))
@@ -62,6 +71,7 @@ def max_energy_drift(system, q, v):
 
 def vertical_angular_momentum(chain, q, v):
     """`sum_i m_i (x_i x xdot_i) . e3`, conserved by gravity-only chains."""
+
     def lz(q_, v_):
         x, xdot = jax.jvp(chain.positions, (q_,), (v_,))
         return jnp.sum(chain.masses() * jnp.cross(x, xdot)[:, 2])
@@ -83,17 +93,26 @@ def planar_pendulum(theta0, thetadot0, t1):
     """Reference in one angle from the downward vertical (no chart singularity in the
     plane): `theta'' = -g sin(theta)`; returns the final unit vector in the x-z plane."""
     term = diffrax.ODETerm(lambda t, y, a: jnp.stack([y[1], -G * jnp.sin(y[0])]))
-    sol = diffrax.diffeqsolve(term, diffrax.Dopri8(), 0.0, t1, 1e-3,
-                              jnp.array([theta0, thetadot0]), max_steps=100_000,
-                              stepsize_controller=diffrax.PIDController(rtol=1e-13, atol=1e-13))
+    sol = diffrax.diffeqsolve(
+        term,
+        diffrax.Dopri8(),
+        0.0,
+        t1,
+        1e-3,
+        jnp.array([theta0, thetadot0]),
+        max_steps=100_000,
+        stepsize_controller=diffrax.PIDController(rtol=1e-13, atol=1e-13),
+    )
     theta = sol.ys[0, 0]
     return jnp.array([jnp.sin(theta), 0.0, -jnp.cos(theta)])
 
 
 @pytest.mark.parametrize(
     "theta0, thetadot0",
-    [(1.0, 0.0),  # swings through the bottom pole -e3 exactly (x = y = 0 at the bottom)
-     (0.0, 1.1 * 2.0 * np.sqrt(G))],  # starts at the bottom, goes over the top pole +e3
+    [
+        (1.0, 0.0),  # swings through the bottom pole -e3 exactly (x = y = 0 at the bottom)
+        (0.0, 1.1 * 2.0 * np.sqrt(G)),
+    ],  # starts at the bottom, goes over the top pole +e3
 )
 def test_pendulum_through_poles(theta0, thetadot0):
     t1 = 3.0
@@ -137,8 +156,9 @@ def _compare(chain, y0, t1, tol, energy_tol):
     (q, v), constraint, _ = run(chain, y0, t1)
     q_ref, _ = reference(chain, y0, t1)
     assert constraint < UNIT
-    error = float(jnp.max(jnp.linalg.norm(chain.positions(q[-1]) - chain.positions(q_ref),
-                                          axis=-1)))
+    error = float(
+        jnp.max(jnp.linalg.norm(chain.positions(q[-1]) - chain.positions(q_ref), axis=-1))
+    )
     assert error < tol, error
     assert max_energy_drift(chain, q, v) < energy_tol
     return q
@@ -158,8 +178,9 @@ def test_chain_straight_up():
     assert float(q[-1, 0, 2]) < 0.5  # it did fall
 
 
-@pytest.mark.parametrize("masses, lengths", [((1.0, 1e-6, 1.0), (1.0, 1.0, 1.0)),
-                                             ((1.0, 1.0, 1.0), (1.0, 1e-3, 1.0))])
+@pytest.mark.parametrize(
+    "masses, lengths", [((1.0, 1e-6, 1.0), (1.0, 1.0, 1.0)), ((1.0, 1.0, 1.0), (1.0, 1e-3, 1.0))]
+)
 def test_extreme_ratios(masses, lengths):
     chain = sm.chain_pendulum(jnp.asarray(masses), jnp.asarray(lengths))
     y0 = chain_state([[1, 0, -1], [0, 1, -1], [-1, 0.3, 0]], [[0, 1, 0], [1, 0, 0.5], [0, 0, 1]])
@@ -208,15 +229,13 @@ def test_stiff_bending_springs_implicit():
     # A rigid swing: every link the same direction and the same angular velocity.
     y0 = (jnp.tile(direction, (n, 1)), jnp.tile(jnp.array([[0.0, 1.0, 0.0]]), (n, 1)))
     t1 = 1.0
-    (q, v), constraint, sol = run(stiff, y0, t1, solver=sm.Projected(diffrax.Kvaerno5()),
-                                  rtol=1e-5)
+    (q, v), constraint, sol = run(stiff, y0, t1, solver=sm.Projected(diffrax.Kvaerno5()), rtol=1e-5)
     assert constraint < UNIT
     _, _, explicit = run(stiff, y0, t1, rtol=1e-5)
     assert int(sol.stats["num_steps"]) < int(explicit.stats["num_steps"]) / 10
     # Reference: Projected(Dopri8) at 1e-13 (Tsit5 would need ~1e6 steps here).
     q_ref, _ = reference(stiff, y0, t1, solver=sm.Projected(diffrax.Dopri8()))
-    error = float(jnp.max(jnp.linalg.norm(base.positions(q[-1]) - base.positions(q_ref),
-                                          axis=-1)))
+    error = float(jnp.max(jnp.linalg.norm(base.positions(q[-1]) - base.positions(q_ref), axis=-1)))
     assert error < 1e-4, error
     # Energy: the implicit method damps the (tiny) bending vibration, nothing else.
     assert max_energy_drift(stiff, q, v) < 1e-3 * n * G
@@ -304,8 +323,9 @@ def test_float32_double_pendulum():
     q0, v0 = chain_state([[1, 0, -1], [0, 1, -2]], [[0, 1.0, 0], [0.5, 0, 0.25]])
     y32 = (q0.astype(jnp.float32), v0.astype(jnp.float32))
     ts = jnp.linspace(0.0, 10.0, 201, dtype=jnp.float32)
-    saveat = diffrax.SaveAt(subs=[diffrax.SubSaveAt(steps=True, fn=_step_constraint),
-                                  diffrax.SubSaveAt(ts=ts)])
+    saveat = diffrax.SaveAt(
+        subs=[diffrax.SubSaveAt(steps=True, fn=_step_constraint), diffrax.SubSaveAt(ts=ts)]
+    )
     sol = sm.simulate(chain32, y32, jnp.float32(10.0), saveat=saveat)
     step_errors, (q, v) = sol.ys
     assert q.dtype == jnp.float32
@@ -316,6 +336,9 @@ def test_float32_double_pendulum():
     e = energies(chain64, q.astype(jnp.float64), v.astype(jnp.float64))
     assert float(np.max(np.abs(e - e[0]))) < 1e-3
     q_ref, _ = reference(chain64, (q0, v0), 10.0)
-    error = jnp.max(jnp.linalg.norm(chain64.positions(q[-1].astype(jnp.float64))
-                                    - chain64.positions(q_ref), axis=-1))
+    error = jnp.max(
+        jnp.linalg.norm(
+            chain64.positions(q[-1].astype(jnp.float64)) - chain64.positions(q_ref), axis=-1
+        )
+    )
     assert float(error) < 1e-2

@@ -44,8 +44,9 @@ def test_legendre_velocity_beyond_the_linear_guess():
 def test_forms_agree_over_20_s(runs):
     g, lag, ham = runs
     np.testing.assert_allclose(lag.ys[0], ham.ys[0], rtol=0, atol=1e-9)
-    energy = np.asarray([float(LAGRANGIAN.energy(0.0, q, v, g))
-                         for q, v in zip(*lag.ys, strict=True)])
+    energy = np.asarray(
+        [float(LAGRANGIAN.energy(0.0, q, v, g)) for q, v in zip(*lag.ys, strict=True)]
+    )
     assert np.max(np.abs(energy - energy[0])) < 1e-10 * abs(energy[0])
     if g == 0.0:  # a great circle at constant speed: the closed form
         t = np.asarray(TS)[:, None, None]

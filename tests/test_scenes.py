@@ -30,6 +30,7 @@ def unit(x):
 
 # ---- kinetic terms ---------------------------------------------------------------------
 
+
 def test_chain_matches_chain_pendulum(getkey):
     """`chain_pendulum` (a Scene of Chain, Gravity, BaseTorque, TipForce) against the
     generic autodiff `Lagrangian` of the chain's L written out here, with the generalized
@@ -51,15 +52,17 @@ def test_chain_matches_chain_pendulum(getkey):
     assert isinstance(chain, sm.Scene)
     accel = eqx.filter_jit(lambda system: system.acceleration(0.0, q, qdot))
     np.testing.assert_allclose(accel(chain), accel(reference), rtol=0, atol=1e-11)
-    np.testing.assert_allclose(chain.energy(0.0, q, qdot), reference.energy(0.0, q, qdot),
-                               rtol=1e-14)
-    np.testing.assert_allclose(chain.generalized_force(0.0, q, qdot),
-                               forces(0.0, q, qdot, None), atol=1e-15)
-    np.testing.assert_allclose(chain.positions(q), jnp.cumsum(ell[:, None] * q, axis=0),
-                               atol=1e-15)
+    np.testing.assert_allclose(
+        chain.energy(0.0, q, qdot), reference.energy(0.0, q, qdot), rtol=1e-14
+    )
+    np.testing.assert_allclose(
+        chain.generalized_force(0.0, q, qdot), forces(0.0, q, qdot, None), atol=1e-15
+    )
+    np.testing.assert_allclose(chain.positions(q), jnp.cumsum(ell[:, None] * q, axis=0), atol=1e-15)
     # callables for the torque and the tip force give the same forces
-    driven = sm.chain_pendulum(m, ell, g, torque=lambda t, q, v, a: tau,
-                               tip_force=lambda t, q, v, a: d)
+    driven = sm.chain_pendulum(
+        m, ell, g, torque=lambda t, q, v, a: tau, tip_force=lambda t, q, v, a: d
+    )
     np.testing.assert_allclose(accel(driven), accel(reference), rtol=0, atol=1e-11)
 
 
@@ -81,8 +84,10 @@ def test_batched_and_differentiated_chains(getkey):
 
     grad = jax.grad(loss)(masses[0])
     eps = 1e-6
-    fd = [(loss(masses[0].at[i].add(eps)) - loss(masses[0].at[i].add(-eps))) / (2 * eps)
-          for i in range(2)]
+    fd = [
+        (loss(masses[0].at[i].add(eps)) - loss(masses[0].at[i].add(-eps))) / (2 * eps)
+        for i in range(2)
+    ]
     np.testing.assert_allclose(grad, fd, rtol=1e-6)
 
 
@@ -117,6 +122,7 @@ def test_particle_on_sphere_is_a_pendulum_of_length_r():
 
 # ---- potentials ------------------------------------------------------------------------
 
+
 def test_gravity_any_direction_statics():
     d = unit([1.0, -2.0, 0.5])
     scene = sm.Scene(sm.Chain([1.5], [0.8]), sm.Gravity(3.0, d))
@@ -137,8 +143,10 @@ def test_spring_statics_closed_form():
     q_star = unit(k * A - m * g * E3)[None]
     np.testing.assert_allclose(at_rest_acceleration(scene, q_star), 0.0, atol=1e-12)
     # and a spring with rest length between two masses: U = k/2 (d - L0)^2
-    two = sm.Scene(sm.Particles([1.0, 1.0], [1.0, 2.0], centers=[[0, 0, 0], [3.0, 0, 0]]),
-                   sm.Spring(0, 1, 4.0, rest_length=0.5))
+    two = sm.Scene(
+        sm.Particles([1.0, 1.0], [1.0, 2.0], centers=[[0, 0, 0], [3.0, 0, 0]]),
+        sm.Spring(0, 1, 4.0, rest_length=0.5),
+    )
     q = jnp.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
     d = np.linalg.norm(np.array([1.0, 0, 0]) - np.array([3.0, 2.0, 0]))
     np.testing.assert_allclose(two.potential(0.0, q), 2.0 * (d - 0.5) ** 2, rtol=1e-14)
@@ -150,15 +158,25 @@ def test_bending_relative_mode_frequency():
     sphere_mech). Released bent by 1e-3 rad at rest, the bend is reversed after half a
     period and restored after a full period."""
     m, ell, k, eps = np.array([1.0, 0.5]), np.array([1.0, 0.6]), 2.0, 1e-3
-    M = np.array([[(m[0] + m[1]) * ell[0] ** 2, m[1] * ell[0] * ell[1]],
-                  [m[1] * ell[0] * ell[1], m[1] * ell[1] ** 2]])
+    M = np.array(
+        [
+            [(m[0] + m[1]) * ell[0] ** 2, m[1] * ell[0] * ell[1]],
+            [m[1] * ell[0] * ell[1], m[1] * ell[1] ** 2],
+        ]
+    )
     u = np.array([1.0, -1.0])
     period = 2 * np.pi / np.sqrt(k * u @ np.linalg.solve(M, u))
     scene = sm.Scene(sm.Chain(m, ell), sm.Bending(k))
     q0 = jnp.array([[1.0, 0.0, 0.0], [np.cos(eps), np.sin(eps), 0.0]])
     ts = jnp.array([0.0, 0.5 * period, period])
-    sol = sm.simulate(scene, (q0, jnp.zeros_like(q0)), period, saveat=diffrax.SaveAt(ts=ts),
-                      rtol=1e-11, atol=1e-13)
+    sol = sm.simulate(
+        scene,
+        (q0, jnp.zeros_like(q0)),
+        period,
+        saveat=diffrax.SaveAt(ts=ts),
+        rtol=1e-11,
+        atol=1e-13,
+    )
     q = sol.ys[0]
     bend = np.arcsin(np.cross(q[:, 0], q[:, 1])[:, 2])
     np.testing.assert_allclose(bend, [eps, -eps, eps], rtol=0, atol=2e-3 * eps)
@@ -168,8 +186,7 @@ def test_pair_interaction_beads_settle_to_tetrahedron(getkey):
     """Four repelling charges with drag on a sphere of radius R relax to a regular
     tetrahedron: U = 6 k / (R sqrt(8/3)) (Thomson problem, N = 4)."""
     R, k = 1.5, 0.7
-    scene = sm.Scene(sm.SharedSphere(jnp.ones(4), R), sm.PairInteraction(k),
-                     sm.JointDamping(1.0))
+    scene = sm.Scene(sm.SharedSphere(jnp.ones(4), R), sm.PairInteraction(k), sm.JointDamping(1.0))
     q0 = sm.random_points(getkey(), 4)
     sol = sm.simulate(scene, (q0, jnp.zeros_like(q0)), 40.0)
     q = sol.ys[0][-1]
@@ -179,6 +196,7 @@ def test_pair_interaction_beads_settle_to_tetrahedron(getkey):
 
 
 # ---- forces ----------------------------------------------------------------------------
+
 
 def test_joint_damping_power_closed_form(getkey):
     """Power of joint damping = -c sum_i |omega_i - omega_{i-1}|^2 (omega_0 = 0)."""
@@ -225,6 +243,7 @@ def test_vibrating_support_force_closed_form(getkey):
 
 # ---- the Kapitza pendulum --------------------------------------------------------------
 
+
 @pytest.fixture(scope="module")
 def kapitza():
     return sm.load_scene(EXAMPLES / "kapitza.toml")
@@ -254,11 +273,14 @@ def test_kapitza_stays_inverted_and_falls_without_vibration(kapitza):
 
 # ---- energy bookkeeping -------------------------------------------------------------------
 
+
 def test_work_energy_balance_of_a_driven_damped_chain(getkey):
     """With damping, a PD torque and a time-dependent tip force, E changes by O(1) but
     E - E(0) - int power dt stays at the integration tolerance."""
     scene = sm.Scene(
-        sm.Chain([1.0, 0.5], [1.0, 0.8]), sm.Gravity(), sm.JointDamping(0.2),
+        sm.Chain([1.0, 0.5], [1.0, 0.8]),
+        sm.Gravity(),
+        sm.JointDamping(0.2),
         sm.BaseTorque(sm.PDTorque(5.0, 0.5, unit([1.0, 0.0, 0.3]))),
         sm.TipForce(lambda t, q, v, args: jnp.array([jnp.sin(3 * t), 0.0, 0.0])),
     )
@@ -290,6 +312,7 @@ def test_effect_parameters_are_differentiable_and_vmappable(getkey):
 
 # ---- only what is called for --------------------------------------------------------------
 
+
 def _vector_field_jaxpr(scene, n):
     q = jnp.tile(jnp.array([[0.0, 0.6, -0.8]]), (n, 1))
     y = (q, jnp.zeros_like(q).at[:, 0].set(1.0))
@@ -299,8 +322,9 @@ def _vector_field_jaxpr(scene, n):
 def test_absent_effects_add_no_operation():
     chain = sm.Chain(jnp.ones(4), jnp.ones(4))
     gravity_only = sm.Scene(chain, sm.Gravity())
-    driven = sm.Scene(chain, sm.Gravity(), sm.JointDamping(0.1),
-                      sm.BaseTorque(sm.PDTorque(2.0, 0.5)))
+    driven = sm.Scene(
+        chain, sm.Gravity(), sm.JointDamping(0.1), sm.BaseTorque(sm.PDTorque(2.0, 0.5))
+    )
     small = list(jaxpr_equations(_vector_field_jaxpr(gravity_only, 4)))
     large = list(jaxpr_equations(_vector_field_jaxpr(driven, 4)))
     assert len(small) < len(large)
@@ -313,8 +337,11 @@ def test_absent_effects_add_no_operation():
     # effects, plus the few that sum f into the right-hand side
     top_small = _vector_field_jaxpr(gravity_only, 4).eqns
     top_large = _vector_field_jaxpr(driven, 4).eqns
-    tagged = [e for e in top_large if any(n in str(e.source_info.name_stack)
-                                          for n in ("JointDamping", "BaseTorque"))]
+    tagged = [
+        e
+        for e in top_large
+        if any(n in str(e.source_info.name_stack) for n in ("JointDamping", "BaseTorque"))
+    ]
     assert len(top_small) + len(tagged) <= len(top_large) <= len(top_small) + len(tagged) + 4
     assert not sm.Scene(chain, sm.Gravity()).has_forces
     assert gravity_only.forces is None
@@ -342,36 +369,51 @@ TWO = sm.Chain([1.0, 1.0], [1.0, 1.0])
 TAU = jnp.array([0.0, 0.0, 1.0])
 
 
-@pytest.mark.parametrize("build, message", [
-    (lambda: sm.Chain([1.0, -1.0], [1.0, 1.0]), "masses must be > 0 (kg), got [1.0, -1.0]"),
-    (lambda: sm.Chain([1.0, 0.0], [1.0, 1.0]), "masses must be > 0 (kg), got [1.0, 0.0]"),
-    (lambda: sm.Chain([1.0, 1.0], [0.0, 1.0]), "lengths must be > 0 (m), got [0.0, 1.0]"),
-    (lambda: sm.Chain(1.0, -0.5, links=3), "lengths must be > 0 (m), got [-0.5, -0.5, -0.5]"),
-    (lambda: sm.chain_pendulum([1.0, -1.0], [1.0, 1.0]),
-     "masses must be > 0 (kg), got [1.0, -1.0]"),
-    (lambda: sm.chain_pendulum([1.0, 1.0], [1.0, 1.0], g=-9.81), "g must be >= 0 (m/s^2)"),
-    (lambda: sm.Particles([1.0], [0.0]), "radii must be > 0 (m), got [0.0]"),
-    (lambda: sm.SharedSphere(1.0, radius=-1.0, count=2), "radius must be > 0 (m), got -1.0"),
-    (lambda: sm.Gravity(9.81, [0.0, 0.0, -2.0]), "direction must be a unit vector"),
-    (lambda: sm.JointDamping(-0.1), "coefficient must be >= 0 (N m s), got -0.1"),
-    (lambda: sm.Spring(0, 1, -2.0), "stiffness must be >= 0 (N/m), got -2.0"),
-    (lambda: sm.PairInteraction(1.0, exponent=0.0), "exponent must be > 0, got 0.0"),
-    (lambda: sm.PDTorque(-1.0), "kp must be >= 0 (N m), got -1.0"),
-    (lambda: sm.Scene(TWO, sm.BaseTorque(TAU, link=7)),
-     "BaseTorque.link must be a sphere index in [-2, 2) (the scene has 2 spheres), got 7"),
-    (lambda: sm.Scene(TWO, sm.BaseTorque(TAU, link=-3)), "BaseTorque.link must be"),
-    (lambda: sm.Scene(TWO, sm.BaseTorque(sm.PDTorque(1.0, link=2))), "PDTorque.link must be"),
-    (lambda: sm.Scene(TWO, sm.TipForce(TAU, point=2)), "TipForce.point must be a sphere"),
-    (lambda: sm.Scene(TWO, sm.Spring(0, 5, 1.0)), "Spring.b must be a sphere index"),
-    (lambda: sm.Scene(TWO, sm.PairInteraction(1.0, masses=(0, 2))),
-     "PairInteraction.masses must be a sphere index"),
-    (lambda: sm.Scene(TWO, sm.PairInteraction(1.0, charges=[1.0, 2.0, 3.0])),
-     "charges must be one value per interacting mass (2)"),
-    (lambda: sm.Scene(sm.Chain([1.0], [1.0]), sm.Bending(1.0)),
-     "Bending needs a Chain with at least two links"),
-    (lambda: sm.Scene(TWO, sm.JointDamping([0.1, 0.2, 0.3])),
-     "coefficient must be a scalar or 2 values, one per sphere"),
-])
+@pytest.mark.parametrize(
+    "build, message",
+    [
+        (lambda: sm.Chain([1.0, -1.0], [1.0, 1.0]), "masses must be > 0 (kg), got [1.0, -1.0]"),
+        (lambda: sm.Chain([1.0, 0.0], [1.0, 1.0]), "masses must be > 0 (kg), got [1.0, 0.0]"),
+        (lambda: sm.Chain([1.0, 1.0], [0.0, 1.0]), "lengths must be > 0 (m), got [0.0, 1.0]"),
+        (lambda: sm.Chain(1.0, -0.5, links=3), "lengths must be > 0 (m), got [-0.5, -0.5, -0.5]"),
+        (
+            lambda: sm.chain_pendulum([1.0, -1.0], [1.0, 1.0]),
+            "masses must be > 0 (kg), got [1.0, -1.0]",
+        ),
+        (lambda: sm.chain_pendulum([1.0, 1.0], [1.0, 1.0], g=-9.81), "g must be >= 0 (m/s^2)"),
+        (lambda: sm.Particles([1.0], [0.0]), "radii must be > 0 (m), got [0.0]"),
+        (lambda: sm.SharedSphere(1.0, radius=-1.0, count=2), "radius must be > 0 (m), got -1.0"),
+        (lambda: sm.Gravity(9.81, [0.0, 0.0, -2.0]), "direction must be a unit vector"),
+        (lambda: sm.JointDamping(-0.1), "coefficient must be >= 0 (N m s), got -0.1"),
+        (lambda: sm.Spring(0, 1, -2.0), "stiffness must be >= 0 (N/m), got -2.0"),
+        (lambda: sm.PairInteraction(1.0, exponent=0.0), "exponent must be > 0, got 0.0"),
+        (lambda: sm.PDTorque(-1.0), "kp must be >= 0 (N m), got -1.0"),
+        (
+            lambda: sm.Scene(TWO, sm.BaseTorque(TAU, link=7)),
+            "BaseTorque.link must be a sphere index in [-2, 2) (the scene has 2 spheres), got 7",
+        ),
+        (lambda: sm.Scene(TWO, sm.BaseTorque(TAU, link=-3)), "BaseTorque.link must be"),
+        (lambda: sm.Scene(TWO, sm.BaseTorque(sm.PDTorque(1.0, link=2))), "PDTorque.link must be"),
+        (lambda: sm.Scene(TWO, sm.TipForce(TAU, point=2)), "TipForce.point must be a sphere"),
+        (lambda: sm.Scene(TWO, sm.Spring(0, 5, 1.0)), "Spring.b must be a sphere index"),
+        (
+            lambda: sm.Scene(TWO, sm.PairInteraction(1.0, masses=(0, 2))),
+            "PairInteraction.masses must be a sphere index",
+        ),
+        (
+            lambda: sm.Scene(TWO, sm.PairInteraction(1.0, charges=[1.0, 2.0, 3.0])),
+            "charges must be one value per interacting mass (2)",
+        ),
+        (
+            lambda: sm.Scene(sm.Chain([1.0], [1.0]), sm.Bending(1.0)),
+            "Bending needs a Chain with at least two links",
+        ),
+        (
+            lambda: sm.Scene(TWO, sm.JointDamping([0.1, 0.2, 0.3])),
+            "coefficient must be a scalar or 2 values, one per sphere",
+        ),
+    ],
+)
 def test_invalid_parameters_raise_at_construction(build, message):
     with pytest.raises(ValueError) as info:
         build()
@@ -389,8 +431,10 @@ def test_scalar_parameters_broadcast():
     same = lambda a, b: bool(eqx.tree_equal(a, b))
     assert same(sm.Chain(0.5, 0.25, links=4), sm.Chain([0.5] * 4, [0.25] * 4))
     assert same(sm.Chain([1.0, 2.0, 3.0], 0.25), sm.Chain([1.0, 2.0, 3.0], [0.25] * 3))
-    assert same(sm.Particles(2.0, [0.5, 1.0], centers=[1.0, 0.0, 0.0]),
-                sm.Particles([2.0, 2.0], [0.5, 1.0], centers=[[1.0, 0.0, 0.0]] * 2))
+    assert same(
+        sm.Particles(2.0, [0.5, 1.0], centers=[1.0, 0.0, 0.0]),
+        sm.Particles([2.0, 2.0], [0.5, 1.0], centers=[[1.0, 0.0, 0.0]] * 2),
+    )
     assert same(sm.SharedSphere(1.5, count=3), sm.SharedSphere([1.5] * 3))
 
 
@@ -402,10 +446,14 @@ def test_fast_path_matches_autodiff_lagrangian(getkey):
         sm.Chain([1.0, 0.5, 2.0], [0.7, 1.0, 0.4], base=[0.0, 0.0, 1.0]),
         sm.Particles([0.3], [0.5], centers=[[2.0, 0.0, 0.0]]),
         sm.SharedSphere([1.0, 1.5], 0.8, center=[0.0, 3.0, 0.0]),
-        sm.Gravity(9.81, unit([0.1, 0.0, -1.0])), sm.Bending(0.3),
-        sm.Spring(2, 3, 2.0, rest_length=0.5), sm.PairInteraction(0.2, masses=(4, 5)),
-        sm.JointDamping(0.1), sm.BaseTorque(sm.PDTorque(1.0, 0.2)),
-        sm.TipForce(jnp.array([0.0, 1.0, 0.0]), point=2), sm.VibratingSupport(0.05, 7.0),
+        sm.Gravity(9.81, unit([0.1, 0.0, -1.0])),
+        sm.Bending(0.3),
+        sm.Spring(2, 3, 2.0, rest_length=0.5),
+        sm.PairInteraction(0.2, masses=(4, 5)),
+        sm.JointDamping(0.1),
+        sm.BaseTorque(sm.PDTorque(1.0, 0.2)),
+        sm.TipForce(jnp.array([0.0, 1.0, 0.0]), point=2),
+        sm.VibratingSupport(0.05, 7.0),
     )
     q, qdot = sm.random_state(getkey(), 6)
     generic = sm.Lagrangian(scene.lagrangian, forces=scene.generalized_force)
@@ -468,74 +516,112 @@ def _file(tmp_path, extra="", simulate="", replace=None, template=TWO_LINKS):
 M2, L2 = "masses = [1.0, 1.0]", "lengths = [1.0, 1.0]"
 CART_BASE = lambda: sm.Base(1.0, axes=[[1.0, 0.0, 0.0]])  # noqa: E731
 CART_CHAIN = sm.Chain(0.5, 0.8)
-TAU_TOML = "[[effects]]\ntype = \"{}\"\n{}"
+TAU_TOML = '[[effects]]\ntype = "{}"\n{}'
 CASES = {  # name: (Python, what the file changes, the field the file error names)
-    "negative mass": (lambda: sm.Chain([1.0, -1.0], [1.0, 1.0]),
-                      dict(replace={M2: "masses = [1.0, -1.0]"}), "effects[0].masses"),
-    "zero length": (lambda: sm.Chain([1.0, 1.0], [1.0, 0.0]),
-                    dict(replace={L2: "lengths = [1.0, 0.0]"}), "effects[0].lengths"),
+    "negative mass": (
+        lambda: sm.Chain([1.0, -1.0], [1.0, 1.0]),
+        dict(replace={M2: "masses = [1.0, -1.0]"}),
+        "effects[0].masses",
+    ),
+    "zero length": (
+        lambda: sm.Chain([1.0, 1.0], [1.0, 0.0]),
+        dict(replace={L2: "lengths = [1.0, 0.0]"}),
+        "effects[0].lengths",
+    ),
     "negative g": (lambda: sm.Gravity(-1.0), dict(extra="g = -1.0"), "effects[1].g"),
     "link out of range": (
         lambda: sm.Scene(TWO, sm.Gravity(), sm.BaseTorque(TAU, link=7)),
         dict(extra=TAU_TOML.format("base_torque", "torque = [0.0, 0.0, 1.0]\nlink = 7")),
-        "effects[2].link"),
+        "effects[2].link",
+    ),
     "point out of range": (
         lambda: sm.Scene(TWO, sm.Gravity(), sm.TipForce(TAU, point=-3)),
         dict(extra=TAU_TOML.format("tip_force", "force = [0.0, 0.0, 1.0]\npoint = -3")),
-        "effects[2].point"),
+        "effects[2].point",
+    ),
     "spring end out of range": (
         lambda: sm.Scene(TWO, sm.Gravity(), sm.Spring(0, 2, 1.0)),
         dict(extra=TAU_TOML.format("spring", "a = 0\nb = 2\nstiffness = 1.0")),
-        "effects[2].b"),
+        "effects[2].b",
+    ),
     "pd gain": (
         lambda: sm.BaseTorque(sm.PDTorque(-1.0)),
         dict(extra=TAU_TOML.format("base_torque", 'torque = { type = "pd_torque", kp = -1.0 }')),
-        "effects[2].torque.kp"),
+        "effects[2].torque.kp",
+    ),
     "non-unit target": (
         lambda: sm.PDTorque(1.0, target=[0.0, 0.0, 2.0]),
-        dict(extra=TAU_TOML.format("base_torque", 'torque = { type = "pd_torque", kp = 1.0, '
-                                   'target = [0.0, 0.0, 2.0] }')),
-        "effects[2].torque.target"),
-    "negative base mass": (lambda: sm.Base(mass=-1.0),
-                           dict(template=CART, replace={"mass = 1.0": "mass = -1.0"}),
-                           "effects[0].mass"),
+        dict(
+            extra=TAU_TOML.format(
+                "base_torque", 'torque = { type = "pd_torque", kp = 1.0, target = [0.0, 0.0, 2.0] }'
+            )
+        ),
+        "effects[2].torque.target",
+    ),
+    "negative base mass": (
+        lambda: sm.Base(mass=-1.0),
+        dict(template=CART, replace={"mass = 1.0": "mass = -1.0"}),
+        "effects[0].mass",
+    ),
     "non-orthonormal axes": (
         lambda: sm.Base(1.0, axes=[[1.0, 0.0, 0.0], [0.6, 0.7, 0.0]]),
-        dict(template=CART, replace={"axes = [[1.0, 0.0, 0.0]]":
-                                     "axes = [[1.0, 0.0, 0.0], [0.6, 0.7, 0.0]]"}),
-        "effects[0].axes"),
+        dict(
+            template=CART,
+            replace={"axes = [[1.0, 0.0, 0.0]]": "axes = [[1.0, 0.0, 0.0], [0.6, 0.7, 0.0]]"},
+        ),
+        "effects[0].axes",
+    ),
     "base force without a base": (
         lambda: sm.Scene(TWO, sm.Gravity(), sm.BaseForce([1.0])),
-        dict(extra=TAU_TOML.format("base_force", "force = [1.0]")), "effects[2]"),
+        dict(extra=TAU_TOML.format("base_force", "force = [1.0]")),
+        "effects[2]",
+    ),
     "base with two chains": (
         lambda: sm.Scene(CART_BASE(), CART_CHAIN, CART_CHAIN),
         dict(template=CART, extra=TAU_TOML.format("chain", "masses = 0.5\nlengths = 0.8")),
-        "effects[0]"),
-    "two bases": (lambda: sm.Scene(CART_BASE(), CART_BASE(), CART_CHAIN),
-                  dict(template=CART, extra=TAU_TOML.format("base", "mass = 1.0\naxes = "
-                                                            "[[1.0, 0.0, 0.0]]")),
-                  "effects"),
+        "effects[0]",
+    ),
+    "two bases": (
+        lambda: sm.Scene(CART_BASE(), CART_BASE(), CART_CHAIN),
+        dict(template=CART, extra=TAU_TOML.format("base", "mass = 1.0\naxes = [[1.0, 0.0, 0.0]]")),
+        "effects",
+    ),
     "base force of the wrong size": (
         lambda: sm.Scene(CART_BASE(), CART_CHAIN, sm.BaseForce([1.0, 0.0])),
         dict(template=CART, extra=TAU_TOML.format("base_force", "force = [1.0, 0.0]")),
-        "effects[2].force"),
+        "effects[2].force",
+    ),
     "pd target of the wrong size": (
-        lambda: sm.Scene(CART_BASE(), CART_CHAIN,
-                         sm.BaseForce(sm.PDPosition(1.0, target=[0.0, 0.0]))),
-        dict(template=CART, extra=TAU_TOML.format(
-            "base_force", 'force = { type = "pd_position", kp = 1.0, target = [0.0, 0.0] }')),
-        "effects[2].force.target"),
+        lambda: sm.Scene(
+            CART_BASE(), CART_CHAIN, sm.BaseForce(sm.PDPosition(1.0, target=[0.0, 0.0]))
+        ),
+        dict(
+            template=CART,
+            extra=TAU_TOML.format(
+                "base_force", 'force = { type = "pd_position", kp = 1.0, target = [0.0, 0.0] }'
+            ),
+        ),
+        "effects[2].force.target",
+    ),
     "harmonic force of the wrong size": (
         lambda: sm.Scene(CART_BASE(), CART_CHAIN, sm.BaseForce(sm.Harmonic([1.0, 0.0], 2.0))),
-        dict(template=CART, extra=TAU_TOML.format(
-            "base_force", 'force = { type = "harmonic", amplitude = [1.0, 0.0], '
-            'angular_frequency = 2.0 }')),
-        "effects[2].force"),
+        dict(
+            template=CART,
+            extra=TAU_TOML.format(
+                "base_force",
+                'force = { type = "harmonic", amplitude = [1.0, 0.0], angular_frequency = 2.0 }',
+            ),
+        ),
+        "effects[2].force",
+    ),
     "negative pd gain": (
         lambda: sm.PDPosition(-1.0),
-        dict(template=CART, extra=TAU_TOML.format(
-            "base_force", 'force = { type = "pd_position", kp = -1.0 }')),
-        "effects[2].force.kp"),
+        dict(
+            template=CART,
+            extra=TAU_TOML.format("base_force", 'force = { type = "pd_position", kp = -1.0 }'),
+        ),
+        "effects[2].force.kp",
+    ),
 }
 
 
@@ -551,18 +637,29 @@ def test_python_and_files_reject_with_the_same_words(case, tmp_path):
 
 
 BASE_INITIAL = {  # name: (template, replacements, field, what the error says)
-    "too many base coordinates": (CART, {"base = [0.0]": "base = [0.0, 1.0]"}, "initial.base",
-                                  "the base's coordinates (m), one per axis of the Base: "
-                                  "1 number (at most 1e+100 in magnitude), got [0.0, 1.0]"),
-    "base velocity not an array": (CART, {"base = [0.0]": "base_velocity = 1.0"},
-                                   "initial.base_velocity", "the base's velocity (m/s), one "
-                                   "per axis of the Base: 1 number (at most 1e+100 in "
-                                   "magnitude), got 1.0"),
-    "base without a Base": (TWO_LINKS, {"azimuth_deg = [0.0, 90.0]":
-                                        "azimuth_deg = [0.0, 90.0]\nbase = [0.0]"},
-                            "initial.base", "no such field (expected q and qdot, or "
-                            "polar_deg and azimuth_deg with optional rates (base: the scene "
-                            "has no Base))"),
+    "too many base coordinates": (
+        CART,
+        {"base = [0.0]": "base = [0.0, 1.0]"},
+        "initial.base",
+        "the base's coordinates (m), one per axis of the Base: "
+        "1 number (at most 1e+100 in magnitude), got [0.0, 1.0]",
+    ),
+    "base velocity not an array": (
+        CART,
+        {"base = [0.0]": "base_velocity = 1.0"},
+        "initial.base_velocity",
+        "the base's velocity (m/s), one "
+        "per axis of the Base: 1 number (at most 1e+100 in "
+        "magnitude), got 1.0",
+    ),
+    "base without a Base": (
+        TWO_LINKS,
+        {"azimuth_deg = [0.0, 90.0]": "azimuth_deg = [0.0, 90.0]\nbase = [0.0]"},
+        "initial.base",
+        "no such field (expected q and qdot, or "
+        "polar_deg and azimuth_deg with optional rates (base: the scene "
+        "has no Base))",
+    ),
 }
 
 
@@ -576,20 +673,27 @@ def test_base_initial_state_errors(case, tmp_path):
 
 
 def test_files_broadcast_scalars_like_python(tmp_path):
-    spec = sm.load_scene(_file(tmp_path, replace={M2: "masses = 0.5\nlinks = 2",
-                                                L2: "lengths = 0.25"}))
+    spec = sm.load_scene(
+        _file(tmp_path, replace={M2: "masses = 0.5\nlinks = 2", L2: "lengths = 0.25"})
+    )
     assert bool(eqx.tree_equal(spec.scene.kinetic[0], sm.Chain([0.5, 0.5], [0.25, 0.25])))
     q, _ = spec.y0
     np.testing.assert_allclose(q, [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], atol=1e-15)
-    with pytest.raises(sm.SceneFileError, match=r"effects\[0\]\.masses: masses must be a "
-                       r"scalar or 3 values"):
-        sm.load_scene(_file(tmp_path, replace={M2: "masses = [1.0, 1.0]\nlinks = 3",
-                                             L2: "lengths = 1.0"}))
+    with pytest.raises(
+        sm.SceneFileError,
+        match=r"effects\[0\]\.masses: masses must be a "
+        r"scalar or 3 values",
+    ):
+        sm.load_scene(
+            _file(tmp_path, replace={M2: "masses = [1.0, 1.0]\nlinks = 3", L2: "lengths = 1.0"})
+        )
 
 
 def test_file_pd_torque_builds_the_python_controller(tmp_path):
-    extra = TAU_TOML.format("base_torque", 'torque = { type = "pd_torque", kp = 2.0, kd = 0.5,'
-                            ' target = [1.0, 0.0, 0.0] }\nlink = 1')
+    extra = TAU_TOML.format(
+        "base_torque",
+        'torque = { type = "pd_torque", kp = 2.0, kd = 0.5, target = [1.0, 0.0, 0.0] }\nlink = 1',
+    )
     spec = sm.load_scene(_file(tmp_path, extra=extra))
     expected = sm.BaseTorque(sm.PDTorque(2.0, 0.5, [1.0, 0.0, 0.0]), link=1)
     assert bool(eqx.tree_equal(spec.scene.force_effects[0], expected))
@@ -605,8 +709,7 @@ SOLVERS = {
     "LieRK4": sm.LieRK4(),
     "LieRK(Tsit5)": sm.LieRK(diffrax.Tsit5()),
     "LieRK(RK4, action='SO3xR3')": sm.LieRK(sm.RK4(), action="SO3xR3"),
-    "LieRK( Dopri8 , error='algebra', action='SE3')": sm.LieRK(diffrax.Dopri8(),
-                                                               error="algebra"),
+    "LieRK( Dopri8 , error='algebra', action='SE3')": sm.LieRK(diffrax.Dopri8(), error="algebra"),
     "Variational": sm.Variational(),
     "Variational(order=4)": sm.Variational(order=4),
     " Variational( order = 2 ) ": sm.Variational(order=2),
@@ -622,11 +725,24 @@ def test_solver_spellings_build_the_python_solver(spelling, tmp_path):
     assert bool(eqx.tree_equal(spec.solver, SOLVERS[spelling]))
 
 
-@pytest.mark.parametrize("spelling", ["tsit5", "rk4", "Projected()", "Projected(Tsit5",
-                                      "Variational(order=3)", "KenCarp3", "RK4(1)",
-                                      "__import__('os')", "Projected(Tsit5) + 1",
-                                      "LieRK(Kvaerno5)", "LieRK(Tsit5, action='SO3')",
-                                      "LieRK(Tsit5, order=2)", "LieRK()"])
+@pytest.mark.parametrize(
+    "spelling",
+    [
+        "tsit5",
+        "rk4",
+        "Projected()",
+        "Projected(Tsit5",
+        "Variational(order=3)",
+        "KenCarp3",
+        "RK4(1)",
+        "__import__('os')",
+        "Projected(Tsit5) + 1",
+        "LieRK(Kvaerno5)",
+        "LieRK(Tsit5, action='SO3')",
+        "LieRK(Tsit5, order=2)",
+        "LieRK()",
+    ],
+)
 def test_bad_solver_spellings_are_rejected(spelling, tmp_path):
     with pytest.raises(sm.SceneFileError, match=r"simulate\.solver: "):
         sm.load_scene(_file(tmp_path, simulate=f'solver = "{spelling}"'))
@@ -635,9 +751,13 @@ def test_bad_solver_spellings_are_rejected(spelling, tmp_path):
 def test_fixed_step_solvers_need_dt0_only(tmp_path, getkey):
     """The scene file refuses what `simulate` refuses, with simulate's words."""
     chain, y0 = sm.chain_pendulum([1.0], [1.0]), sm.random_state(getkey(), 1)
-    cases = [('solver = "Projected(RK4)"', dict(solver=sm.Projected(sm.RK4()))),
-             ('solver = "Variational"\ndt0 = 0.01\nrtol = 1e-6',
-              dict(solver=sm.Variational(), dt0=0.01, rtol=1e-6))]
+    cases = [
+        ('solver = "Projected(RK4)"', dict(solver=sm.Projected(sm.RK4()))),
+        (
+            'solver = "Variational"\ndt0 = 0.01\nrtol = 1e-6',
+            dict(solver=sm.Variational(), dt0=0.01, rtol=1e-6),
+        ),
+    ]
     for text, kwargs in cases:
         with pytest.raises(ValueError) as python:
             sm.simulate(chain, y0, 1.0, **kwargs)
@@ -648,7 +768,7 @@ def test_fixed_step_solvers_need_dt0_only(tmp_path, getkey):
 
 
 def test_simulate_keys_are_the_python_names(tmp_path):
-    spec = sm.load_scene(_file(tmp_path, simulate='t0 = 0.5\ndt0 = 1e-3\nmax_steps = 7'))
+    spec = sm.load_scene(_file(tmp_path, simulate="t0 = 0.5\ndt0 = 1e-3\nmax_steps = 7"))
     assert (spec.t0, spec.t1, spec.dt0, spec.max_steps) == (0.5, 1.0, 1e-3, 7)
     assert spec.solver_name == "Projected(Tsit5)" and spec.rtol is None
     assert spec.save_dt == pytest.approx(0.5 / 1000)
@@ -664,19 +784,28 @@ def test_parameters_out_of_range_are_refused_in_python_as_in_files():
     without overflow warnings."""
     import warnings
 
-    with pytest.raises(ValueError, match=r"^masses must be finite and at most 1e\+100 in "
-                                         r"magnitude, got 1e\+308$"):
+    with pytest.raises(
+        ValueError,
+        match=r"^masses must be finite and at most 1e\+100 in "
+        r"magnitude, got 1e\+308$",
+    ):
         sm.chain_pendulum([1.0, 1e308], [1.0, 1.0])
     with pytest.raises(ValueError, match=r"^kp must be finite .* got nan$"):
         sm.PDTorque(kp=float("nan"))
     for links in (-2, 2**63 - 1):
-        with pytest.raises(ValueError, match=rf"^links must be an integer from 1 to 100000, "
-                                             rf"got {links}$"):
+        with pytest.raises(
+            ValueError,
+            match=rf"^links must be an integer from 1 to 100000, "
+            rf"got {links}$",
+        ):
             sm.Chain(1.0, 1.0, links=links)
     with pytest.raises(ValueError, match="^count must be an integer from 1 to 100000"):
         sm.Particles(1.0, 1.0, count=10**9)
-    with pytest.raises(ValueError, match=r"^PairInteraction sums over at most 1e\+07 pairs, "
-                                         r"got 5000 masses \(1.25e\+07 pairs\)$"):
+    with pytest.raises(
+        ValueError,
+        match=r"^PairInteraction sums over at most 1e\+07 pairs, "
+        r"got 5000 masses \(1.25e\+07 pairs\)$",
+    ):
         sm.Scene(sm.SharedSphere(1.0, count=5000), sm.PairInteraction(1.0))
     with warnings.catch_warnings():
         warnings.simplefilter("error")

@@ -71,8 +71,9 @@ def test_grad_wrt_args_and_initial_state():
     @jax.value_and_grad
     def loss(inputs):
         (q0, v0), g = inputs
-        sol = sm.simulate(SYSTEM, (q0, v0), 0.5, args=g, solver=sm.Projected(sm.RK4()),
-                          dt0=0.01, max_steps=64)
+        sol = sm.simulate(
+            SYSTEM, (q0, v0), 0.5, args=g, solver=sm.Projected(sm.RK4()), dt0=0.01, max_steps=64
+        )
         q, v = sol.ys
         return jnp.sum(q[-1, 1] * jnp.array([0.3, -1.0, 2.0])) + jnp.sum(v[-1] ** 2)
 
@@ -82,8 +83,11 @@ def test_grad_wrt_args_and_initial_state():
     eps = 1e-6
     checks = [
         (gg, ((Q0, V0), G + eps), ((Q0, V0), G - eps)),
-        (jnp.sum(gq * dq), ((sm.normalize(Q0 + eps * dq), V0), G),
-         ((sm.normalize(Q0 - eps * dq), V0), G)),
+        (
+            jnp.sum(gq * dq),
+            ((sm.normalize(Q0 + eps * dq), V0), G),
+            ((sm.normalize(Q0 - eps * dq), V0), G),
+        ),
         (jnp.sum(gv * dv), ((Q0, V0 + eps * dv), G), ((Q0, V0 - eps * dv), G)),
     ]
     for derivative, plus, minus in checks:
@@ -103,8 +107,9 @@ def test_four_forms_give_the_same_trajectory(eager):
     q_ref, qdot_ref = eager.ys
     # LieRK4 here: its rotations use w_i = q_i x qdot_i from each form's own rates.
     for system, v0 in forms:
-        sol = sm.simulate(system, (Q0, v0), T1, args=G, saveat=SAVEAT, solver=sm.LieRK4(),
-                          rtol=1e-10, atol=1e-12)
+        sol = sm.simulate(
+            system, (Q0, v0), T1, args=G, saveat=SAVEAT, solver=sm.LieRK4(), rtol=1e-10, atol=1e-12
+        )
         q, v = sol.ys
         qdot = jax.vmap(system.velocity, (None, 0, 0, None))(0.0, q, v, G)
         assert max_rel_error(q, q_ref) < 1e-7, type(system)
@@ -114,8 +119,7 @@ def test_four_forms_give_the_same_trajectory(eager):
 def test_float32_with_progress_bar(eager, capfd):
     q0, v0 = Q0.astype(jnp.float32), V0.astype(jnp.float32)
     saveat = diffrax.SaveAt(ts=TS.astype(jnp.float32))  # float64 times would promote
-    sol = sm.simulate(SYSTEM, (q0, v0), T1, args=jnp.float32(9.81), saveat=saveat,
-                      progress=True)
+    sol = sm.simulate(SYSTEM, (q0, v0), T1, args=jnp.float32(9.81), saveat=saveat, progress=True)
     q, v = sol.ys
     assert q.dtype == v.dtype == jnp.float32
     assert float(sm.constraint_error(q)) < 1e-6
@@ -152,19 +156,25 @@ def test_failures_are_reported(case):
         kwargs = dict(system=SYSTEM, y0=(Q0, V0), args=G, max_steps=30)
         code, match = sm.RESULTS.max_steps_reached, "max_steps=30"
     elif case == "nan":
-        kwargs = dict(system=sm.Lagrangian(singular), y0=Y_SINGULAR, solver=sm.RK4(),
-                      dt0=0.01)
+        kwargs = dict(system=sm.Lagrangian(singular), y0=Y_SINGULAR, solver=sm.RK4(), dt0=0.01)
         code, match = sm.RESULTS.nonfinite, "became NaN"
     else:
         chord = diffrax.VeryChord(rtol=1e-10, atol=1e-10)
-        kwargs = dict(system=SYSTEM, y0=(Q0, V0), args=G, dt0=0.25,
-                      solver=sm.Projected(diffrax.ImplicitEuler(root_finder=chord)),
-                      stepsize_controller=diffrax.ConstantStepSize())
+        kwargs = dict(
+            system=SYSTEM,
+            y0=(Q0, V0),
+            args=G,
+            dt0=0.25,
+            solver=sm.Projected(diffrax.ImplicitEuler(root_finder=chord)),
+            stepsize_controller=diffrax.ConstantStepSize(),
+        )
         code, match = None, "Newton iterations"
     sol = sm.simulate(t1=2.0, saveat=diffrax.SaveAt(ts=ts), throw=False, **kwargs)
     if code is None:
-        assert sol.result in (sm.RESULTS.nonlinear_divergence,
-                              sm.RESULTS.nonlinear_max_steps_reached)
+        assert sol.result in (
+            sm.RESULTS.nonlinear_divergence,
+            sm.RESULTS.nonlinear_max_steps_reached,
+        )
     else:
         assert sol.result == code
     _check_partial_trajectory(sol)
@@ -191,15 +201,21 @@ def test_initial_state_checks():
     "options, message",
     [
         (dict(dt0=0.0), r"^dt0 must be a finite, nonzero step \(got 0\)$"),
-        (dict(dt0=-0.01), r"^dt0 must have the sign of t1 - t0, the direction of integration "
-         r"\(got -0.01 with t0 = 0, t1 = 1\)$"),
+        (
+            dict(dt0=-0.01),
+            r"^dt0 must have the sign of t1 - t0, the direction of integration "
+            r"\(got -0.01 with t0 = 0, t1 = 1\)$",
+        ),
         (dict(rtol=-1e-8), r"^rtol must be a finite number > 0 \(got -1e-08\)$"),
         (dict(atol=float("nan")), r"^atol must be a finite number > 0 \(got nan\)$"),
         (dict(max_steps=0), r"^max_steps must be an integer >= 1 or None \(got 0\)$"),
         (dict(t0=float("inf")), r"^t0 must be a finite time \(got inf\)$"),
         (dict(solver=42), r"^solver must be a diffrax solver instance.*\(got 42\)$"),
-        (dict(solver="Tsit6"), r"^solver must be a diffrax solver or a solver spelled as in "
-         r"Python: .*got 'Tsit6'$"),
+        (
+            dict(solver="Tsit6"),
+            r"^solver must be a diffrax solver or a solver spelled as in "
+            r"Python: .*got 'Tsit6'$",
+        ),
         (dict(solver=sm.LieRK), r"^solver must be a diffrax solver instance"),
     ],
 )
@@ -209,8 +225,7 @@ def test_option_values_are_checked_before_tracing(options, message):
     with pytest.raises(ValueError, match=message):
         sm.simulate(SYSTEM, (Q0, V0), T1, args=G, **options)
     with pytest.raises(ValueError, match=message):
-        sm.simulate_batch(SYSTEM, (Q0[None], V0[None]), T1, args=G, batch_args=False,
-                          **options)
+        sm.simulate_batch(SYSTEM, (Q0[None], V0[None]), T1, args=G, batch_args=False, **options)
 
 
 def test_solver_by_name_or_class(eager):
@@ -221,8 +236,11 @@ def test_solver_by_name_or_class(eager):
         sol = run((Q0, V0), solver=solver, dt0=0.01)
         unprojected = solver != "Projected(Tsit5)"
         assert tree_allclose(sol.ys, ref.ys, rtol=0.0, atol=1e-5 if unprojected else 0.0)
-    with pytest.raises(ValueError, match=r"^Projected\(solver\): solver must be a diffrax "
-                       r"solver instance, e.g. diffrax.Tsit5\(\) \(got the class Tsit5\)$"):
+    with pytest.raises(
+        ValueError,
+        match=r"^Projected\(solver\): solver must be a diffrax "
+        r"solver instance, e.g. diffrax.Tsit5\(\) \(got the class Tsit5\)$",
+    ):
         sm.Projected(diffrax.Tsit5)
 
 

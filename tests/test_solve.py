@@ -33,15 +33,13 @@ def batch(y, size=2):
 
 @pytest.mark.parametrize(
     "case, code",
-    [("max_steps", sm.RESULTS.max_steps_reached),
-     ("initial", sm.RESULTS.nonfinite_initial)],
+    [("max_steps", sm.RESULTS.max_steps_reached), ("initial", sm.RESULTS.nonfinite_initial)],
 )
 def test_throw_means_the_same_in_both_entry_points(case, code):
     system, kwargs = (SYSTEM, dict(max_steps=3)) if case == "max_steps" else (DEGENERATE, {})
     kwargs.update(args=9.81, **FIXED)
     one = sm.simulate(system, (Q0, V0), 1.0, throw=False, **kwargs)
-    many = sm.simulate_batch(system, batch((Q0, V0)), 1.0, throw=False, batch_args=False,
-                             **kwargs)
+    many = sm.simulate_batch(system, batch((Q0, V0)), 1.0, throw=False, batch_args=False, **kwargs)
     assert one.result == code
     assert np.all(np.asarray(many.result == code))
     with pytest.raises(RuntimeError) as single:
@@ -72,10 +70,18 @@ def test_new_float_args_compile_once():
 def test_variational_through_diffeqsolve_with_user_args(order):
     solver = sm.Variational(order)
     ours = sm.simulate(SYSTEM, (Q0, V0), 1.0, args=jnp.asarray(9.81), solver=solver, dt0=0.1)
-    theirs = diffrax.diffeqsolve(sm.MechanicsTerm(SYSTEM), solver, 0.0, 1.0, 0.1, (Q0, V0),
-                                 args=jnp.asarray(9.81))
+    theirs = diffrax.diffeqsolve(
+        sm.MechanicsTerm(SYSTEM), solver, 0.0, 1.0, 0.1, (Q0, V0), args=jnp.asarray(9.81)
+    )
     for a, b in zip(ours.ys, theirs.ys, strict=True):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-13)  # rounding
     with pytest.raises(ValueError, match="MechanicsTerm"):
-        diffrax.diffeqsolve(diffrax.ODETerm(lambda t, y, a: SYSTEM.rates(t, y, a)), solver,
-                            0.0, 1.0, 0.1, (Q0, V0), args=jnp.asarray(9.81))
+        diffrax.diffeqsolve(
+            diffrax.ODETerm(lambda t, y, a: SYSTEM.rates(t, y, a)),
+            solver,
+            0.0,
+            1.0,
+            0.1,
+            (Q0, V0),
+            args=jnp.asarray(9.81),
+        )

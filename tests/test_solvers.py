@@ -18,10 +18,12 @@ V0 = jnp.array([[0.0, 0.5, 1.0], [0.0, 0.0, 2.0]])
 T1 = 1.0
 CONSTANT = diffrax.ConstantStepSize()
 # One save of the final state, and |q|-error after every step (a scalar per step).
-SAVEAT = diffrax.SaveAt(subs=[
-    diffrax.SubSaveAt(t1=True),
-    diffrax.SubSaveAt(steps=True, fn=lambda t, y, args: sm.constraint_error(y[0])),
-])
+SAVEAT = diffrax.SaveAt(
+    subs=[
+        diffrax.SubSaveAt(t1=True),
+        diffrax.SubSaveAt(steps=True, fn=lambda t, y, args: sm.constraint_error(y[0])),
+    ]
+)
 
 
 def _vf(t, y, args):
@@ -32,8 +34,18 @@ def _vf(t, y, args):
 def fixed_run(solver, y0, dt, t1):
     """Fixed steps with `diffrax.diffeqsolve` directly (no retraction of the output), one
     compilation per solver: `dt` and `t1` are traced."""
-    return diffrax.diffeqsolve(diffrax.ODETerm(_vf), solver, 0.0, t1, dt, y0, saveat=SAVEAT,
-                               stepsize_controller=CONSTANT, max_steps=100_000, throw=False)
+    return diffrax.diffeqsolve(
+        diffrax.ODETerm(_vf),
+        solver,
+        0.0,
+        t1,
+        dt,
+        y0,
+        saveat=SAVEAT,
+        stepsize_controller=CONSTANT,
+        max_steps=100_000,
+        throw=False,
+    )
 
 
 def final_state(sol):
@@ -50,8 +62,7 @@ def max_constraint_error(sol):
 def reference():
     # Projected(Tsit5) at dt = 5e-4 is accurate to ~3e-15 here (order 5, measured below);
     # it reuses the compilation of the order test.
-    sol = fixed_run(sm.Projected(diffrax.Tsit5()), (Q0, V0), jnp.asarray(5e-4),
-                    jnp.asarray(T1))
+    sol = fixed_run(sm.Projected(diffrax.Tsit5()), (Q0, V0), jnp.asarray(5e-4), jnp.asarray(T1))
     return final_state(sol)
 
 
@@ -77,8 +88,9 @@ def test_order_of_convergence(reference, solver, order, dts):
     assert abs(fitted_order(dts, errors) - order) < 0.3, errors
 
 
-@pytest.mark.parametrize("solver", [sm.Projected(sm.RK4()), sm.LieRK4()],
-                         ids=["Projected(RK4)", "LieRK4"])
+@pytest.mark.parametrize(
+    "solver", [sm.Projected(sm.RK4()), sm.LieRK4()], ids=["Projected(RK4)", "LieRK4"]
+)
 def test_unit_length_over_1e5_steps(solver):
     sol = fixed_run(solver, (Q0, V0), jnp.asarray(1e-3), jnp.asarray(100.0))
     assert int(sol.stats["num_steps"]) == 100_000
@@ -97,19 +109,28 @@ def test_plain_rk4_drifts_off_the_spheres():
 
 @pytest.fixture(scope="module")
 def tight_reference():
-    sol = sm.simulate(CHAIN, (Q0, V0), T1, solver=sm.Projected(diffrax.Dopri8()),
-                      rtol=1e-13, atol=1e-13)
+    sol = sm.simulate(
+        CHAIN, (Q0, V0), T1, solver=sm.Projected(diffrax.Dopri8()), rtol=1e-13, atol=1e-13
+    )
     return sol.ys[0][-1], sol.ys[1][-1]
 
 
-@pytest.mark.parametrize("solver", [sm.LieRK4(), sm.Projected(diffrax.Dopri8())],
-                         ids=["LieRK4", "Projected(Dopri8)"])
+@pytest.mark.parametrize(
+    "solver", [sm.LieRK4(), sm.Projected(diffrax.Dopri8())], ids=["LieRK4", "Projected(Dopri8)"]
+)
 def test_adaptive_run_meets_tolerance(tight_reference, solver):
     ts = jnp.linspace(0.0, T1, 7)
     errors = []
     for tol in (1e-6, 1e-9):
-        sol = sm.simulate(CHAIN, (Q0, V0), T1, solver=solver, rtol=jnp.asarray(tol),
-                          atol=jnp.asarray(tol), saveat=diffrax.SaveAt(ts=ts))
+        sol = sm.simulate(
+            CHAIN,
+            (Q0, V0),
+            T1,
+            solver=solver,
+            rtol=jnp.asarray(tol),
+            atol=jnp.asarray(tol),
+            saveat=diffrax.SaveAt(ts=ts),
+        )
         q, v = sol.ys
         errors.append(_error((q[-1], v[-1]), tight_reference))
         # The global error of this chaotic double pendulum after 1 s is within a small
@@ -125,8 +146,9 @@ def test_adaptive_run_meets_tolerance(tight_reference, solver):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("inner", [diffrax.Dopri5(), diffrax.Kvaerno5()],
-                         ids=["Dopri5", "Kvaerno5"])
+@pytest.mark.parametrize(
+    "inner", [diffrax.Dopri5(), diffrax.Kvaerno5()], ids=["Dopri5", "Kvaerno5"]
+)
 def test_projected_adaptive_other_solvers(tight_reference, inner):
     sol = sm.simulate(CHAIN, (Q0, V0), T1, solver=sm.Projected(inner), rtol=1e-9, atol=1e-9)
     assert _error((sol.ys[0][-1], sol.ys[1][-1]), tight_reference) < 50 * 1e-9
@@ -142,16 +164,23 @@ def test_lie_rk4_gradient_matches_finite_differences():
     @eqx.filter_jit
     @jax.value_and_grad
     def loss(y0):
-        sol = diffrax.diffeqsolve(diffrax.ODETerm(_vf), sm.LieRK4(), 0.0, 0.5, 0.01, y0,
-                                  stepsize_controller=CONSTANT, max_steps=64)
+        sol = diffrax.diffeqsolve(
+            diffrax.ODETerm(_vf),
+            sm.LieRK4(),
+            0.0,
+            0.5,
+            0.01,
+            y0,
+            stepsize_controller=CONSTANT,
+            max_steps=64,
+        )
         q, v = sol.ys
         return jnp.sum(q[-1, 1] * jnp.array([0.3, -1.0, 2.0])) + jnp.sum(v[-1] ** 2)
 
     _, (gq, gv) = loss((Q0, V0))
     eps = 1e-6
     for g, plus, minus in (
-        (jnp.sum(gq * dq), (sm.normalize(Q0 + eps * dq), V0),
-         (sm.normalize(Q0 - eps * dq), V0)),
+        (jnp.sum(gq * dq), (sm.normalize(Q0 + eps * dq), V0), (sm.normalize(Q0 - eps * dq), V0)),
         (jnp.sum(gv * dv), (Q0, V0 + eps * dv), (Q0, V0 - eps * dv)),
     ):
         fd = (loss(plus)[0] - loss(minus)[0]) / (2 * eps)
@@ -160,9 +189,14 @@ def test_lie_rk4_gradient_matches_finite_differences():
 
 def test_fixed_step_solver_refuses_adaptive_controller():
     with pytest.raises(ValueError, match="no error estimate"):
-        sm.simulate(CHAIN, (Q0, V0), T1, solver=sm.Projected(sm.RK4()),
-                    stepsize_controller=diffrax.PIDController(rtol=1e-6, atol=1e-6),
-                    dt0=0.01)
+        sm.simulate(
+            CHAIN,
+            (Q0, V0),
+            T1,
+            solver=sm.Projected(sm.RK4()),
+            stepsize_controller=diffrax.PIDController(rtol=1e-6, atol=1e-6),
+            dt0=0.01,
+        )
     with pytest.raises(ValueError, match="rtol/atol would be ignored"):
         sm.simulate(CHAIN, (Q0, V0), T1, solver=sm.RK4(), rtol=1e-6, dt0=0.01)
     with pytest.raises(ValueError, match="needs a step size"):

@@ -118,8 +118,10 @@ def test_filter_grad_wrt_chain_leaves(state):
 
     g = grad(chain)
     parameters = {  # where the chain scene keeps them
-        "masses": lambda c: c.kinetic[0].masses, "lengths": lambda c: c.kinetic[0].lengths,
-        "g": lambda c: c.potentials[0].g, "tip_force": lambda c: c.force_effects[0].force,
+        "masses": lambda c: c.kinetic[0].masses,
+        "lengths": lambda c: c.kinetic[0].lengths,
+        "g": lambda c: c.potentials[0].g,
+        "tip_force": lambda c: c.force_effects[0].force,
     }
     for where in parameters.values():
         leaf = where(chain)

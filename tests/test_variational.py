@@ -49,8 +49,16 @@ T1 = 1.0
 
 def run(system, solver, dt, *, t0=0.0, t1=T1, y0=Y0, args=G, **kwargs):
     """Fixed-step run; times as arrays so that every step size shares one compilation."""
-    return sm.simulate(system, y0, jnp.asarray(t1), t0=jnp.asarray(t0), args=args,
-                       solver=solver, dt0=jnp.asarray(dt), **kwargs)
+    return sm.simulate(
+        system,
+        y0,
+        jnp.asarray(t1),
+        t0=jnp.asarray(t0),
+        args=args,
+        solver=solver,
+        dt0=jnp.asarray(dt),
+        **kwargs,
+    )
 
 
 def final(sol):
@@ -65,8 +73,9 @@ def reference():
 @pytest.mark.parametrize("order, dts", [(2, (0.04, 0.02, 0.01)), (4, (0.025, 0.0125, 0.00625))])
 def test_order(reference, order, dts):
     """Time-dependent, non-quadratic L (Newton for the velocities too)."""
-    errors = [max_rel_error(final(run(GENERAL, sm.Variational(order), dt))[0], reference[0])
-              for dt in dts]
+    errors = [
+        max_rel_error(final(run(GENERAL, sm.Variational(order), dt))[0], reference[0]) for dt in dts
+    ]
     assert abs(fitted_order(dts, errors) - order) < 0.3, errors
     assert errors[-1] < (1e-2 if order == 2 else 1e-6)
 
@@ -91,8 +100,7 @@ def long_runs():
     energy = jax.jit(jax.vmap(lambda q, v: chain.energy(0.0, q, v)))
     out = {}
     for name, solver in (("variational", sm.Variational()), ("rk4", sm.Projected(sm.RK4()))):
-        sol = run(chain, solver, 0.05, t1=1000.0, args=None,
-                  saveat=diffrax.SaveAt(steps=True))
+        sol = run(chain, solver, 0.05, t1=1000.0, args=None, saveat=diffrax.SaveAt(steps=True))
         k = int(sol.stats["num_steps"])
         q, v = sol.ys[0][:k], sol.ys[1][:k]
         error = np.asarray(energy(q, v) - chain.energy(0.0, *Y0))
@@ -126,8 +134,7 @@ def _flow_in_momenta(system, h, steps):
 
     def flow(q, mu):
         t = jnp.asarray(0.0)
-        qdot, _ = system.velocity_from_momentum(t, q, mu, G, guess=mu, tol=1e-12,
-                                                max_steps=16)
+        qdot, _ = system.velocity_from_momentum(t, q, mu, G, guess=mu, tol=1e-12, max_steps=16)
         y = (q, qdot)
         for _ in range(steps):
             y, _, _ = substep(system, t, h, *y, system.rates(t, y, G), G, 1e-12, 16)
@@ -162,8 +169,9 @@ def test_symplectic():
     flow = jax.jit(jax.vmap(_flow_in_momenta(GENERAL, 0.15, 1)))
     vectors = _tangent_vectors(q, mu)
     eps = 1e-6
-    points = [(q + sign * eps * dq, mu + sign * eps * dmu)
-              for sign in (1.0, -1.0) for dq, dmu in vectors]
+    points = [
+        (q + sign * eps * dq, mu + sign * eps * dmu) for sign in (1.0, -1.0) for dq, dmu in vectors
+    ]
     moved = flow(*jax.tree_util.tree_map(lambda *x: jnp.stack(x), *points))
     m = len(vectors)
     pushed = [tuple((x[i] - x[m + i]) / (2 * eps) for x in moved) for i in range(m)]
@@ -205,8 +213,12 @@ def test_forced_lagrange_dalembert(reference):
     damped_reference = final(sm.simulate(GENERAL, Y0, T1, args=DAMPED, rtol=1e-13, atol=1e-13))
     assert max_rel_error(damped_reference[0], reference[0]) > 0.01  # damping matters
     dts = (0.04, 0.02, 0.01)
-    errors = [max_rel_error(final(run(GENERAL, sm.Variational(), dt, args=DAMPED))[0],
-                            damped_reference[0]) for dt in dts]
+    errors = [
+        max_rel_error(
+            final(run(GENERAL, sm.Variational(), dt, args=DAMPED))[0], damped_reference[0]
+        )
+        for dt in dts
+    ]
     assert abs(fitted_order(dts, errors) - 2) < 0.3, errors
 
 
@@ -240,8 +252,9 @@ def test_refuses_hamiltonian_and_bad_options():
     with pytest.raises(ValueError, match="needs a Lagrangian system"):
         sm.simulate(sm.legendre(chain), (q0, mu0), 1.0, solver=sm.Variational(), dt0=0.1)
     with pytest.raises(ValueError, match="MechanicsTerm"):
-        diffrax.diffeqsolve(diffrax.ODETerm(lambda t, y, args: y), sm.Variational(), 0.0, 1.0,
-                            0.1, Y0, args=None)
+        diffrax.diffeqsolve(
+            diffrax.ODETerm(lambda t, y, args: y), sm.Variational(), 0.0, 1.0, 0.1, Y0, args=None
+        )
     with pytest.raises(ValueError, match="order must be 2 or 4"):
         sm.Variational(3)
     with pytest.raises(ValueError, match="composition"):
@@ -286,9 +299,14 @@ STRUCTURED = {
     # a chain and a free particle, springs, bending, damping (velocity-dependent forces)
     # and drives: every kind of effect the variational step supports
     "scene": sm.Scene(
-        sm.Chain([1.0, 0.7, 1.3], [1.0, 0.8, 0.6]), sm.Particles(0.5, 0.7, [2.0, 0.0, 0.0]),
-        sm.Gravity(9.81), sm.Spring(2, 3, 3.0, 0.5), sm.Bending(0.4), sm.JointDamping(0.3),
-        sm.BaseTorque(jnp.array([0.2, -0.1, 0.3])), sm.TipForce(jnp.array([0.5, 0.0, -0.4])),
+        sm.Chain([1.0, 0.7, 1.3], [1.0, 0.8, 0.6]),
+        sm.Particles(0.5, 0.7, [2.0, 0.0, 0.0]),
+        sm.Gravity(9.81),
+        sm.Spring(2, 3, 3.0, 0.5),
+        sm.Bending(0.4),
+        sm.JointDamping(0.3),
+        sm.BaseTorque(jnp.array([0.2, -0.1, 0.3])),
+        sm.TipForce(jnp.array([0.5, 0.0, -0.4])),
     ),
 }
 
@@ -333,8 +351,7 @@ def test_fast_path_step_has_no_dense_solve():
         n = system.n
         y0 = _structured_state(n)
         term = sm.MechanicsTerm(system)
-        step = lambda y: solver.step(term, 0.0, 0.05, y, None, system.rates(0.0, y, None),
-                                     False)[0]
+        step = lambda y: solver.step(term, 0.0, 0.05, y, None, system.rates(0.0, y, None), False)[0]
         return {e.primitive.name for e in jaxpr_equations(jax.make_jaxpr(step)(y0).jaxpr)}
 
     scene = STRUCTURED["scene"]
@@ -354,8 +371,9 @@ def test_anderson_converges_where_the_plain_iteration_diverges():
     exact = jnp.linalg.solve(jnp.eye(4) - B, c)
 
     def solve(solver, c):
-        sol = optx.fixed_point(lambda y, c: B @ y + c, solver, jnp.zeros(4), c,
-                               max_steps=40, throw=False)
+        sol = optx.fixed_point(
+            lambda y, c: B @ y + c, solver, jnp.zeros(4), c, max_steps=40, throw=False
+        )
         return sol.value, sol.result
 
     anderson = jax.jit(lambda c: solve(Anderson(rtol=1e-13, atol=1e-13), c))

@@ -144,11 +144,19 @@ def write_outputs(out: Path, result, scene, *, animation: bool = True) -> None:
     tmp = Path(tempfile.mkdtemp(dir=out, prefix=f"{TEMP_PREFIX}{os.getpid()}-"))
     _WRITING.add(tmp)
     try:
-        np.savez(tmp / "trajectory.npz", t=result.t, **flat("q", result.q),
-                 **flat("v", result.v), x=result.x, energy=result.energy,
-                 error_t=result.error_t, error=result.error)
-        (tmp / "summary.json").write_text(json.dumps(result.summary, indent=2,
-                                                     allow_nan=False) + "\n")
+        np.savez(
+            tmp / "trajectory.npz",
+            t=result.t,
+            **flat("q", result.q),
+            **flat("v", result.v),
+            x=result.x,
+            energy=result.energy,
+            error_t=result.error_t,
+            error=result.error,
+        )
+        (tmp / "summary.json").write_text(
+            json.dumps(result.summary, indent=2, allow_nan=False) + "\n"
+        )
         plot(tmp / "plot.png", result, scene)
         if animation:
             name = result.summary["scene"]
@@ -165,13 +173,17 @@ def write_outputs(out: Path, result, scene, *, animation: bool = True) -> None:
 
 def _print_summary(s: dict, out: Path, animation: bool) -> None:
     e = lambda x: "null" if x is None else f"{x:.1e}"
-    energy = (f"max relative energy error {e(s['max_relative_energy_error'])}"
-              if "max_relative_energy_error" in s else
-              f"max work-energy balance {e(s['max_relative_work_energy_balance'])} (relative)")
-    print(f"{s['scene']}: {s['t1']:g} s, {s['solver']}, {s['steps']} steps in "
-          f"{s['wall_time_s']:.2f} s; max constraint error {e(s['max_constraint_error'])}; "
-          f"{energy}" + (f" (not computed: {', '.join(s['not_computed'])})"
-                         if "not_computed" in s else ""))
+    energy = (
+        f"max relative energy error {e(s['max_relative_energy_error'])}"
+        if "max_relative_energy_error" in s
+        else f"max work-energy balance {e(s['max_relative_work_energy_balance'])} (relative)"
+    )
+    print(
+        f"{s['scene']}: {s['t1']:g} s, {s['solver']}, {s['steps']} steps in "
+        f"{s['wall_time_s']:.2f} s; max constraint error {e(s['max_constraint_error'])}; "
+        f"{energy}"
+        + (f" (not computed: {', '.join(s['not_computed'])})" if "not_computed" in s else "")
+    )
     print(f"wrote {out}/" + ", ".join(output_names(animation)))
 
 
@@ -257,18 +269,32 @@ def _main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog=PROG, description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     p_run = sub.add_parser("run", help="simulate a scene file and write results")
-    p_run.add_argument("scene", nargs="?", help="a scene file (.toml); default: the "
-                       "packaged double spherical pendulum")
-    p_run.add_argument("--out", type=Path, default=Path("sphere_mech_out"),
-                       help="output folder (default ./sphere_mech_out)")
-    p_run.add_argument("--t1", type=float, default=None,
-                       help="override the end time of [simulate] (s)")
+    p_run.add_argument(
+        "scene",
+        nargs="?",
+        help="a scene file (.toml); default: the packaged double spherical pendulum",
+    )
+    p_run.add_argument(
+        "--out",
+        type=Path,
+        default=Path("sphere_mech_out"),
+        help="output folder (default ./sphere_mech_out)",
+    )
+    p_run.add_argument(
+        "--t1", type=float, default=None, help="override the end time of [simulate] (s)"
+    )
     p_run.add_argument("--no-progress", action="store_true", help="hide the progress bar")
-    p_run.add_argument("--no-animation", action="store_true",
-                       help="skip animation.html (saves the time to draw its frames)")
-    p_run.add_argument("--no-cache", action="store_true",
-                       help="do not read or write the compilation cache (default folder "
-                       f"{cache_dir() or 'off'}; set by ${CACHE_ENV}, 'off' disables it)")
+    p_run.add_argument(
+        "--no-animation",
+        action="store_true",
+        help="skip animation.html (saves the time to draw its frames)",
+    )
+    p_run.add_argument(
+        "--no-cache",
+        action="store_true",
+        help="do not read or write the compilation cache (default folder "
+        f"{cache_dir() or 'off'}; set by ${CACHE_ENV}, 'off' disables it)",
+    )
     ns = parser.parse_args(argv)
     if "equinox" not in sys.modules:  # a fresh process: its programs check nothing at run
         os.environ.setdefault("EQX_ON_ERROR", "nan")  # time, so they can be stored
@@ -278,8 +304,9 @@ def _main(argv=None) -> int:
     if ns.t1 is not None and not math.isfinite(ns.t1):  # after t0: checked with the file
         return _fail(f"--t1 must be a finite time in s (got {ns.t1})", 2)
     try:
-        summary = run(ns.scene, ns.out, t1=ns.t1, progress=not ns.no_progress,
-                      animation=not ns.no_animation)
+        summary = run(
+            ns.scene, ns.out, t1=ns.t1, progress=not ns.no_progress, animation=not ns.no_animation
+        )
     except CommandError as e:
         return _fail(str(e), e.status)
     except Exception as e:

@@ -44,19 +44,35 @@ def _png(rgba: np.ndarray) -> str:
 
 def _artists(ax, skel: Skeleton) -> tuple:
     many = max([len(link) for link in skel.links] + [0]) > 9
-    links = [ax.plot([], [], [], "-", color="k", lw=1.4, marker="" if many else "o", ms=4,
-                     mfc="tab:blue", markevery=slice(1, None), animated=True)[0]
-             for _ in skel.links]
+    links = [
+        ax.plot(
+            [],
+            [],
+            [],
+            "-",
+            color="k",
+            lw=1.4,
+            marker="" if many else "o",
+            ms=4,
+            mfc="tab:blue",
+            markevery=slice(1, None),
+            animated=True,
+        )[0]
+        for _ in skel.links
+    ]
     tips = ax.plot([], [], [], "o", color="tab:red", ms=5, animated=True)[0]
     bases = ax.plot([], [], [], "ks", ms=7, animated=True)[0]
     n_trails = len(skel.tips) if len(skel.tips) <= 8 else 0
-    trails = [ax.plot([], [], [], "-", lw=0.8, alpha=0.7, color=f"C{k}", animated=True)[0]
-              for k in range(n_trails)]
+    trails = [
+        ax.plot([], [], [], "-", lw=0.8, alpha=0.7, color=f"C{k}", animated=True)[0]
+        for k in range(n_trails)
+    ]
     return links, tips, bases, trails
 
 
-def render(skel: Skeleton, t: np.ndarray, x: np.ndarray, *, title: str = "",
-           frames: int = MAX_FRAMES) -> tuple[str, list[str], np.ndarray]:
+def render(
+    skel: Skeleton, t: np.ndarray, x: np.ndarray, *, title: str = "", frames: int = MAX_FRAMES
+) -> tuple[str, list[str], np.ndarray]:
     """The still image and at most `frames` overlays (base64 PNG), and their times."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -83,7 +99,7 @@ def render(skel: Skeleton, t: np.ndarray, x: np.ndarray, *, title: str = "",
         tips.set_data_3d(*pts[f, skel.tips].T)
         bases.set_data_3d(*pts[f, skel.bases].T)
         for line, i in zip(trails, skel.tips, strict=False):
-            line.set_data_3d(*pts[max(0, f - trail):f + 1, i].T)
+            line.set_data_3d(*pts[max(0, f - trail) : f + 1, i].T)
         for artist in [*trails, *links, tips, bases]:
             ax.draw_artist(artist)
         frame = np.where(pixels() == base.view(np.uint32)[..., 0], 0, pixels())
@@ -93,21 +109,27 @@ def render(skel: Skeleton, t: np.ndarray, x: np.ndarray, *, title: str = "",
 
 _ICONS = {  # 16 x 16 inline SVG shapes
     "first": '<rect x="1" y="2" width="2" height="12"/><polygon points="10,2 3,8 10,14"/>'
-             '<polygon points="16,2 9,8 16,14"/>',
+    '<polygon points="16,2 9,8 16,14"/>',
     "previous": '<rect x="3" y="2" width="2" height="12"/><polygon points="13,2 5,8 13,14"/>',
     "play": '<polygon points="4,2 14,8 4,14"/>',
     "pause": '<rect x="3" y="2" width="3.5" height="12"/><rect x="9.5" y="2" width="3.5" '
-             'height="12"/>',
+    'height="12"/>',
     "next": '<polygon points="3,2 11,8 3,14"/><rect x="11" y="2" width="2" height="12"/>',
     "last": '<polygon points="0,2 7,8 0,14"/><polygon points="6,2 13,8 6,14"/>'
-            '<rect x="13" y="2" width="2" height="12"/>',
+    '<rect x="13" y="2" width="2" height="12"/>',
     "slower": '<rect x="3" y="7" width="10" height="2"/>',
-    "faster": '<rect x="3" y="7" width="10" height="2"/><rect x="7" y="3" width="2" '
-              'height="10"/>',
+    "faster": '<rect x="3" y="7" width="10" height="2"/><rect x="7" y="3" width="2" height="10"/>',
 }
-_TITLES = {"first": "First frame", "previous": "Previous frame", "play": "Play",
-           "pause": "Pause", "next": "Next frame", "last": "Last frame",
-           "slower": "Slower", "faster": "Faster"}
+_TITLES = {
+    "first": "First frame",
+    "previous": "Previous frame",
+    "play": "Play",
+    "pause": "Pause",
+    "next": "Next frame",
+    "last": "Last frame",
+    "slower": "Slower",
+    "faster": "Faster",
+}
 
 _TEMPLATE = string.Template("""\
 <div class="sm-player" id="$id" style="display:inline-block;font-family:sans-serif">
@@ -169,31 +191,42 @@ $buttons
 
 
 def _button(action: str) -> str:
-    return (f'<button type="button" data-action="{action}" title="{_TITLES[action]}" '
-            f'aria-label="{_TITLES[action]}" style="line-height:0;padding:4px 6px">'
-            '<svg viewBox="0 0 16 16" width="14" height="14" fill="currentColor" '
-            f'aria-hidden="true">{_ICONS[action]}</svg></button>')
+    return (
+        f'<button type="button" data-action="{action}" title="{_TITLES[action]}" '
+        f'aria-label="{_TITLES[action]}" style="line-height:0;padding:4px 6px">'
+        '<svg viewBox="0 0 16 16" width="14" height="14" fill="currentColor" '
+        f'aria-hidden="true">{_ICONS[action]}</svg></button>'
+    )
 
 
-def player(skel: Skeleton, t: np.ndarray, x: np.ndarray, *, title: str = "",
-           frames: int = MAX_FRAMES) -> str:
+def player(
+    skel: Skeleton, t: np.ndarray, x: np.ndarray, *, title: str = "", frames: int = MAX_FRAMES
+) -> str:
     """The HTML player (a fragment, one `div`) of positions `x` `(T, n, 3)` at times `t`."""
     still, overlays, times = render(skel, t, x, title=title, frames=frames)
     step = float(np.min(np.diff(times))) if len(times) > 1 else 1.0
     digits = int(np.clip(np.ceil(-np.log10(step)) if step > 0 else 3, 0, 4))
     delay = float(np.clip(1000 * (times[-1] - times[0]) / max(len(times) - 1, 1), 40, 100))
     return _TEMPLATE.substitute(
-        id=f"sm-player-{uuid.uuid4().hex[:12]}", alt=html.escape(title or "animation"),
-        still=still, last=len(overlays) - 1, buttons="\n".join(map(_button, _TITLES)),
-        frames=json.dumps(overlays), times=json.dumps([float(s) for s in times]),
-        delay=f"{delay:.0f}", digits=digits)
+        id=f"sm-player-{uuid.uuid4().hex[:12]}",
+        alt=html.escape(title or "animation"),
+        still=still,
+        last=len(overlays) - 1,
+        buttons="\n".join(map(_button, _TITLES)),
+        frames=json.dumps(overlays),
+        times=json.dumps([float(s) for s in times]),
+        delay=f"{delay:.0f}",
+        digits=digits,
+    )
 
 
 def page(player_html: str, title: str) -> str:
     """A standalone HTML page holding the player."""
-    return ('<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n'
-            f"<title>{html.escape(title)}</title>\n</head>\n<body>\n{player_html}\n"
-            "</body>\n</html>\n")
+    return (
+        '<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n'
+        f"<title>{html.escape(title)}</title>\n</head>\n<body>\n{player_html}\n"
+        "</body>\n</html>\n"
+    )
 
 
 class Animation(str):
@@ -213,15 +246,18 @@ def _trajectory(system, sol) -> tuple[np.ndarray, np.ndarray]:
         ts, ys = ts[0], ys[0]
     t, q = np.asarray(ts), ys[0] if isinstance(ys, list | tuple) else ys
     if t.ndim != 1 or system.space.batch_shape(q) != t.shape:
-        raise ValueError(f"sol: expected the solution of one run, times (T,) and q (T, n, 3)"
-                         f" (or a dict of arrays with a leading T axis), got times {t.shape}"
-                         f" and q {jax.tree.map(np.shape, q)}")
+        raise ValueError(
+            f"sol: expected the solution of one run, times (T,) and q (T, n, 3)"
+            f" (or a dict of arrays with a leading T axis), got times {t.shape}"
+            f" and q {jax.tree.map(np.shape, q)}"
+        )
     keep = np.isfinite(t)  # SaveAt(steps=True) pads with inf
     return t[keep], positions(system, jax.tree.map(lambda x: np.asarray(x)[keep], q))
 
 
-def animate(system_or_scene: AbstractSystem, sol: diffrax.Solution, *,
-            frames: int = MAX_FRAMES) -> Animation:
+def animate(
+    system_or_scene: AbstractSystem, sol: diffrax.Solution, *, frames: int = MAX_FRAMES
+) -> Animation:
     """An animation of a solution: an HTML player with play, pause, step and a time
     slider, that a notebook displays (no network needed).
 
@@ -240,8 +276,10 @@ def animate(system_or_scene: AbstractSystem, sol: diffrax.Solution, *,
     """
     t, x = _trajectory(system_or_scene, sol)
     if len(t) < 2:
-        raise ValueError(f"sol: expected states at two times or more, got {len(t)}; "
-                         "save them with saveat=diffrax.SaveAt(ts=...)")
+        raise ValueError(
+            f"sol: expected states at two times or more, got {len(t)}; "
+            "save them with saveat=diffrax.SaveAt(ts=...)"
+        )
     if not (isinstance(frames, int) and frames >= 2):
         raise ValueError(f"frames: expected an integer >= 2, got {frames!r}")
     skel = skeleton(system_or_scene, x.shape[1])

@@ -109,12 +109,20 @@ class Program:
             from .._results import raise_on_codes
 
             raise_on_codes(np.array([code]), self.max_steps, "simulate")
-        t = np.concatenate([ts[(k > 0):c] for k, (ts, c) in
-                            enumerate(zip(self.ts, self.count, strict=True))])
+        t = np.concatenate(
+            [ts[(k > 0) : c] for k, (ts, c) in enumerate(zip(self.ts, self.count, strict=True))]
+        )
         joined = jax.tree.map(lambda *x: np.concatenate(x), *parts)
         ends = np.concatenate([[0], np.cumsum(self.count - 1)]) if self.forced else None
-        return Integrated(t, *joined, steps, rejected, time.perf_counter() - start, ends,
-                          np.array(work) if self.forced else None)
+        return Integrated(
+            t,
+            *joined,
+            steps,
+            rejected,
+            time.perf_counter() - start,
+            ends,
+            np.array(work) if self.forced else None,
+        )
 
 
 def _take(tree, index):
@@ -138,8 +146,7 @@ def segment_times(t0: float, t1: float, save_dt: float) -> tuple[np.ndarray, np.
     ts = np.asarray(jnp.linspace(t0, t1, n_out))
     m = math.ceil((n_out - 1) / SEGMENTS)
     starts = range(0, n_out - 1, m)
-    rows = [np.pad(ts[s:s + m + 1], (0, max(0, s + m + 1 - n_out)), mode="edge")
-            for s in starts]
+    rows = [np.pad(ts[s : s + m + 1], (0, max(0, s + m + 1 - n_out)), mode="edge") for s in starts]
     return np.stack(rows), np.array([min(m + 1, n_out - s) for s in starts])
 
 
@@ -163,8 +170,19 @@ def build(spec, t1=None) -> tuple[Program, jax.stages.Compiled]:
     dynamic, static = eqx.partition(scene, eqx.is_array)
     params, treedef = jax.tree.flatten(dynamic)
     ts, count = segment_times(spec.t0, float(spec.t1 if t1 is None else t1), spec.save_dt)
-    opts = options(spec.solver, spec.dt0, spec.rtol, spec.atol, None, None, spec.max_steps,
-                   None, False, None, state_dtype((q0, v0)))
+    opts = options(
+        spec.solver,
+        spec.dt0,
+        spec.rtol,
+        spec.atol,
+        None,
+        None,
+        spec.max_steps,
+        None,
+        False,
+        None,
+        state_dtype((q0, v0)),
+    )
 
     def segment(t_start, ts, q, v, params):
         system = eqx.combine(jax.tree.unflatten(treedef, params), static)
@@ -175,18 +193,37 @@ def build(spec, t1=None) -> tuple[Program, jax.stages.Compiled]:
         if isinstance(opts.controller, diffrax.ConstantStepSize):  # diffrax divides a
             # segment into equal steps: as many as dt0 fits, the save times' rounding aside
             dt0 = (t_end - t_start) / jnp.ceil((t_end - t_start) / dt0 * (1 - 1e-12))
-        sol = solve(system, (q, v), t_start, t_end, dt0, None,
-                    eqx.tree_at(lambda o: (o.saveat, o.solver), opts, (saveat, solver)))
+        sol = solve(
+            system,
+            (q, v),
+            t_start,
+            t_end,
+            dt0,
+            None,
+            eqx.tree_at(lambda o: (o.saveat, o.solver), opts, (saveat, solver)),
+        )
         result = code(sol.result)
         work = (work_done(sol.solver_state),) if forced else ()
-        return (*sol.ys, failed(result), result, sol.stats["num_steps"],
-                sol.stats["num_rejected_steps"], *work)
+        return (
+            *sol.ys,
+            failed(result),
+            result,
+            sol.stats["num_steps"],
+            sol.stats["num_rejected_steps"],
+            *work,
+        )
 
-    inputs = (ts[0, 0], ts[0], *jax.tree.map(np.asarray, (q0, v0)),
-              [np.asarray(p) for p in params])
+    inputs = (ts[0, 0], ts[0], *jax.tree.map(np.asarray, (q0, v0)), [np.asarray(p) for p in params])
     compiled = jax.jit(segment).lower(*inputs).compile()
-    program = Program(compiled, ts, count, *inputs[2:], spec.max_steps,
-                      int(code(RESULTS.max_steps_reached)), scene.has_forces)
+    program = Program(
+        compiled,
+        ts,
+        count,
+        *inputs[2:],
+        spec.max_steps,
+        int(code(RESULTS.max_steps_reached)),
+        scene.has_forces,
+    )
     return program, compiled
 
 

@@ -47,8 +47,7 @@ def work_energy_balance(system, ts, q, v, args=None):
 
     **Returns:** `(E, W, E - E(0) - W)`, three numpy arrays of shape `(T,)`.
     """
-    energy, P, dP = (np.asarray(a) for a in _energy_and_power(system, jnp.asarray(ts), q, v,
-                                                               args))
+    energy, P, dP = (np.asarray(a) for a in _energy_and_power(system, jnp.asarray(ts), q, v, args))
     W = work_integral(np.asarray(ts), P, dP)
     return energy, W, energy - energy[0] - W
 
@@ -146,28 +145,56 @@ def scene_result(spec, run: Integrated, t1=None) -> SceneResult:
         error = balance / scale if scale > 0 else balance
         if not scale > 0:
             reasons["max_relative_work_energy_balance"] = (
-                "the energy and the work are zero throughout: no scale to divide by")
-        report = {"energy_report": "work-energy balance E(t) - E(0) - W(t)",
-                  "max_relative_work_energy_balance": float(np.max(np.abs(error)))
-                  if scale > 0 else None,
-                  "balance_scale_J": float(scale), "work_done_J": float(W[-1])}
+                "the energy and the work are zero throughout: no scale to divide by"
+            )
+        report = {
+            "energy_report": "work-energy balance E(t) - E(0) - W(t)",
+            "max_relative_work_energy_balance": float(np.max(np.abs(error))) if scale > 0 else None,
+            "balance_scale_J": float(scale),
+            "work_done_J": float(W[-1]),
+        }
     else:
         error_t, error = np.asarray(ts), (energy - energy[0]) / abs(energy[0] or 1.0)
-        report = {"energy_report": "energy error (E(t) - E(0)) / |E(0)|",
-                  "max_relative_energy_error": float(np.max(np.abs(error)))}
+        report = {
+            "energy_report": "energy error (E(t) - E(0)) / |E(0)|",
+            "max_relative_energy_error": float(np.max(np.abs(error))),
+        }
     q, v = jax.tree.map(np.asarray, (q, v))
     constraint = np.max(np.abs(np.linalg.norm(scene.spheres(q), axis=-1) - 1.0), axis=-1)
     x = np.asarray(jax.vmap(scene.points)(q))
     base = {} if scene.base is None else {"base": q["base"][-1].tolist()}
     summary = {
-        "scene": spec.name, "file": str(spec.path), "solver": spec.solver_name,
-        **({"rtol": spec.rtol, "atol": spec.atol}
-           if isinstance(spec.solver, diffrax.AbstractAdaptiveSolver) else {"dt0": spec.dt0}),
-        "n_spheres": scene.n, "effects": [type(e).__name__ for e in scene.effects],
-        "t0": spec.t0, "t1": t1, "steps": run.steps, "rejected_steps": run.rejected_steps,
-        "wall_time_s": wall, "max_constraint_error": float(constraint.max()), **report,
+        "scene": spec.name,
+        "file": str(spec.path),
+        "solver": spec.solver_name,
+        **(
+            {"rtol": spec.rtol, "atol": spec.atol}
+            if isinstance(spec.solver, diffrax.AbstractAdaptiveSolver)
+            else {"dt0": spec.dt0}
+        ),
+        "n_spheres": scene.n,
+        "effects": [type(e).__name__ for e in scene.effects],
+        "t0": spec.t0,
+        "t1": t1,
+        "steps": run.steps,
+        "rejected_steps": run.rejected_steps,
+        "wall_time_s": wall,
+        "max_constraint_error": float(constraint.max()),
+        **report,
         **base,
     }
     summary = strict_json(summary, reasons)
-    return SceneResult(np.asarray(ts), q, v, x, energy, np.asarray(error_t), np.asarray(error),
-                       constraint, summary, potential, W, e_s)
+    return SceneResult(
+        np.asarray(ts),
+        q,
+        v,
+        x,
+        energy,
+        np.asarray(error_t),
+        np.asarray(error),
+        constraint,
+        summary,
+        potential,
+        W,
+        e_s,
+    )

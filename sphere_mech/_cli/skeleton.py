@@ -77,9 +77,13 @@ def skeleton(system, n: int) -> Skeleton:
         offset += k.n
     anchors = np.asarray(anchors, dtype=float).reshape(-1, 3)
     index = lambda i: i + len(anchors) if i >= 0 else -1 - i
-    return Skeleton(anchors, tuple(np.asarray([index(i) for i in link]) for link in links),
-                    tuple(spheres), np.asarray(free, dtype=int),
-                    np.asarray(bases, dtype=int) + len(anchors))
+    return Skeleton(
+        anchors,
+        tuple(np.asarray([index(i) for i in link]) for link in links),
+        tuple(spheres),
+        np.asarray(free, dtype=int),
+        np.asarray(bases, dtype=int) + len(anchors),
+    )
 
 
 def positions(system, q) -> np.ndarray:
@@ -119,8 +123,13 @@ def draw_static(ax, skel: Skeleton) -> list:
     with the moving parts); returns legend handles."""
     u, v = np.meshgrid(np.linspace(0, 2 * np.pi, 25), np.linspace(0, np.pi, 13))
     for c, r in skel.spheres:
-        ax.plot_wireframe(c[0] + r * np.cos(u) * np.sin(v), c[1] + r * np.sin(u) * np.sin(v),
-                          c[2] + r * np.cos(v), color="0.75", lw=0.4)
+        ax.plot_wireframe(
+            c[0] + r * np.cos(u) * np.sin(v),
+            c[1] + r * np.sin(u) * np.sin(v),
+            c[2] + r * np.cos(v),
+            color="0.75",
+            lw=0.4,
+        )
     if not len(skel.anchors):
         return []
     a, label = skel.anchors, "pivot" if skel.links else "centre"

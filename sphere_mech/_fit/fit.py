@@ -381,8 +381,15 @@ def fit(
         segment_states, system0, args0, segment_data[2], y0, fit_initial_state, batched, sim
     )
     residuals = Residuals(
-        model, system0.space, observe, flags, static, fit_initial_state,
-        jnp.asarray(continuity), sim, jac,
+        model,
+        system0.space,
+        observe,
+        flags,
+        static,
+        fit_initial_state,
+        jnp.asarray(continuity),
+        sim,
+        jac,
     )
     solver = optx.LevenbergMarquardt(rtol=1e-6, atol=1e-9) if solver is None else solver
     unknowns0 = (map_flagged(jnp.log, dynamic, flags), z0)

@@ -49,8 +49,11 @@ def check_magnitude(name: str, x) -> None:
         return
     bad = ~(np.abs(a).astype(np.float64) <= MAX_MAGNITUDE)  # NaN too; float32 compared in 64
     if np.any(bad):
-        raise ParameterError(name, f"{name} must be finite and at most {MAX_MAGNITUDE:g} in "
-                             f"magnitude, got {a[bad].flat[0]:g}")
+        raise ParameterError(
+            name,
+            f"{name} must be finite and at most {MAX_MAGNITUDE:g} in "
+            f"magnitude, got {a[bad].flat[0]:g}",
+        )
 
 
 def check_fields(module: eqx.Module) -> None:
@@ -70,22 +73,29 @@ def check_vector(name: str, x, unit: bool = False) -> None:
     check_shape(name, x, (3,), "a (3,) vector")
     check_magnitude(name, x)
     if unit and _concrete(x) and not abs(np.linalg.norm(x) - 1.0) <= UNIT_TOLERANCE:
-        raise ParameterError(name, f"{name} must be a unit vector (length 1 within "
-                             f"{UNIT_TOLERANCE:g}), got {_show(x)}")
+        raise ParameterError(
+            name,
+            f"{name} must be a unit vector (length 1 within {UNIT_TOLERANCE:g}), got {_show(x)}",
+        )
 
 
 def check_axes(name: str, x) -> None:
     """`(m, 3)` rows, `1 <= m <= 3`, orthonormal within `UNIT_TOLERANCE` (unless traced)."""
     if jnp.ndim(x) != 2 or jnp.shape(x)[1] != 3 or not 1 <= jnp.shape(x)[0] <= 3:
-        raise ParameterError(name, f"{name} must be an (m, 3) array of m = 1, 2 or 3 "
-                             f"directions, got shape {jnp.shape(x)}")
+        raise ParameterError(
+            name,
+            f"{name} must be an (m, 3) array of m = 1, 2 or 3 directions, got shape {jnp.shape(x)}",
+        )
     if _concrete(x):
         x = np.asarray(x)
         error = np.max(np.abs(x @ x.T - np.eye(x.shape[0])))
         if not error <= UNIT_TOLERANCE:
-            raise ParameterError(name, f"{name} must be orthonormal rows (unit length, "
-                                 f"mutually perpendicular, within {UNIT_TOLERANCE:g}), got "
-                                 f"{_show(x)}")
+            raise ParameterError(
+                name,
+                f"{name} must be orthonormal rows (unit length, "
+                f"mutually perpendicular, within {UNIT_TOLERANCE:g}), got "
+                f"{_show(x)}",
+            )
 
 
 def spheres_of(q):
@@ -100,15 +110,19 @@ def check_sign(name: str, x, unit: str = "", *, strict: bool = True, scalar=Fals
         check_shape(name, x, (), "a scalar")
     check_magnitude(name, x)
     if _concrete(x) and not np.all(np.asarray(x) > 0 if strict else np.asarray(x) >= 0):
-        raise ParameterError(name, f"{name} must be {'>' if strict else '>='} 0{unit}, "
-                             f"got {_show(x)}")
+        raise ParameterError(
+            name, f"{name} must be {'>' if strict else '>='} 0{unit}, got {_show(x)}"
+        )
 
 
 def check_index(owner, name: str, i: int, n: int) -> None:
     """Python's convention: `-n <= i < n`."""
     if not -n <= i < n:
-        raise ParameterError(name, f"{type(owner).__name__}.{name} must be a sphere index "
-                             f"in [-{n}, {n}) (the scene has {n} spheres), got {i}")
+        raise ParameterError(
+            name,
+            f"{type(owner).__name__}.{name} must be a sphere index "
+            f"in [-{n}, {n}) (the scene has {n} spheres), got {i}",
+        )
 
 
 def per_item(count: int | None, count_name: str, **arrays) -> list[jax.Array]:
@@ -116,14 +130,17 @@ def per_item(count: int | None, count_name: str, **arrays) -> list[jax.Array]:
     argument `count_name`, defaults to the length of the 1-D arrays given; at most
     `MAX_COUNT`, checked before anything is allocated); all must have the same length."""
     if count is not None and not 1 <= count <= MAX_COUNT:
-        raise ParameterError(count_name, f"{count_name} must be an integer from 1 to "
-                             f"{MAX_COUNT}, got {count}")
+        raise ParameterError(
+            count_name, f"{count_name} must be an integer from 1 to {MAX_COUNT}, got {count}"
+        )
     arrays = {k: as_float(v) for k, v in arrays.items()}
     if count is None:
         count = max((jnp.shape(v)[0] for v in arrays.values() if jnp.ndim(v) == 1), default=1)
     if not 1 <= count <= MAX_COUNT:
-        raise ParameterError(next(iter(arrays)), f"{', '.join(arrays)}: need from 1 to "
-                             f"{MAX_COUNT} values, got {count}")
+        raise ParameterError(
+            next(iter(arrays)),
+            f"{', '.join(arrays)}: need from 1 to {MAX_COUNT} values, got {count}",
+        )
     out = []
     for name, x in arrays.items():
         x = jnp.broadcast_to(x, (count,)) if jnp.ndim(x) == 0 else x

@@ -36,20 +36,25 @@ def _check_drive(field: str, drive, scene, shape=(3,)) -> None:
         e.field = f"{field}.{e.field}" if e.field else field
         raise
     spheres = jax.ShapeDtypeStruct((scene.n, 3), jnp.result_type(float))
-    state = spheres if scene.base is None else {
-        "base": jax.ShapeDtypeStruct((scene.base.m,), spheres.dtype), "spheres": spheres}
+    state = (
+        spheres
+        if scene.base is None
+        else {"base": jax.ShapeDtypeStruct((scene.base.m,), spheres.dtype), "spheres": spheres}
+    )
     out = jax.eval_shape(drive, jax.ShapeDtypeStruct((), spheres.dtype), state, state, None)
     if out.shape != shape:
-        raise ParameterError(field, f"{field}: {type(drive).__name__} returns shape "
-                             f"{out.shape}, expected {shape}")
+        raise ParameterError(
+            field, f"{field}: {type(drive).__name__} returns shape {out.shape}, expected {shape}"
+        )
 
 
 def _evaluate(drive, t, q, qdot, args, shape=(3,)):
     dtype = tree_dtype(q)
     out = jnp.asarray(drive(t, q, qdot, args) if callable(drive) else drive, dtype=dtype)
     if out.shape != shape:
-        raise ValueError(f"a torque or force function must return shape {shape}, got "
-                         f"shape {out.shape}.")
+        raise ValueError(
+            f"a torque or force function must return shape {shape}, got shape {out.shape}."
+        )
     return out
 
 
@@ -70,8 +75,12 @@ class JointDamping(AbstractForce):
 
     def check(self, scene):
         if jnp.ndim(self.coefficient):
-            base.check_shape("coefficient", self.coefficient, (scene.n,),
-                        f"a scalar or {scene.n} values, one per sphere")
+            base.check_shape(
+                "coefficient",
+                self.coefficient,
+                (scene.n,),
+                f"a scalar or {scene.n} values, one per sphere",
+            )
 
     def generalized_force(self, t, q, qdot, scene, args):
         def dissipation(v):
@@ -196,8 +205,9 @@ class VibratingSupport(AbstractForce):
 
     def __check_init__(self):
         base.check_sign("amplitude", self.amplitude, " (m)", strict=False, scalar=True)
-        base.check_sign("angular_frequency", self.angular_frequency, " (rad/s)", strict=False,
-                   scalar=True)
+        base.check_sign(
+            "angular_frequency", self.angular_frequency, " (rad/s)", strict=False, scalar=True
+        )
         base.check_shape("phase", self.phase, (), "a scalar")
         base.check_vector("direction", self.direction, unit=True)
 
@@ -222,8 +232,11 @@ def _base_vector(owner, name: str, x, scene) -> None:
     """`x` is a scalar or one value per axis of the scene's `Base`."""
     m = scene.base.m
     if jnp.ndim(x) and jnp.shape(x) != (m,):
-        raise ParameterError(name, f"{type(owner).__name__}.{name} must be a scalar or {m} "
-                             f"values, one per axis of the Base, got shape {jnp.shape(x)}")
+        raise ParameterError(
+            name,
+            f"{type(owner).__name__}.{name} must be a scalar or {m} "
+            f"values, one per axis of the Base, got shape {jnp.shape(x)}",
+        )
 
 
 class BaseForce(AbstractForce):
@@ -242,15 +255,21 @@ class BaseForce(AbstractForce):
 
     def __check_init__(self):
         if not callable(self.force) and jnp.ndim(self.force) != 1:
-            raise ParameterError("force", f"force must be an (m,) vector (one component "
-                                 f"per axis of the Base), got shape {jnp.shape(self.force)}")
+            raise ParameterError(
+                "force",
+                f"force must be an (m,) vector (one component "
+                f"per axis of the Base), got shape {jnp.shape(self.force)}",
+            )
 
     def check(self, scene):
         if scene.base is None:
             raise ParameterError("", "BaseForce needs a Base in the scene")
         if not callable(self.force) and jnp.shape(self.force) != (scene.base.m,):
-            raise ParameterError("force", f"force must have {scene.base.m} components, one "
-                                 f"per axis of the Base, got shape {jnp.shape(self.force)}")
+            raise ParameterError(
+                "force",
+                f"force must have {scene.base.m} components, one "
+                f"per axis of the Base, got shape {jnp.shape(self.force)}",
+            )
         _check_drive("force", self.force, scene, (scene.base.m,))
 
     def generalized_force(self, t, q, qdot, scene, args):
@@ -320,11 +339,15 @@ class Harmonic(AbstractDrive):
         base.check_shape("angular_frequency", self.angular_frequency, (), "a scalar")
         base.check_shape("phase", self.phase, (), "a scalar")
         if jnp.ndim(self.amplitude) != 1:
-            raise ParameterError("amplitude", f"amplitude must be a vector, got shape "
-                                 f"{jnp.shape(self.amplitude)}")
+            raise ParameterError(
+                "amplitude", f"amplitude must be a vector, got shape {jnp.shape(self.amplitude)}"
+            )
         if jnp.ndim(self.offset) and jnp.shape(self.offset) != jnp.shape(self.amplitude):
-            raise ParameterError("offset", f"offset must be a scalar or of amplitude's shape "
-                                 f"{jnp.shape(self.amplitude)}, got {jnp.shape(self.offset)}")
+            raise ParameterError(
+                "offset",
+                f"offset must be a scalar or of amplitude's shape "
+                f"{jnp.shape(self.amplitude)}, got {jnp.shape(self.offset)}",
+            )
 
     def __call__(self, t, q, qdot, args):
         phase = self.angular_frequency * t + self.phase

@@ -58,9 +58,14 @@ class Chain(AbstractKinetic):
     base: jax.Array
     payload: jax.Array
 
-    def __init__(self, masses: jax.Array, lengths: jax.Array,
-                 base: jax.Array = (0.0, 0.0, 0.0), links: int | None = None,
-                 payload: jax.Array = 0.0):
+    def __init__(
+        self,
+        masses: jax.Array,
+        lengths: jax.Array,
+        base: jax.Array = (0.0, 0.0, 0.0),
+        links: int | None = None,
+        payload: jax.Array = 0.0,
+    ):
         self.masses, self.lengths = per_item(links, "links", masses=masses, lengths=lengths)
         self.base = as_float(base)
         self.payload = as_float(payload)
@@ -107,8 +112,9 @@ class Base(AbstractEffect):
     """
 
     mass: jax.Array = eqx.field(converter=as_float)
-    axes: jax.Array = eqx.field(default=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)),
-                                converter=as_float)
+    axes: jax.Array = eqx.field(
+        default=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)), converter=as_float
+    )
     position: jax.Array = eqx.field(default=(0.0, 0.0, 0.0), converter=as_float)
 
     def __check_init__(self):
@@ -133,9 +139,12 @@ class Base(AbstractEffect):
 
     def check(self, scene):
         if len(scene.kinetic) != 1 or not isinstance(scene.kinetic[0], Chain):
-            raise ParameterError("", "a Base carries one Chain: the scene must list exactly "
-                                 "one kinetic term, a Chain, got "
-                                 f"{[type(k).__name__ for k in scene.kinetic]}")
+            raise ParameterError(
+                "",
+                "a Base carries one Chain: the scene must list exactly "
+                "one kinetic term, a Chain, got "
+                f"{[type(k).__name__ for k in scene.kinetic]}",
+            )
 
 
 class AbstractSphereMasses(AbstractKinetic):
@@ -178,8 +187,13 @@ class Particles(AbstractSphereMasses):
       scalars).
     """
 
-    def __init__(self, masses: jax.Array, radii: jax.Array,
-                 centers: jax.Array = (0.0, 0.0, 0.0), count: int | None = None):
+    def __init__(
+        self,
+        masses: jax.Array,
+        radii: jax.Array,
+        centers: jax.Array = (0.0, 0.0, 0.0),
+        count: int | None = None,
+    ):
         super().__init__(masses, radii, centers, count)
 
 
@@ -193,8 +207,13 @@ class SharedSphere(AbstractSphereMasses):
     - `count`: the number of beads (optional; needed when `masses` is a scalar).
     """
 
-    def __init__(self, masses: jax.Array, radius: jax.Array = 1.0,
-                 center: jax.Array = (0.0, 0.0, 0.0), count: int | None = None):
+    def __init__(
+        self,
+        masses: jax.Array,
+        radius: jax.Array = 1.0,
+        center: jax.Array = (0.0, 0.0, 0.0),
+        count: int | None = None,
+    ):
         check_sign("radius", radius, " (m)", scalar=True)
         check_vector("center", as_float(center))
         super().__init__(masses, radius, center, count)

@@ -56,14 +56,23 @@ class Spring(AbstractPotential):
     anchors: jax.Array
     ends: tuple = eqx.field(static=True)
 
-    def __init__(self, a: int | jax.Array, b: int | jax.Array, stiffness: jax.Array,
-                 rest_length: jax.Array = 0.0):
+    def __init__(
+        self,
+        a: int | jax.Array,
+        b: int | jax.Array,
+        stiffness: jax.Array,
+        rest_length: jax.Array = 0.0,
+    ):
         self.ends = tuple(int(e) if isinstance(e, int | np.integer) else None for e in (a, b))
         for name, end, i in zip("ab", (a, b), self.ends, strict=True):
             if i is None:
                 base.check_vector(name, end)
-        self.anchors = jnp.stack([base.as_float(jnp.zeros(3) if i is not None else end)
-                                  for end, i in zip((a, b), self.ends, strict=True)])
+        self.anchors = jnp.stack(
+            [
+                base.as_float(jnp.zeros(3) if i is not None else end)
+                for end, i in zip((a, b), self.ends, strict=True)
+            ]
+        )
         self.stiffness, self.rest_length = stiffness, rest_length
 
     def __check_init__(self):
@@ -103,11 +112,14 @@ class Bending(AbstractPotential):
     def check(self, scene):
         joints = len(scene.bend_pairs()[0])
         if joints == 0:
-            raise ParameterError("", "Bending needs a Chain with at least two links in the "
-                                 "scene")
+            raise ParameterError("", "Bending needs a Chain with at least two links in the scene")
         if jnp.ndim(self.stiffness):
-            base.check_shape("stiffness", self.stiffness, (joints,),
-                        f"a scalar or {joints} values, one per joint")
+            base.check_shape(
+                "stiffness",
+                self.stiffness,
+                (joints,),
+                f"a scalar or {joints} values, one per joint",
+            )
 
     def potential(self, t, q, scene, args):
         i, j = scene.bend_pairs()
@@ -135,7 +147,8 @@ class PairInteraction(AbstractPotential):
     strength: jax.Array = eqx.field(converter=base.as_float)
     exponent: jax.Array = eqx.field(default=1.0, converter=base.as_float)
     charges: jax.Array | None = eqx.field(
-        default=None, converter=lambda c: c if c is None else base.as_float(c))
+        default=None, converter=lambda c: c if c is None else base.as_float(c)
+    )
     masses: tuple[int, ...] | None = eqx.field(default=None, static=True)
 
     def __check_init__(self):
@@ -148,17 +161,22 @@ class PairInteraction(AbstractPotential):
     def check(self, scene):
         idx = self._indices(scene.n)
         if len(idx) < 2:
-            raise ParameterError("masses", f"PairInteraction needs at least two masses, got "
-                                 f"{len(idx)}")
+            raise ParameterError(
+                "masses", f"PairInteraction needs at least two masses, got {len(idx)}"
+            )
         pairs = len(idx) * (len(idx) - 1) // 2
         if pairs > MAX_PAIRS:
-            raise ParameterError("masses", f"PairInteraction sums over at most {MAX_PAIRS:.0e} "
-                                 f"pairs, got {len(idx)} masses ({pairs:.2e} pairs)")
+            raise ParameterError(
+                "masses",
+                f"PairInteraction sums over at most {MAX_PAIRS:.0e} "
+                f"pairs, got {len(idx)} masses ({pairs:.2e} pairs)",
+            )
         for i in idx:
             base.check_index(self, "masses", int(i), scene.n)
         if self.charges is not None:
-            base.check_shape("charges", self.charges, (len(idx),),
-                        f"one value per interacting mass ({len(idx)})")
+            base.check_shape(
+                "charges", self.charges, (len(idx),), f"one value per interacting mass ({len(idx)})"
+            )
 
     def potential(self, t, q, scene, args):
         x = scene.positions(q)

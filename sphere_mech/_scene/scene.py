@@ -42,8 +42,10 @@ class Scene(AbstractConstantInertiaLagrangian):
     def __init__(self, *effects: AbstractEffect):
         for e in effects:
             if not isinstance(e, AbstractKinetic | Base | AbstractPotential | AbstractForce):
-                raise ValueError(f"Scene takes effects (kinetic terms, a base, potentials, "
-                                 f"forces), got {type(e).__name__}.")
+                raise ValueError(
+                    f"Scene takes effects (kinetic terms, a base, potentials, "
+                    f"forces), got {type(e).__name__}."
+                )
         bases = [e for e in effects if isinstance(e, Base)]
         if len(bases) > 1:
             raise ValueError(f"A scene takes at most one Base, got {len(bases)}.")
@@ -52,8 +54,9 @@ class Scene(AbstractConstantInertiaLagrangian):
         self.potentials = tuple(e for e in effects if isinstance(e, AbstractPotential))
         self.force_effects = tuple(e for e in effects if isinstance(e, AbstractForce))
         if not self.kinetic:
-            raise ValueError("A scene needs at least one kinetic term (Chain, Particles "
-                             "or SharedSphere).")
+            raise ValueError(
+                "A scene needs at least one kinetic term (Chain, Particles or SharedSphere)."
+            )
 
     def __check_init__(self):
         for e in self.effects:
@@ -76,7 +79,6 @@ class Scene(AbstractConstantInertiaLagrangian):
     @property
     def base_axes(self):
         return None if self.base is None else self.base.axes
-
 
     def _offsets(self) -> list[int]:
         return list(np.cumsum([0] + [k.n for k in self.kinetic]))
@@ -108,8 +110,9 @@ class Scene(AbstractConstantInertiaLagrangian):
         bands = [k.inverse_inertia_bands() for k in self.kinetic]
         d = jnp.concatenate([b[0] for b in bands])
         zero = jnp.zeros((1,), dtype=d.dtype)
-        e = jnp.concatenate([part for k, b in enumerate(bands)
-                             for part in ((zero,) if k else ()) + (b[1],)])
+        e = jnp.concatenate(
+            [part for k, b in enumerate(bands) for part in ((zero,) if k else ()) + (b[1],)]
+        )
         return d, e
 
     def masses(self) -> jax.Array:
@@ -173,8 +176,9 @@ class Scene(AbstractConstantInertiaLagrangian):
         an `(n,)` integer array.
         """
         blocks = zip(self.kinetic, self._offsets(), strict=False)
-        return np.asarray([p + a if p >= 0 else -1 for k, a in blocks for p in k.parents()],
-                          dtype=int)
+        return np.asarray(
+            [p + a if p >= 0 else -1 for k, a in blocks for p in k.parents()], dtype=int
+        )
 
     def bend_pairs(self) -> tuple[np.ndarray, np.ndarray]:
         """Where bending stiffness acts.
@@ -241,8 +245,10 @@ def chain_pendulum(masses, lengths, g=9.81, *, torque=None, tip_force=None) -> S
     """
     masses = jnp.asarray(masses)
     dtype = jnp.result_type(masses, float)
-    effects = [Chain(masses.astype(dtype), jnp.asarray(lengths, dtype)),
-               Gravity(jnp.asarray(g, dtype))]
+    effects = [
+        Chain(masses.astype(dtype), jnp.asarray(lengths, dtype)),
+        Gravity(jnp.asarray(g, dtype)),
+    ]
     effects += [] if torque is None else [BaseTorque(torque)]
     effects += [] if tip_force is None else [TipForce(tip_force)]
     return Scene(*effects)

@@ -115,8 +115,9 @@ def solve_position(system, t0, h, q0, mu0, scale, guess, args, tol, max_steps, f
     if fast_path and isinstance(system, AbstractConstantInertiaLagrangian):
         solve = system.multiplier_solver(q0, args)
         chord = lambda a, _: a + to_tangent(T0, solve(momentum_residual(a)))
-        sol = optx.fixed_point(chord, Anderson(rtol=tol, atol=tol), a0, max_steps=max_steps,
-                               throw=False)
+        sol = optx.fixed_point(
+            chord, Anderson(rtol=tol, atol=tol), a0, max_steps=max_steps, throw=False
+        )
     else:
         residual = lambda a, _: to_tangent(T0, momentum_residual(a)) / scale
         sol = optx.root_find(residual, newton(tol), a0, max_steps=max_steps, throw=False)
@@ -138,8 +139,9 @@ def substep(system, t0, h, q0, v0, rates0, args, tol, max_steps, fast_path=True)
     # Predictor: the geodesic with velocity qdot0 + h/2 P qddot0 matches the Taylor
     # expansion of q(t0 + h) to O(h^3); Newton then needs about two iterations.
     guess = tree_add(qdot0, tree_scale(0.5 * h, qddot0))
-    position, sol = solve_position(system, t0, h, q0, mu0, scale, guess, args, tol, max_steps,
-                                   fast_path)
+    position, sol = solve_position(
+        system, t0, h, q0, mu0, scale, guess, args, tol, max_steps, fast_path
+    )
     # exp keeps |q1_i| = 1 to rounding; renormalizing stops rounding errors from
     # accumulating over millions of steps (a change far below the Newton tolerance).
     q1 = space.normalize(position(sol.value))
@@ -150,8 +152,13 @@ def substep(system, t0, h, q0, v0, rates0, args, tol, max_steps, fast_path=True)
     t1 = t0 + h
     c1 = space.project(q1, chord(q0, q1, h))
     v1, vel_result = system.velocity_from_momentum(
-        t1, q1, system.from_linear(q1, space.project(q1, d2)), args,
-        guess=system.from_linear(q1, c1), tol=tol, max_steps=max_steps,
+        t1,
+        q1,
+        system.from_linear(q1, space.project(q1, d2)),
+        args,
+        guess=system.from_linear(q1, c1),
+        tol=tol,
+        max_steps=max_steps,
     )
     y1 = (q1, v1)
     result = RESULTS.where(

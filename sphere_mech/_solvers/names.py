@@ -10,8 +10,20 @@ from .projected import Projected
 from .rk4 import RK4
 from .variational import Variational
 
-DIFFRAX_SOLVERS = ("Euler", "Heun", "Midpoint", "Ralston", "Bosh3", "Tsit5", "Dopri5",
-                   "Dopri8", "ImplicitEuler", "Kvaerno3", "Kvaerno4", "Kvaerno5")
+DIFFRAX_SOLVERS = (
+    "Euler",
+    "Heun",
+    "Midpoint",
+    "Ralston",
+    "Bosh3",
+    "Tsit5",
+    "Dopri5",
+    "Dopri8",
+    "ImplicitEuler",
+    "Kvaerno3",
+    "Kvaerno4",
+    "Kvaerno5",
+)
 """diffrax's ODE solvers a file may name (bare: unprojected, as in Python)."""
 PLAIN_SOLVERS = {"RK4": RK4, "LieRK4": LieRK4} | {n: getattr(diffrax, n) for n in DIFFRAX_SOLVERS}
 MAX_SOLVER_LENGTH = 200
@@ -23,8 +35,10 @@ def parse_solver(text: str) -> diffrax.AbstractSolver:
     parsed over a whitelist (never evaluated). Raises `ValueError` for anything else,
     and for more than `MAX_SOLVER_LENGTH` characters."""
     if len(text) > MAX_SOLVER_LENGTH:
-        raise ValueError(f"solver must be at most {MAX_SOLVER_LENGTH} characters (got "
-                         f"{len(text)}: {repr(text if len(text) <= 40 else text[:37] + '...')})")
+        raise ValueError(
+            f"solver must be at most {MAX_SOLVER_LENGTH} characters (got "
+            f"{len(text)}: {repr(text if len(text) <= 40 else text[:37] + '...')})"
+        )
     match = re.fullmatch(r"\s*(\w+)\s*(?:\((.*)\))?\s*", text)
     name, inner = match.groups("") if match else ("", "")
     order = re.fullmatch(r"\s*(?:order\s*=\s*(\d+)\s*)?", inner)
@@ -37,21 +51,23 @@ def parse_solver(text: str) -> diffrax.AbstractSolver:
         return Variational(order=int(order[1] or 2))
     if name in PLAIN_SOLVERS and not inner.strip():
         return PLAIN_SOLVERS[name]()
-    raise ValueError(f"a solver spelled as in Python: Projected(<solver>), "
-                     f"LieRK(<solver>[, action='SE3'|'SO3xR3'][, error='state'|'algebra']), "
-                     f"RK4, LieRK4, Variational, Variational(order=4) or a diffrax ODE solver "
-                     f"({', '.join(DIFFRAX_SOLVERS)}); got {text!r}")
+    raise ValueError(
+        f"a solver spelled as in Python: Projected(<solver>), "
+        f"LieRK(<solver>[, action='SE3'|'SO3xR3'][, error='state'|'algebra']), "
+        f"RK4, LieRK4, Variational, Variational(order=4) or a diffrax ODE solver "
+        f"({', '.join(DIFFRAX_SOLVERS)}); got {text!r}"
+    )
 
 
 def _lie_option(text: str) -> tuple[str, str]:
     """`action='SE3'` -> `("action", "SE3")`: a keyword argument of `LieRK` in a file."""
     match = re.fullmatch(r"""\s*(action|error)\s*=\s*(['"])(\w+)\2\s*""", text)
     if match is None:
-        raise ValueError(f"LieRK's options are action='SE3'|'SO3xR3' and "
-                         f"error='state'|'algebra'; got {text.strip()!r}")
+        raise ValueError(
+            f"LieRK's options are action='SE3'|'SO3xR3' and "
+            f"error='state'|'algebra'; got {text.strip()!r}"
+        )
     return match[1], match[3]
-
-
 
 
 def as_solver(solver) -> diffrax.AbstractSolver:
@@ -66,13 +82,16 @@ def as_solver(solver) -> diffrax.AbstractSolver:
             return parse_solver(solver)
         except ValueError as e:
             text = str(e)
-            raise ValueError(text if text.startswith("solver") else
-                             f"solver must be a diffrax solver or {text}") from None
+            raise ValueError(
+                text if text.startswith("solver") else f"solver must be a diffrax solver or {text}"
+            ) from None
     if isinstance(solver, type) and issubclass(solver, diffrax.AbstractSolver):
         try:
             return solver()
         except TypeError:
             pass
-    raise ValueError(f"solver must be a diffrax solver instance, e.g. "
-                     f"sm.Projected(diffrax.Tsit5()), or its name, e.g. 'Projected(Tsit5)' "
-                     f"(got {solver!r})")
+    raise ValueError(
+        f"solver must be a diffrax solver instance, e.g. "
+        f"sm.Projected(diffrax.Tsit5()), or its name, e.g. 'Projected(Tsit5)' "
+        f"(got {solver!r})"
+    )

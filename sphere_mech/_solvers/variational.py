@@ -131,8 +131,9 @@ class Variational(AbstractSolver):
         start = jnp.asarray(physical_time(terms, t0), dtype=dtype)
         rates0 = solver_state
         if made_jump is not False:
-            rates0 = lax.cond(made_jump, lambda: system.rates(start, y0, args),
-                              lambda: solver_state)
+            rates0 = lax.cond(
+                made_jump, lambda: system.rates(start, y0, args), lambda: solver_state
+            )
         # diffrax integrates backwards in a reversed time with wrapped terms: the step in
         # physical time is the term's control (and the Hermite data below is in it too).
         h = jnp.asarray(terms.contr(t0, t1), dtype=dtype)
@@ -142,7 +143,15 @@ class Variational(AbstractSolver):
             t, y, rates, result = carry
             dt = gamma * h_safe
             y1, rates1, result1 = substep(
-                system, t, dt, y[0], y[1], rates, args, tol, self.root_find_max_steps,
+                system,
+                t,
+                dt,
+                y[0],
+                y[1],
+                rates,
+                args,
+                tol,
+                self.root_find_max_steps,
                 self.fast_path,
             )
             result = RESULTS.where(result == RESULTS.successful, result1, result)
@@ -164,4 +173,3 @@ class Variational(AbstractSolver):
 
     def func(self, terms, t0, y0, args):
         return terms.vf(t0, y0, args)
-

@@ -15,10 +15,15 @@ class AbstractTransparentSolver(AbstractWrappedSolver):
 
     def __check_init__(self):
         if not isinstance(self.solver, AbstractSolver):
-            what = (f"the class {self.solver.__name__}" if isinstance(self.solver, type)
-                    else repr(self.solver))
-            raise ValueError(f"{type(self).__name__}(solver): solver must be a diffrax solver "
-                             f"instance, e.g. diffrax.Tsit5() (got {what})")
+            what = (
+                f"the class {self.solver.__name__}"
+                if isinstance(self.solver, type)
+                else repr(self.solver)
+            )
+            raise ValueError(
+                f"{type(self).__name__}(solver): solver must be a diffrax solver "
+                f"instance, e.g. diffrax.Tsit5() (got {what})"
+            )
 
     @property
     def term_structure(self):
