@@ -9,17 +9,10 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 
+from ._adjoint import forward_mode_hint
+from ._misc import rows
 from ._results import RESULTS, raise_on_failure
-from ._solve import (
-    DEFAULT_MAX_STEPS,
-    as_array,
-    forward_mode_hint,
-    initial_states,
-    prepare,
-    rows,
-    solve,
-    state_dtype,
-)
+from ._solve import DEFAULT_MAX_STEPS, prepare, run_options, solve
 from ._system import AbstractSystem
 
 BATCH_AXIS = "batch"
@@ -170,43 +163,16 @@ def simulate_batch(
     `sol.ys = (q, v)` of shape `(batch, times, n, 3)`, `sol.result` and
     `sol.stats["num_steps"]` per trajectory. The output is sharded over the devices.
     """
-    if not (isinstance(y0, tuple | list) and len(y0) == 2):
-        raise ValueError("y0 must be a pair (q0, v0) of (batch, n, 3) arrays.")
-    q0, v0 = jax.tree.map(as_array, tuple(y0), is_leaf=lambda x: isinstance(x, list))
-    leading = {jnp.shape(x)[:1] for x in jax.tree.leaves((q0, v0))}
-    if len(leading) != 1 or leading == {()} or leading == {(0,)}:
-        raise ValueError(
-            "y0 must have a leading batch axis (batch >= 1), the same on every "
-            f"array, got shapes {jax.tree.map(jnp.shape, (q0, v0))}."
-        )
-    size = leading.pop()[0]
-    one_state = jax.tree.map(lambda x: x[0], (q0, v0))
-    system.space.check_shapes(*one_state, system.state_name)
-    n = system.space.rows(one_state[0])
-    dtype = state_dtype((q0, v0))
+    run = prepare(system, y0, args, batched=True, **run_options(locals()))
+    one_state = jax.tree.map(lambda x: x[0], run.y0)
+    size = len(run.valid)
     if batch_args and args is not None:
         _leading(args, size, "args")
     if batch_system:
         _leading(eqx.filter(system, eqx.is_array), size, "system")
-    system, args, opts, t0, t1, dt0 = prepare(
-        system,
-        args,
-        dtype,
-        t0,
-        t1,
-        dt0,
-        solver,
-        rtol,
-        atol,
-        stepsize_controller,
-        saveat,
-        max_steps,
-        adjoint,
-        progress,
-        event,
-        batched=True,
+    dynamic, static = eqx.partition(
+        (run.system, run.args, run.t0, run.t1, run.dt0, run.opts), eqx.is_array
     )
-    dynamic, static = eqx.partition((system, args, t0, t1, dt0, opts), eqx.is_array)
     mask = jax.tree.map(lambda _: False, dynamic)
     mask = (batch_system, batch_args) + mask[2:]  # prefixes: all of system / args or none
     batched, shared = eqx.partition(dynamic, mask)
@@ -215,15 +181,10 @@ def simulate_batch(
     devices = (jax.devices() if devices is None else list(devices))[:size]
     mesh = Mesh(np.array(devices), (BATCH_AXIS,)) if len(devices) > 1 else None
     per_device = -(-size // len(devices))
-    chunk = _chunk_size(chunk_size, n, per_device, devices[0].platform)
+    chunk = _chunk_size(
+        chunk_size, system.space.rows(one_state[0]), per_device, devices[0].platform
+    )
     padded = -(-size // (chunk * len(devices))) * chunk * len(devices)
-    one = jax.tree.map(lambda x: x[0] if eqx.is_array(x) else x, system) if batch_system else system
-    if one.n is not None:
-        one.check_size(one_state[0])
-    # Checked per state, outside the sharded program (its checks would be host callbacks):
-    # an invalid state is NaN (so its run stops at once) and gets its own code.
-    y0 = jax.tree.map(lambda x: x.astype(dtype), (q0, v0))
-    y0, valid = initial_states(system.space, system.state_name, y0, "simulate_batch", throw)
     with forward_mode_hint():
-        sol = _solve_batch(static, chunk, mesh, shared, batched, y0, valid, size, padded)
+        sol = _solve_batch(static, chunk, mesh, shared, batched, run.y0, run.valid, size, padded)
     return raise_on_failure(sol, max_steps, "simulate_batch") if throw else sol

@@ -7,10 +7,8 @@ velocity or momentum when
 `max_i |q_i . v_i| <= unit_tolerance(dtype) * (1 + max_i |v_i|)`.
 """
 
-import functools
 import inspect
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -80,37 +78,12 @@ def off_tangent(q, v, v_name: str = "v") -> tuple[jax.Array, str]:
     )
 
 
-def check_finite_named(x, name: str):
-    return eqx.error_if(x, *nonfinite(x, name))
-
-
-def check_unit(q, q_name: str = "q"):
-    """Error (at run time) unless every row of `q` is a finite unit vector within
-    tolerance."""
-    return eqx.error_if(check_finite_named(q, q_name), *off_unit(q, q_name))
-
-
-def check_tangent(q, v, v_name: str = "v"):
-    """Error (at run time) unless every `v_i` is finite and orthogonal to `q_i` within
-    tolerance."""
-    return eqx.error_if(check_finite_named(v, v_name), *off_tangent(q, v, v_name))
-
-
 def check_scalar(value, what: str):
     """Static check that a user function returned a scalar."""
     shape = jnp.shape(value)
     if shape != ():
         raise ValueError(f"{what} must return a scalar, got an array of shape {shape}.")
     return value
-
-
-def check_finite(x, message: str):
-    """Error (at run time) when `x` (an array or a dict of arrays) has a NaN or infinity;
-    `message` names the cause."""
-    finite = functools.reduce(
-        jnp.logical_and, [jnp.all(jnp.isfinite(a)) for a in jax.tree.leaves(x)]
-    )
-    return eqx.error_if(x, ~finite, message)
 
 
 def check_function(fn, name: str, spelled: str, arity: int) -> None:

@@ -10,7 +10,8 @@ import jax
 
 from ._checks import check_function
 from ._custom_types import ForceFn
-from ._spaces import AbstractSpace, Spheres, as_space, tree_add, tree_sub
+from ._misc import tree_add, tree_sub
+from ._spaces import AbstractSpace, Spheres, as_space
 from ._system import AbstractHamiltonianSystem
 
 

@@ -30,6 +30,7 @@ from ._checks import check_function, check_scalar
 from ._custom_types import Args, ForceFn, Points, Scalar
 from ._geometry import normalize
 from ._linalg import spd_solve, tridiagonal_matvec, tridiagonal_spd_solve
+from ._misc import all_finite
 from ._spaces import AbstractSpace, Euclidean, Product, Spheres
 from ._system import AbstractLagrangianSystem, as_time
 
@@ -250,8 +251,7 @@ class AbstractConstantInertiaLagrangian(AbstractLagrangianSystem):
         """
         del guess, quadratic, tol, max_steps
         v = self.multiplier_solver(q, args)(p)
-        finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(v)]))
-        return v, RESULTS.where(finite, RESULTS.successful, RESULTS.singular)
+        return v, RESULTS.where(all_finite(v), RESULTS.successful, RESULTS.singular)
 
 
 class ConstantInertiaLagrangian(AbstractConstantInertiaLagrangian):

@@ -10,7 +10,8 @@ import jax.numpy as jnp
 
 from ._checks import check_function, check_scalar
 from ._custom_types import Args, ForceFn, Points, Tangents
-from ._spaces import AbstractSpace, Spheres, as_space, tree_add, tree_scale, tree_sub
+from ._misc import tree_add, tree_scale, tree_sub
+from ._spaces import AbstractSpace, Spheres, as_space
 from ._system import SINGULAR_MESSAGE, AbstractLagrangianSystem, as_time, check_rates
 
 

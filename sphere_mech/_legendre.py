@@ -12,7 +12,8 @@ from diffrax import RESULTS
 
 from ._hamiltonian import AngularHamiltonian, Hamiltonian
 from ._lagrangian import AngularLagrangian
-from ._spaces import AbstractSpace, tree_sub, tree_vdot
+from ._misc import fill_zeros, tree_sub, tree_vdot
+from ._spaces import AbstractSpace
 from ._system import AbstractHamiltonianSystem, AbstractLagrangianSystem, AbstractSystem
 
 
@@ -114,12 +115,6 @@ def _velocity(system, t, q, p, args, quadratic):
     return jax.tree.map(lambda x: jnp.where(result == RESULTS.successful, x, jnp.nan), v)
 
 
-def _materialize(primal, tangent):
-    if tangent is None and eqx.is_inexact_array(primal):
-        return jnp.zeros_like(primal)
-    return tangent
-
-
 @eqx.filter_custom_jvp
 def _legendre_value(system, t, q, p, args, *, quadratic):
     """`H(t, q, p) = p . v - L(t, q, v)` with `v` the inverse Legendre map of `p`."""
@@ -137,7 +132,7 @@ def _legendre_jvp(primals, tangents, *, quadratic):
     carries the derivatives with respect to `t`, `args` and the system's own arrays.
     Higher derivatives still work: this rule is itself differentiable."""
     system, t, q, p, args = primals
-    tangents = jax.tree.map(_materialize, primals, tangents)
+    tangents = fill_zeros(tangents, primals)
     t_system, t_t, t_q, t_p, t_args = tangents
     v = _velocity(system, t, q, p, args, quadratic)
 

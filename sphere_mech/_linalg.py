@@ -1,38 +1,9 @@
-"""Linear algebra in tangent coordinates.
-
-Every form's linear system `(P H + Q) x = P r` is solved in an orthonormal tangent basis
-`T` (`(n, 3, 2)`, 2n columns): `(T^T H T) a = T^T r`, `x = T a`. This is the 2n x 2n
-symmetric form recommended in DESIGN.md, better conditioned than the 3n x 3n system and
-independent of which tangent basis is used.
-"""
+"""Linear solves of the constant-inertia fast path and the Newton iterations: dense
+symmetric positive-definite (an unrolled Cholesky for small systems) and tridiagonal
+(O(n)), differentiated as linear solves."""
 
 import jax
 import jax.numpy as jnp
-
-
-def to_tangent(T: jax.Array, v: jax.Array) -> jax.Array:
-    """Coordinates of `v` (`(n, 3)`) in the basis `T`, flattened to `(2n,)`."""
-    return jnp.einsum("ica,ic->ia", T, v).reshape(-1)
-
-
-def from_tangent(T: jax.Array, a: jax.Array) -> jax.Array:
-    """The `(n, 3)` tangent vector with coordinates `a` (`(2n,)`) in the basis `T`."""
-    return jnp.einsum("ica,ia->ic", T, a.reshape(T.shape[0], 2))
-
-
-def basis_directions(T: jax.Array) -> jax.Array:
-    """The 2n basis vectors as `(2n, n, 3)` arrays (each nonzero on one sphere only)."""
-    n = T.shape[0]
-    eye = jnp.eye(n, dtype=T.dtype)
-    # directions[(j, b), i, c] = delta_ij T[j, c, b]
-    return jnp.einsum("ij,jcb->jbic", eye, T).reshape(2 * n, n, 3)
-
-
-def reduced_matrix(hvp, T: jax.Array) -> jax.Array:
-    """`T^T H T` (2n x 2n) for a linear map `hvp: (n, 3) -> (n, 3)` applying `H`."""
-    HT = jax.vmap(hvp)(basis_directions(T))  # (2n, n, 3): H applied to each direction
-    return jax.vmap(lambda col: to_tangent(T, col), out_axes=1)(HT)
-
 
 UNROLL_MAX = 64
 """Largest tridiagonal system solved by the unrolled recursion below (larger ones run the

@@ -9,7 +9,7 @@ from diffrax import RESULTS
 from jax import lax
 
 from ._checks import check_scalar
-from ._spaces import tree_max_abs, tree_sub, tree_vdot
+from ._misc import tree_max_abs, tree_sub, tree_vdot
 
 
 def newton_tolerance(dtype) -> float:

@@ -35,7 +35,7 @@ from ._scene.kinetic import Base, Chain, Particles, SharedSphere
 from ._scene.potentials import Bending, Gravity, PairInteraction, Spring
 from ._scene.scene import Scene
 from ._simulate import simulate
-from ._solve import OptionError, check_values, options
+from ._solve import OptionError, options
 from ._solvers.names import (  # noqa: F401 (DIFFRAX_SOLVERS, PLAIN_SOLVERS: the file format)
     DIFFRAX_SOLVERS,
     MAX_SOLVER_LENGTH,
@@ -399,14 +399,16 @@ def _simulate_args(path, data, t1=None) -> dict:
             raise SceneFileError(
                 path, f"simulate.{field}", f"expected {SIMULATE[field]}, got {_show(out[key])}"
             )
-    try:  # the values simulate would refuse, with its words
-        check_values(*(out[k] for k in ("t0", "t1", "dt0", "rtol", "atol", "max_steps")))
-    except OptionError as e:
-        raise SceneFileError(path, f"simulate.{e.field}", str(e)) from None
     try:
         out["solver"] = parse_solver(out["solver_name"])
     except ValueError as e:
         raise SceneFileError(path, "simulate.solver", str(e)) from None
+    try:  # the options simulate would refuse, with its words
+        opts = options(dtype=np.float64, **{k: out[k] for k in SIMULATE})
+    except OptionError as e:
+        raise SceneFileError(path, f"simulate.{e.field}", str(e)) from None
+    except ValueError as e:
+        raise SceneFileError(path, "simulate", str(e)) from None
     for key, unit in (("t0", " s"), ("t1", " s"), ("dt0", " s"), ("rtol", ""), ("atol", "")):
         if out[key] is not None and not abs(out[key]) <= MAX_MAGNITUDE:
             raise SceneFileError(
@@ -415,22 +417,6 @@ def _simulate_args(path, data, t1=None) -> dict:
                 f"{key} must be at most "
                 f"{MAX_MAGNITUDE:g}{unit} in magnitude (got {_show(out[key])})",
             )
-    try:  # the options simulate would refuse, with its words
-        opts = options(
-            out["solver"],
-            out["dt0"],
-            out["rtol"],
-            out["atol"],
-            None,
-            None,
-            out["max_steps"],
-            None,
-            False,
-            None,
-            np.float64,
-        )
-    except ValueError as e:
-        raise SceneFileError(path, "simulate", str(e)) from None
     out["file_t1"] = out["t1"]
     if t1 is not None:
         out["t1"] = _end_time(path, t1, out["t0"])

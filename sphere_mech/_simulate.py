@@ -3,15 +3,9 @@
 import diffrax
 import equinox as eqx
 
+from ._adjoint import forward_mode_hint
 from ._results import raise_on_failure
-from ._solve import (
-    DEFAULT_MAX_STEPS,
-    forward_mode_hint,
-    initial_state,
-    prepare,
-    solve,
-    state_dtype,
-)
+from ._solve import DEFAULT_MAX_STEPS, prepare, run_options, solve
 from ._system import AbstractSystem
 
 _solve = eqx.filter_jit(solve)
@@ -96,26 +90,7 @@ def simulate(
     space) with a leading time axis
     and whose `result` is an `sm.RESULTS` code.
     """
-    if system.n is not None:
-        system.check_size(y0[0])
-    y0 = initial_state(system.space, system.state_name, y0)
-    system, args, opts, t0, t1, dt0 = prepare(
-        system,
-        args,
-        state_dtype(y0),
-        t0,
-        t1,
-        dt0,
-        solver,
-        rtol,
-        atol,
-        stepsize_controller,
-        saveat,
-        max_steps,
-        adjoint,
-        progress,
-        event,
-    )
+    run = prepare(system, y0, args, **run_options(locals()))
     with forward_mode_hint():
-        sol = _solve(system, y0, t0, t1, dt0, args, opts)
+        sol = _solve(*run.inputs, run.opts)
     return raise_on_failure(sol, max_steps, "simulate") if throw else sol

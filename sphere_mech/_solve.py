@@ -1,17 +1,18 @@
 """The one solve core: `simulate` and `simulate_batch` both run `solve`, with the same
 options, the same result codes and the same errors."""
 
-import contextlib
 import functools
 import math
+from typing import Any
 
 import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.flatten_util import ravel_pytree
 
+from ._adjoint import default_adjoint_run
+from ._misc import all_finite, as_arrays, rows, tree_dtype
 from ._results import RESULTS, describe_failures
 from ._solvers.names import as_solver
 from ._solvers.projected import Projected
@@ -22,19 +23,6 @@ DEFAULT_MAX_STEPS = 100_000
 before it fails with `RESULTS.max_steps_reached`."""
 DEFAULT_TOLERANCES = {np.dtype("float64"): (1e-8, 1e-10), np.dtype("float32"): (1e-5, 1e-6)}
 """Default `(rtol, atol)` of the adaptive step-size controller, by dtype of `q`."""
-FORWARD_COLUMNS = 8
-"""The default adjoint differentiates one trajectory (`simulate`) in forward mode when at
-most this many scalars are differentiated (e.g. the lengths of a chain of up to 8 links),
-else in reverse mode. On a 2-core CPU, forward mode measured 1.9x (float64) to 2.7x
-(float32) faster than reverse mode at 8 columns (`benchmarks/gradients.py`) and about
-even at 16 (1.4x faster in float64, 1.3x slower in float32): one trajectory's arrays
-are small, its cost is per operation, and forward mode widens the operations instead
-of adding more."""
-BATCH_FORWARD_COLUMNS = 2
-"""The same threshold for a trajectory of `simulate_batch`: under `vmap` the arrays are
-wide already, forward mode's cost grows with every column and reverse mode's does not
-(at 8 columns reverse mode measured 3.5x faster; at 2 forward mode 1.1x to 1.6x
-faster)."""
 
 
 def default_solver() -> diffrax.AbstractSolver:
@@ -59,21 +47,26 @@ class Options(eqx.Module):
 
 
 def options(
-    solver,
-    dt0,
-    rtol,
-    atol,
-    stepsize_controller,
-    saveat,
-    max_steps,
-    adjoint,
-    progress,
-    event,
+    *,
     dtype,
-    batched=False,
-) -> Options:
-    """Check and complete the options of `simulate` (`batched=False`) or
-    `simulate_batch` (`batched=True`) (static errors; values: `check_values`)."""
+    batched: bool = False,
+    t0=0.0,
+    t1=None,
+    solver=None,
+    dt0=None,
+    rtol=None,
+    atol=None,
+    stepsize_controller=None,
+    saveat=None,
+    max_steps=DEFAULT_MAX_STEPS,
+    progress=False,
+    adjoint=None,
+    event=None,
+) -> "Options":
+    """Check the options of `simulate` (`batched=False`) or `simulate_batch` (`batched=True`)
+    for a state of `dtype` (values: `check_values`; combinations: `ValueError`) and
+    complete them (default solver, controller and `SaveAt`)."""
+    check_values(t0, t1, dt0, rtol, atol, max_steps)
     solver = default_solver() if solver is None else as_solver(solver)
     if stepsize_controller is not None:
         if rtol is not None or atol is not None:
@@ -167,53 +160,80 @@ def check_values(t0, t1, dt0, rtol, atol, max_steps) -> None:
         )
 
 
-def prepare(
-    system,
-    args,
-    dtype,
-    t0,
-    t1,
-    dt0,
-    solver,
-    rtol,
-    atol,
-    stepsize_controller,
-    saveat,
-    max_steps,
-    adjoint,
-    progress,
-    event,
-    batched=False,
-):
-    """The one prologue of `simulate` and `simulate_batch` after their states: check the
-    options' values (`check_values`) and complete them (`options`), Python floats among
-    the system and `args` as arrays (`as_arrays`), times in the state's dtype (`times`).
+class Run(eqx.Module):
+    """What `solve` runs, as `prepare` made it: the system and `args` (Python floats as
+    arrays), the checked initial state(s) on the tangent bundle (with a leading batch
+    axis for `simulate_batch`), times in the state's dtype and the options."""
 
-    **Returns:** `(system, args, opts, t0, t1, dt0)`."""
-    check_values(t0, t1, dt0, rtol, atol, max_steps)
-    opts = options(
-        solver,
-        dt0,
-        rtol,
-        atol,
-        stepsize_controller,
-        saveat,
-        max_steps,
-        adjoint,
-        progress,
-        event,
-        dtype,
-        batched,
-    )
+    system: Any
+    y0: Any
+    args: Any
+    t0: Any
+    t1: Any
+    dt0: Any
+    opts: Options
+    valid: Any  # which initial states are valid (one entry per member of a batch)
+
+    @property
+    def inputs(self) -> tuple:
+        """`(system, y0, t0, t1, dt0, args)`, as `solve` takes them."""
+        return self.system, self.y0, self.t0, self.t1, self.dt0, self.args
+
+
+def prepare(system, y0, args=None, *, batched: bool = False, throw: bool = True, **options_):
+    """The one prologue of `simulate`, `simulate_batch`, the command line's program and
+    (through `simulate`) `fit`: the state pair `y0` checked against `system.space`
+    (shapes statically; values per state by `initial_states`, raising unless `batched`
+    with `throw=False`), the options checked and completed (`options`, keyword-only: the
+    names of `simulate`'s), Python floats among the system and `args` as arrays
+    (`as_arrays`) and times in the state's dtype (`times`).
+
+    **Returns:** a `Run`."""
+    what = "simulate_batch" if batched else "simulate"
+    q0, v0 = state_pair(y0, "(batch, n, 3)" if batched else "(n, 3)")
+    if batched:
+        leading = {jnp.shape(x)[:1] for x in jax.tree.leaves((q0, v0))}
+        if len(leading) != 1 or leading == {()} or leading == {(0,)}:
+            raise ValueError(
+                "y0 must have a leading batch axis (batch >= 1), the same on every "
+                f"array, got shapes {jax.tree.map(jnp.shape, (q0, v0))}."
+            )
+    else:
+        q0, v0 = jax.tree.map(lambda x: x[None], (q0, v0))
+    system.space.check_shapes(*jax.tree.map(lambda x: x[0], (q0, v0)), system.state_name)
+    dtype = tree_dtype((q0, v0))  # one floating dtype for the whole state
+    opts = options(dtype=dtype, batched=batched, **options_)
     system, args = as_arrays((system, args))
-    return system, args, opts, *times(dtype, t0, t1, dt0)
+    t0, t1, dt0 = times(dtype, options_.get("t0", 0.0), options_["t1"], options_.get("dt0"))
+    y0 = jax.tree.map(lambda x: x.astype(dtype), (q0, v0))
+    y0, valid = initial_states(system.space, system.state_name, y0, what, throw or not batched)
+    if not batched:
+        y0 = jax.tree.map(lambda x: x[0], y0)
+    return Run(system, y0, args, t0, t1, dt0, opts, valid)
 
 
-def as_arrays(tree):
-    """Python floats among the leaves of `tree` (a system and `args`) become arrays, so
-    a new value reuses the compiled program instead of compiling another. Ints and
-    bools stay static: they may describe structure."""
-    return jax.tree.map(lambda x: jnp.asarray(x) if isinstance(x, float | complex) else x, tree)
+OPTION_NAMES = (
+    "t0",
+    "t1",
+    "solver",
+    "dt0",
+    "rtol",
+    "atol",
+    "stepsize_controller",
+    "saveat",
+    "max_steps",
+    "progress",
+    "adjoint",
+    "event",
+    "throw",
+)
+"""The options `simulate` and `simulate_batch` share, as `prepare` takes them."""
+
+
+def run_options(scope: dict) -> dict:
+    """The shared options among the arguments `scope` of `simulate` or `simulate_batch`
+    (their `locals()`): one list of names instead of two spelled-out calls."""
+    return {name: scope[name] for name in OPTION_NAMES}
 
 
 def times(dtype, *ts):
@@ -222,28 +242,15 @@ def times(dtype, *ts):
     return tuple(None if t is None else jnp.asarray(t, dtype=dtype) for t in ts)
 
 
-def initial_state(space, state_name: str, y0, what: str = "simulate"):
-    """Check an initial state `(q0, v0)` of `space` (`v0` named `state_name`) and put it
-    exactly on the tangent bundle.
-
-    States within `unit_tolerance(dtype)` of the spheres (and of tangency) are accepted
-    and corrected (`q_i / |q_i|`, normal part of `v_i` removed); farther ones (and NaN)
-    raise a `ValueError` prefixed `what: ` (inside `jax.jit`, an equinox runtime error)."""
+def state_pair(y0, shapes: str):
+    """`y0` as a pair of arrays (or dicts of arrays) `(q0, v0)`; nested Python lists of
+    numbers become float arrays."""
     if not (isinstance(y0, tuple | list) and len(y0) == 2):
         raise ValueError(
-            "y0 must be a pair (q0, v0) of (n, 3) arrays (dicts of arrays on a mixed space)."
+            f"y0 must be a pair (q0, v0) of {shapes} arrays (dicts of arrays on a mixed space)."
         )
-    q0, v0 = jax.tree.map(as_array, tuple(y0), is_leaf=lambda x: isinstance(x, list))
-    space.check_shapes(q0, v0, state_name)
-    dtype = state_dtype((q0, v0))  # one floating dtype for the whole state
-    y0 = jax.tree.map(lambda x: x[None].astype(dtype), (q0, v0))
-    y0, _ = initial_states(space, state_name, y0, what, check=True)
-    return jax.tree.map(lambda x: x[0], y0)
-
-
-def as_array(x):
-    """An array of `x`; nested Python lists of numbers become float arrays."""
-    return jnp.asarray(x, dtype=float) if isinstance(x, list) else jnp.asarray(x)
+    as_array = lambda x: jnp.asarray(x, dtype=float) if isinstance(x, list) else jnp.asarray(x)
+    return jax.tree.map(as_array, tuple(y0), is_leaf=lambda x: isinstance(x, list))
 
 
 def initial_states(space, state_name: str, y0, what: str, check: bool):
@@ -293,122 +300,13 @@ def _initial_states(space, state_name, y0, raise_traced: bool):
     return y0, problem, messages
 
 
-def rows(mask, x):
-    """`mask` (one entry per member) broadcast against `x` (members along axis 0)."""
-    return jnp.reshape(mask, mask.shape + (1,) * (jnp.ndim(x) - 1))
-
-
-def state_dtype(y):
-    """The floating dtype of a state (all its arrays together)."""
-    return jnp.result_type(*jax.tree.leaves(y))
-
-
-def _all_finite(tree) -> jax.Array:
-    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree)]))
-
-
-@contextlib.contextmanager
-def forward_mode_hint():
-    """Around a run: JAX's refusal of forward mode through the default adjoint (a
-    `jax.custom_vjp`, as is `diffrax.RecursiveCheckpointAdjoint`) becomes an error that
-    says what to pass instead."""
-    try:
-        yield
-    except TypeError as error:
-        if "custom_vjp" not in str(error):
-            raise
-        raise TypeError(
-            "forward-mode differentiation (jax.jvp, jax.jacfwd) of a run needs "
-            "adjoint=diffrax.ForwardMode(); the default adjoint is reverse mode"
-        ) from error
-
-
 def solve(system, y0, t0, t1, dt0, args, opts: Options) -> diffrax.Solution:
     """One trajectory with the adjoint of `opts`, or the default one when it is `None`
-    (see `_default_adjoint`); as `solve_with`."""
+    (`default_adjoint_run`); as `solve_with`."""
     if opts.adjoint is None:
-        return _default_adjoint((system, y0, t0, t1, dt0, args), opts=opts)
+        inputs = (system, y0, t0, t1, dt0, args)
+        return default_adjoint_run(inputs, opts=opts, solve_with=solve_with)
     return solve_with(opts.adjoint, system, y0, t0, t1, dt0, args, opts)
-
-
-@eqx.filter_custom_vjp
-def _default_adjoint(inputs, *, opts: Options) -> diffrax.Solution:
-    r"""`solve_with` differentiated in reverse mode by the default adjoint
-    (`adjoint=None`), chosen at trace time by `default_adjoint` from the number $P$ of
-    differentiated scalars (the parameters, states and times being differentiated) and
-    whether the run is one trajectory of `simulate_batch`:
-
-    - $P \le$ `FORWARD_COLUMNS` (8; `BATCH_FORWARD_COLUMNS`, 2, in a batch): the
-      Jacobian of the run's outputs with respect to those $P$ scalars is computed
-      during the run in forward mode
-      (`diffrax.ForwardMode`, $P$ tangents carried along the steps) and the backward
-      pass multiplies the cotangent by it. Memory: $P + 1$ copies of the solver's state
-      during the run, and the $P \times$ (saved outputs) Jacobian kept for the backward
-      pass, independent of the number of steps and of `max_steps`.
-    - more: `diffrax.RecursiveCheckpointAdjoint()`, reverse mode with online
-      checkpointing. Memory: $\lfloor\sqrt{2 \cdot \text{max\_steps}}\rfloor$
-      checkpoints (447 for the default `max_steps = 100_000`), each a copy of the
-      solver's loop state (the state $(q, v)$, times, the stages a solver keeps between
-      steps), independent of how many steps the run takes.
-
-    Like `RecursiveCheckpointAdjoint`, it does not support forward mode (`jax.jvp`,
-    `jax.jacfwd`): pass `adjoint=diffrax.ForwardMode()` for that."""
-    return solve_with(diffrax.RecursiveCheckpointAdjoint(), *inputs, opts)
-
-
-def _split(perturbed, inputs, opts: Options):
-    """The differentiated leaves of `inputs`, the rest, and the adjoint for them."""
-    x, rest = eqx.partition(inputs, perturbed)
-    columns = sum(leaf.size for leaf in jax.tree.leaves(x))
-    return x, rest, default_adjoint(columns, opts.batched)
-
-
-@_default_adjoint.def_fwd
-def _default_adjoint_fwd(perturbed, inputs, *, opts: Options):
-    x, rest, adjoint = _split(perturbed, inputs, opts)
-
-    def outputs(x):
-        sol = solve_with(adjoint, *eqx.combine(x, rest), opts)
-        return eqx.filter(sol, eqx.is_inexact_array), sol
-
-    if not isinstance(adjoint, diffrax.ForwardMode):
-        out, pullback, sol = jax.vjp(outputs, x, has_aux=True)
-        return sol, (pullback, out)
-    x_flat, unravel = ravel_pytree(x)
-
-    def flat_outputs(x_flat):
-        out, sol = outputs(unravel(x_flat))
-        return ravel_pytree(out)[0], (out, sol)
-
-    jacobian, (out, sol) = jax.jacfwd(flat_outputs, has_aux=True)(x_flat)
-    return sol, (jacobian, out)
-
-
-@_default_adjoint.def_bwd
-def _default_adjoint_bwd(residuals, grad_sol, perturbed, inputs, *, opts: Options):
-    x, _, adjoint = _split(perturbed, inputs, opts)
-    pullback_or_jacobian, out = residuals
-    cotangent = fill_zeros(eqx.filter(grad_sol, eqx.is_inexact_array), out)
-    if not isinstance(adjoint, diffrax.ForwardMode):
-        return pullback_or_jacobian(cotangent)[0]
-    jacobian, unravel = pullback_or_jacobian, ravel_pytree(x)[1]
-    return unravel(jacobian.T @ ravel_pytree(cotangent)[0].astype(jacobian.dtype))
-
-
-def default_adjoint(columns: int, batched: bool = False) -> diffrax.AbstractAdjoint:
-    """The adjoint that `adjoint=None` differentiates a run with when `columns` scalars
-    are differentiated: `diffrax.ForwardMode()` for at most `FORWARD_COLUMNS` (one
-    trajectory) or `BATCH_FORWARD_COLUMNS` (`batched`: one of `simulate_batch`), else
-    `diffrax.RecursiveCheckpointAdjoint()` (see `_default_adjoint`)."""
-    if columns <= (BATCH_FORWARD_COLUMNS if batched else FORWARD_COLUMNS):
-        return diffrax.ForwardMode()
-    return diffrax.RecursiveCheckpointAdjoint()
-
-
-def fill_zeros(tangents, primals):
-    """Symbolic zero tangents (`None`) of array primals as arrays of zeros."""
-    fill = lambda t, p: jnp.zeros_like(p) if t is None and p is not None else t
-    return jax.tree.map(fill, tangents, primals, is_leaf=lambda x: x is None)
 
 
 def solve_with(adjoint, system, y0, t0, t1, dt0, args, opts: Options) -> diffrax.Solution:
@@ -416,7 +314,7 @@ def solve_with(adjoint, system, y0, t0, t1, dt0, args, opts: Options) -> diffrax
     `RESULTS` code. Non-finite rates at the initial state give
     `RESULTS.nonfinite_initial`; a trajectory that stepped into NaN, `RESULTS.nonfinite`
     (an adaptive controller rejects such steps; fixed steps carry the NaN to the end)."""
-    ok = _all_finite(system.rates(t0, y0, args))
+    ok = all_finite(system.rates(t0, y0, args))
     saveat = opts.saveat
     if isinstance(opts.controller, diffrax.AbstractAdaptiveStepSizeController):
         # Not finite at the start: integrate over [t0, t0] (no step, nothing saved)

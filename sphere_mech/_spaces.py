@@ -12,8 +12,6 @@ space's key order: `T = blockdiag(I_m, T_S)`.
 """
 
 import abc
-import functools
-import operator
 from collections.abc import Mapping
 
 import equinox as eqx
@@ -22,55 +20,13 @@ import jax.numpy as jnp
 
 from ._checks import check_shapes, nonfinite, off_tangent, off_unit
 from ._geometry import dot, normalize, project, sphere_exp, tangent_basis
-from ._linalg import basis_directions, from_tangent, reduced_matrix, to_tangent
-from ._solvers.lie_actions import (
+from ._lie import (
     AbstractLieAction,
     ProductAction,
     RotateTranslate,
     SpecialEuclidean,
     Translate,
 )
-
-# --- arithmetic on states (arrays or dicts of arrays) -------------------------------
-
-
-def tree_add(a, b):
-    """`a + b` leaf by leaf."""
-    return jax.tree.map(operator.add, a, b)
-
-
-def tree_sub(a, b):
-    """`a - b` leaf by leaf."""
-    return jax.tree.map(operator.sub, a, b)
-
-
-def tree_scale(s, a):
-    """`s * a` for a scalar `s`, leaf by leaf."""
-    return jax.tree.map(lambda x: s * x, a)
-
-
-def tree_vdot(a, b):
-    """`sum a * b` over every leaf: the pairing of a force (or momentum) with a velocity."""
-    return functools.reduce(
-        operator.add,
-        [jnp.sum(x * y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True)],
-    )
-
-
-def tree_dtype(tree):
-    """The floating dtype of a state (every leaf together)."""
-    return jnp.result_type(*jax.tree.leaves(tree))
-
-
-def tree_zeros_like(tree):
-    """Zeros of the state's structure."""
-    return jax.tree.map(jnp.zeros_like, tree)
-
-
-def tree_max_abs(tree):
-    """`max |x|` over every leaf."""
-    return functools.reduce(jnp.maximum, [jnp.max(jnp.abs(x)) for x in jax.tree.leaves(tree)])
-
 
 # --- spaces -------------------------------------------------------------------------
 
@@ -256,16 +212,19 @@ class Spheres(AbstractFactor):
         return tangent_basis(q)
 
     def to_tangent(self, T, v):
-        return to_tangent(T, v)
+        return jnp.einsum("ica,ic->ia", T, v).reshape(-1)  # T: (n, 3, 2), 2n coordinates
 
     def from_tangent(self, T, a):
-        return from_tangent(T, a)
+        return jnp.einsum("ica,ia->ic", T, a.reshape(T.shape[0], 2))
 
     def reduced_matrix(self, hvp, T):
-        return reduced_matrix(hvp, T)
+        HT = jax.vmap(hvp)(self.directions(T))  # H applied to each basis vector
+        return jax.vmap(lambda col: self.to_tangent(T, col), out_axes=1)(HT)
 
     def directions(self, T):
-        return basis_directions(T)
+        # (2n, n, 3), each nonzero on one sphere: directions[(j, b), i, c] = delta_ij T[j, c, b]
+        n = T.shape[0]
+        return jnp.einsum("ij,jcb->jbic", jnp.eye(n, dtype=T.dtype), T).reshape(2 * n, n, 3)
 
     def dim(self, T):
         return 2 * T.shape[0]

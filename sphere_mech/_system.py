@@ -10,8 +10,9 @@ import jax.numpy as jnp
 
 from ._checks import check_scalar
 from ._custom_types import Args, ForceFn, Points, Scalar, State, Tangents
+from ._misc import all_finite, tree_dtype, tree_vdot, tree_zeros_like
 from ._momentum import invert_momentum, newton_tolerance
-from ._spaces import AbstractSpace, tree_dtype, tree_vdot, tree_zeros_like
+from ._spaces import AbstractSpace
 
 SINGULAR_MESSAGE = (
     "the reduced mass matrix T^T (d^2 L / d v^2) T is singular or not finite: the "
@@ -29,13 +30,10 @@ def check_rates(x, message: str, system, args):
     """Error (at run time) when the rates `x` are not finite: blaming NaN or infinite
     array leaves of `args` or of `system` when there are any, else `message` (a singular
     mass matrix, a degenerate Hamiltonian)."""
-    finite = lambda tree: jnp.all(
-        jnp.stack([jnp.all(jnp.isfinite(jnp.asarray(a))) for a in jax.tree.leaves(tree)] or [True])
-    )
     inexact = lambda x: eqx.is_inexact_array(x) or isinstance(x, float | complex)
     params = eqx.filter((system, args), inexact)
     return eqx.branched_error_if(
-        x, ~finite(x), jnp.where(finite(params), 1, 0), [NONFINITE_PARAMETERS, message]
+        x, ~all_finite(x), jnp.where(all_finite(params), 1, 0), [NONFINITE_PARAMETERS, message]
     )
 
 

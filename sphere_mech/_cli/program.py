@@ -160,36 +160,33 @@ def build(spec, t1=None) -> tuple[Program, jax.stages.Compiled]:
     import equinox as eqx
     import jax.numpy as jnp
 
+    from .._misc import tree_dtype
     from .._results import RESULTS, code, failed
-    from .._solve import as_arrays, initial_state, options, solve, state_dtype, times
+    from .._solve import prepare, solve, times
     from .._solvers.work import WithWork, work_done
 
-    scene = as_arrays(spec.scene)
-    scene.check_size(spec.y0[0])
-    q0, v0 = initial_state(scene.space, scene.state_name, spec.y0)
+    ts, count = segment_times(spec.t0, float(spec.t1 if t1 is None else t1), spec.save_dt)
+    run = prepare(
+        spec.scene,
+        spec.y0,
+        t0=spec.t0,
+        t1=ts[-1, -1],
+        solver=spec.solver,
+        dt0=spec.dt0,
+        rtol=spec.rtol,
+        atol=spec.atol,
+        max_steps=spec.max_steps,
+    )
+    scene, (q0, v0), opts = run.system, run.y0, run.opts
     dynamic, static = eqx.partition(scene, eqx.is_array)
     params, treedef = jax.tree.flatten(dynamic)
-    ts, count = segment_times(spec.t0, float(spec.t1 if t1 is None else t1), spec.save_dt)
-    opts = options(
-        spec.solver,
-        spec.dt0,
-        spec.rtol,
-        spec.atol,
-        None,
-        None,
-        spec.max_steps,
-        None,
-        False,
-        None,
-        state_dtype((q0, v0)),
-    )
 
     def segment(t_start, ts, q, v, params):
         system = eqx.combine(jax.tree.unflatten(treedef, params), static)
         forced = system.has_forces  # the work of the forces, summed over the steps
         solver = WithWork(opts.solver) if forced else opts.solver
         saveat = diffrax.SaveAt(ts=ts, solver_state=forced)
-        t_start, t_end, dt0 = times(state_dtype((q, v)), t_start, ts[-1], spec.dt0)
+        t_start, t_end, dt0 = times(tree_dtype((q, v)), t_start, ts[-1], spec.dt0)
         if isinstance(opts.controller, diffrax.ConstantStepSize):  # diffrax divides a
             # segment into equal steps: as many as dt0 fits, the save times' rounding aside
             dt0 = (t_end - t_start) / jnp.ceil((t_end - t_start) / dt0 * (1 - 1e-12))

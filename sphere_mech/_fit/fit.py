@@ -10,13 +10,14 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
-import numpy as np
 import optimistix as optx
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, PyTree
 
+from .._misc import as_arrays, tree_add, tree_dtype
 from .._simulate import simulate
-from .._spaces import AbstractSpace, tree_add, tree_dtype
+from .._solve import state_pair
+from .._spaces import AbstractSpace
 from .shooting import Residuals, map_flagged, model_output, over_states, split_segments
 
 
@@ -86,15 +87,6 @@ class FitResult(eqx.Module):
     dof: int = eqx.field(static=True)
 
 
-def _as_arrays(params):
-    """Python and NumPy floats in `params` become JAX arrays (so they are fitted)."""
-    is_float = lambda x: (
-        isinstance(x, float | np.floating)
-        or (isinstance(x, np.ndarray) and np.issubdtype(x.dtype, np.floating))
-    )
-    return jtu.tree_map(lambda x: jnp.asarray(x) if is_float(x) else x, params)
-
-
 def _positive_flags(params0, positive) -> tuple[bool, ...]:
     """One flag per floating-point array leaf of `params0` (in `tree_leaves` order)."""
     if isinstance(positive, bool):
@@ -119,12 +111,7 @@ def _positive_flags(params0, positive) -> tuple[bool, ...]:
 def _as_batch(space: AbstractSpace, ts, observations, y0):
     """Bring `ts`, `observations`, `y0` to a leading batch axis of records; check shapes
     (those of one state by the system's `space`)."""
-    if not (isinstance(y0, tuple | list) and len(y0) == 2):
-        raise ValueError(
-            "y0 must be a pair (q0, v0) of (n, 3) or (B, n, 3) arrays (on a mixed space, "
-            "dicts of arrays, with or without a leading axis B)."
-        )
-    q0, v0 = jtu.tree_map(jnp.asarray, tuple(y0))
+    q0, v0 = state_pair(y0, "(n, 3) or (B, n, 3)")
     lead = space.batch_shape(q0)
     if len(lead) > 1 or space.batch_shape(v0) != lead:
         raise ValueError(
@@ -370,7 +357,7 @@ def fit(
         if key in sim:
             raise ValueError(f"simulate_options may not set {key!r}; fit sets it.")
     sim["adjoint"] = adjoint
-    params0 = _as_arrays(params0)
+    params0 = as_arrays(params0)
     flags = _positive_flags(params0, positive)
     dynamic, static = eqx.partition(params0, eqx.is_inexact_array)
     system0, args0 = model_output(model, params0)

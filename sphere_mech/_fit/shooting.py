@@ -12,8 +12,8 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, PyTree
 
+from .._misc import fill_zeros
 from .._simulate import simulate
-from .._solve import fill_zeros
 from .._spaces import AbstractSpace
 from .._system import AbstractSystem
 

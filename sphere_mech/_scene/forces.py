@@ -7,7 +7,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._spaces import tree_dtype
+from .._misc import tree_dtype
 from . import base
 from .base import AbstractDrive, AbstractForce, ParameterError, spheres_of
 

@@ -8,7 +8,7 @@ import jax.scipy.linalg as jsl
 import numpy as np
 
 from .._inertia import AbstractConstantInertiaLagrangian
-from .._spaces import tree_dtype, tree_zeros_like
+from .._misc import tree_dtype, tree_zeros_like
 from .base import AbstractEffect, AbstractForce, AbstractKinetic, AbstractPotential, ParameterError
 from .forces import BaseTorque, TipForce
 from .kinetic import Base, Chain, chain_inertia, chain_inverse_bands

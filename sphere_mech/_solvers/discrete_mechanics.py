@@ -27,8 +27,8 @@ from jax import lax
 
 from .._anderson import Anderson
 from .._inertia import AbstractConstantInertiaLagrangian
+from .._misc import tree_add, tree_scale
 from .._momentum import newton, residual_scale
-from .._spaces import tree_add, tree_scale
 from .._system import AbstractLagrangianSystem
 
 

@@ -17,9 +17,9 @@ from diffrax import (
     ThirdOrderHermitePolynomialInterpolation,
 )
 
-from .._spaces import tree_sub
+from .._lie import AbstractLieAction
+from .._misc import tree_sub
 from .._term import space_of, system_of
-from .lie_actions import AbstractLieAction
 from .rk4 import RK4
 
 ACTIONS = ("SE3", "SO3xR3")

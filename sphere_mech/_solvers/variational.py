@@ -11,8 +11,8 @@ import numpy as np
 from diffrax import RESULTS, AbstractSolver, ThirdOrderHermitePolynomialInterpolation
 from jax import lax
 
+from .._misc import tree_dtype
 from .._momentum import newton_tolerance
-from .._spaces import tree_dtype
 from .._term import MechanicsTerm, physical_time, system_of
 from .discrete_mechanics import check_lagrangian, substep
 

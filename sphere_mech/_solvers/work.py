@@ -4,7 +4,7 @@ import jax
 import jax.numpy as jnp
 from diffrax import AbstractSolver
 
-from .._spaces import tree_dtype
+from .._misc import tree_dtype
 from .._term import physical_time, system_of
 from .wrapped import AbstractTransparentSolver, unwrapped
 

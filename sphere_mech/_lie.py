@@ -13,7 +13,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._geometry import dexpinv_so3, left_jacobian, project, rotate
+from ._geometry import dexpinv_so3, left_jacobian, project, rotate
 
 
 class AbstractLieAction(eqx.Module):

@@ -1,0 +1,78 @@
+"""Arithmetic on pytrees of arrays (states, forces, parameters): the lowest layer, used
+by every other module."""
+
+import functools
+import operator
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def tree_add(a, b):
+    """`a + b` leaf by leaf."""
+    return jax.tree.map(operator.add, a, b)
+
+
+def tree_sub(a, b):
+    """`a - b` leaf by leaf."""
+    return jax.tree.map(operator.sub, a, b)
+
+
+def tree_scale(s, a):
+    """`s * a` for a scalar `s`, leaf by leaf."""
+    return jax.tree.map(lambda x: s * x, a)
+
+
+def tree_vdot(a, b):
+    """`sum a * b` over every leaf: the pairing of a force (or momentum) with a velocity."""
+    return functools.reduce(
+        operator.add,
+        [jnp.sum(x * y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True)],
+    )
+
+
+def tree_dtype(tree):
+    """The floating dtype of a state (every leaf together)."""
+    return jnp.result_type(*jax.tree.leaves(tree))
+
+
+def tree_zeros_like(tree):
+    """Zeros of the state's structure."""
+    return jax.tree.map(jnp.zeros_like, tree)
+
+
+def tree_max_abs(tree):
+    """`max |x|` over every leaf."""
+    return functools.reduce(jnp.maximum, [jnp.max(jnp.abs(x)) for x in jax.tree.leaves(tree)])
+
+
+def all_finite(tree) -> jax.Array:
+    """Whether every array leaf of `tree` is finite (Python numbers count; `True` for a
+    tree without leaves)."""
+    leaves = [jnp.all(jnp.isfinite(jnp.asarray(x))) for x in jax.tree.leaves(tree)]
+    return functools.reduce(jnp.logical_and, leaves, jnp.array(True))
+
+
+def fill_zeros(tangents, primals):
+    """Symbolic zero tangents (`None`) of floating array primals as arrays of zeros."""
+    fill = lambda t, p: jnp.zeros_like(p) if t is None and eqx.is_inexact_array(p) else t
+    return jax.tree.map(fill, tangents, primals, is_leaf=lambda x: x is None)
+
+
+def rows(mask, x):
+    """`mask` (one entry per member) broadcast against `x` (members along axis 0)."""
+    return jnp.reshape(mask, mask.shape + (1,) * (jnp.ndim(x) - 1))
+
+
+def as_arrays(tree):
+    """Python and NumPy floats among the leaves of `tree` (a system, `args`, parameters)
+    become JAX arrays, so a new value reuses the compiled program instead of compiling
+    another (and can be differentiated). Ints and bools stay static: they may describe
+    structure."""
+    is_float = lambda x: (
+        isinstance(x, float | complex | np.floating)
+        or (isinstance(x, np.ndarray) and np.issubdtype(x.dtype, np.inexact))
+    )
+    return jax.tree.map(lambda x: jnp.asarray(x) if is_float(x) else x, tree)
