@@ -90,7 +90,11 @@ if TYPE_CHECKING:  # the public names; imported on first use (see `__getattr__`)
     from ._solvers.projected import Projected as Projected
     from ._solvers.rk4 import RK4 as RK4
     from ._solvers.variational import Variational as Variational
-    from ._spaces import Euclidean as Euclidean, Spheres as Spheres
+    from ._spaces import (
+        Euclidean as Euclidean,
+        Spheres as Spheres,
+        chain_space as chain_space,
+    )
     from ._system import (
         AbstractHamiltonianSystem as AbstractHamiltonianSystem,
         AbstractLagrangianSystem as AbstractLagrangianSystem,

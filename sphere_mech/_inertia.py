@@ -18,9 +18,10 @@ forces normal to its subspace (`P = I - A^T A`) are eliminated exactly, which ch
 only the first sphere's entries of `S` (a rank-one correction): still O(n)."""
 
 import abc
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from typing import ClassVar
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -31,80 +32,32 @@ from ._custom_types import Args, ForceFn, Points, Scalar
 from ._geometry import normalize
 from ._linalg import spd_solve, tridiagonal_matvec, tridiagonal_spd_solve
 from ._misc import all_finite
-from ._spaces import AbstractSpace, Euclidean, Product, Spheres
+from ._spaces import AbstractSpace, Spheres, chain_parts, chain_state
 from ._system import AbstractLagrangianSystem, as_time
 
 
 class AbstractConstantInertiaLagrangian(AbstractLagrangianSystem):
     """Base of systems whose kinetic energy is `1/2 sum_jk M_jk qdot_j . qdot_k` with a
     constant symmetric positive-definite `M` (n x n); state `(q, qdot)`. Subclasses give
-    `inertia`, `potential` and `forces`, and may override `inverse_inertia_bands` (O(n)
-    solves) and `kinetic_energy` (a cheaper formula than the dense one)."""
+    `inertia`, `inverse_inertia_bands` (O(n) solves when `M^-1` is tridiagonal),
+    `kinetic_energy`, `potential`, `forces`, `base_axes` and their `space`.
+
+    With a base (`base_axes` not `None`) the space is `chain_space(m, n)`: states,
+    velocities and forces hold the base's coordinates along the axes and the unit
+    vectors (`chain_parts`), and `inertia`, `inverse_inertia_bands` and
+    `kinetic_energy` are over the `n + 1` points `[base, spheres]`, the base's point
+    being `A^T x` (plus a fixed offset)."""
 
     quadratic_in_velocity: ClassVar[bool] = True
     state_name: ClassVar[str] = "qdot"
     angular: ClassVar[bool] = False
 
     @property
+    @abc.abstractmethod
     def base_axes(self) -> jax.Array | None:
-        """The directions a point-mass base moves along, or `None` (the default: the
-        spheres hang from a fixed support).
-
-        With a base, configurations are dicts `{"base": (m,), "spheres": (n, 3)}` (the
-        base's coordinates along the axes, the unit vectors), velocities and forces alike,
-        and `inertia`, `inverse_inertia_bands` and `kinetic_energy` are over the `n + 1`
-        points `[base, spheres]`, the base's point being `A^T x` (plus a fixed offset).
-
-        **Returns:** `A`, `(m, 3)` with orthonormal rows (`m` = 1: a line, 2: a plane,
-        3: space), or `None`.
-        """
-        return None
-
-    @property
-    def space(self) -> AbstractSpace:
-        """`Spheres()`, or with a base `{"base": Euclidean(m), "spheres": Spheres()}` (any
-        number of spheres: `check_size` checks it where the system fixes it)."""
-        A = self.base_axes
-        if A is None:
-            return Spheres()
-        return Product({"base": Euclidean(A.shape[-2]), "spheres": Spheres()})
-
-    def check_size(self, q) -> None:
-        super().check_size(self.spheres(q) if isinstance(q, Mapping) else q)
-
-    def spheres(self, q):
-        """The unit vectors of a configuration (`q` itself without a base).
-
-        **Arguments:**
-        - `q`: a configuration (or any state-structured value: velocities, forces).
-
-        **Returns:** its `(n, 3)` sphere part.
-        """
-        return q if self.base_axes is None else q["spheres"]
-
-    def lift(self, v) -> jax.Array:
-        """The 3-D rows of a state-structured vector: the base's components along its
-        axes become a 3-D vector (`A^T v_base`) stacked before the spheres' rows.
-
-        **Arguments:**
-        - `v`: a velocity, force or momentum of this system.
-
-        **Returns:** an `(n, 3)` array, `(n + 1, 3)` with a base.
-        """
-        A = self.base_axes
-        return v if A is None else jnp.concatenate([(v["base"] @ A)[None], v["spheres"]])
-
-    def drop(self, z: jax.Array):
-        """The inverse of `lift` on vectors in the base's subspace: `A z_0` and the
-        spheres' rows.
-
-        **Arguments:**
-        - `z`: 3-D rows as `lift` returns them.
-
-        **Returns:** the state-structured vector.
-        """
-        A = self.base_axes
-        return z if A is None else {"base": A @ z[0], "spheres": z[1:]}
+        """The directions a point-mass base moves along (`A`, `(m, 3)` with orthonormal
+        rows; `m` = 1: a line, 2: a plane, 3: space), or `None`: the spheres hang from a
+        fixed support."""
 
     @abc.abstractmethod
     def inertia(self, args: Args) -> jax.Array:
@@ -118,17 +71,6 @@ class AbstractConstantInertiaLagrangian(AbstractLagrangianSystem):
         """
 
     @abc.abstractmethod
-    def potential(self, t, q: Points, args: Args) -> Scalar:
-        """The potential energy `U(t, q, args)`.
-
-        **Arguments:**
-        - `t`: time.
-        - `q`: the configuration: `(n, 3)` unit vectors (a dict with a base).
-        - `args`: the user's `args`.
-
-        **Returns:** a scalar.
-        """
-
     def inverse_inertia_bands(self, args: Args) -> tuple[jax.Array, jax.Array] | None:
         """The bands of `M^-1` when it is tridiagonal (then every solve costs O(n)).
 
@@ -136,10 +78,10 @@ class AbstractConstantInertiaLagrangian(AbstractLagrangianSystem):
         - `args`: the user's `args`.
 
         **Returns:** its diagonal `(N,)` and off-diagonal `(N - 1,)` (`N` the size of `M`),
-        or `None` (the default) for a dense `M`.
+        or `None` for a dense `M`.
         """
-        return None
 
+    @abc.abstractmethod
     def kinetic_energy(self, q, qdot, args) -> Scalar:
         """The kinetic energy `1/2 sum_jk M_jk qdot_j . qdot_k`.
 
@@ -150,8 +92,55 @@ class AbstractConstantInertiaLagrangian(AbstractLagrangianSystem):
 
         **Returns:** a scalar.
         """
-        z = self.lift(qdot)
-        return 0.5 * jnp.sum(self.inertia(args) * (z @ z.T))
+
+    @abc.abstractmethod
+    def potential(self, t, q: Points, args: Args) -> Scalar:
+        """The potential energy `U(t, q, args)`.
+
+        **Arguments:**
+        - `t`: time.
+        - `q`: the configuration: `(n, 3)` unit vectors (with a base, the state of a
+          `chain_space`).
+        - `args`: the user's `args`.
+
+        **Returns:** a scalar.
+        """
+
+    def spheres(self, q):
+        """The unit vectors of a configuration (`q` itself without a base).
+
+        **Arguments:**
+        - `q`: a configuration (or any state-structured value: velocities, forces).
+
+        **Returns:** its `(n, 3)` sphere part.
+        """
+        return chain_parts(q)[1]
+
+    def lift(self, v) -> jax.Array:
+        """The 3-D rows of a state-structured vector: the base's components along its
+        axes become a 3-D vector (`A^T v_base`) stacked before the spheres' rows.
+
+        **Arguments:**
+        - `v`: a velocity, force or momentum of this system.
+
+        **Returns:** an `(n, 3)` array, `(n + 1, 3)` with a base.
+        """
+        base, spheres = chain_parts(v)
+        return (
+            spheres if base is None else jnp.concatenate([(base @ self.base_axes)[None], spheres])
+        )
+
+    def drop(self, z: jax.Array):
+        """The inverse of `lift` on vectors in the base's subspace: `A z_0` and the
+        spheres' rows.
+
+        **Arguments:**
+        - `z`: 3-D rows as `lift` returns them.
+
+        **Returns:** the state-structured vector.
+        """
+        A = self.base_axes
+        return z if A is None else chain_state(A @ z[0], z[1:])
 
     def lagrangian(self, t, q, qdot, args):
         return self.kinetic_energy(q, qdot, args) - self.potential(t, q, args)
@@ -166,9 +155,9 @@ class AbstractConstantInertiaLagrangian(AbstractLagrangianSystem):
         also takes the force normal to its subspace that keeps `x_base` in it). With
         `target = 0`, `x` is the tangent vector with `P M x = P rhs`: the inverse of
         `T^T (M kron I) T` applied to `T^T rhs`, without forming it. Everything that
-        depends on `q` only is built once, so the map can be applied to many right-hand
-        sides (the Newton iterations of `Variational`); each application is O(n) when
-        `M^-1` is tridiagonal.
+        depends on `q` only is built once (`_Dense` or `_Banded`, with `_BaseRow` for a
+        base), so the map can be applied to many right-hand sides (the Newton iterations
+        of `Variational`); each application is O(n) when `M^-1` is tridiagonal.
 
         **Arguments:**
         - `q`: the configuration (its unit vectors are normalized first).
@@ -178,47 +167,16 @@ class AbstractConstantInertiaLagrangian(AbstractLagrangianSystem):
         the state, `target` of shape `(n,)` (default zeros).
         """
         s = normalize(self.spheres(q))
-        k = 0 if self.base_axes is None else 1  # the first sphere's row
         bands = self.inverse_inertia_bands(args)
         if bands is None:
-            M = self.inertia(args).astype(s.dtype)
-            Minv = spd_solve(M, jnp.eye(M.shape[0], dtype=s.dtype))
-            apply = lambda x: jnp.sum(Minv[:, :, None] * x[None], axis=1)
-            column = Minv[:, 0]  # Minv e_0, used with a base
-            S = Minv[k:, k:] * jnp.sum(s[:, None] * s[None], axis=-1)
+            inverse = _Dense(self.inertia(args).astype(s.dtype), s)
         else:
-            d, e = (b.astype(s.dtype) for b in bands)
-            apply = lambda x: tridiagonal_matvec(d, e, x)
-            column = jnp.zeros_like(d).at[: 1 + k].set(jnp.concatenate([d[:1], e[:k]]))
-            S_diag, S_off = d[k:], e[k:] * jnp.sum(s[:-1] * s[1:], axis=-1)
-        if k:
-            # Eliminate the base's normal force `-P w_0 / Minv_00` (w = Minv (rhs + lam q)):
-            # x = w - Minv[:, 0] (P w_0) / Minv_00.
-            A = self.base_axes.astype(s.dtype)
-            P = jnp.eye(3, dtype=s.dtype) - A.T @ A
-            c = column[1:] / column[0]
-            sPs = (s @ P) @ s.T
-            if bands is None:
-                S = S - column[0] * jnp.outer(c, c) * sPs
-            else:
-                S_diag = S_diag.at[0].add(-column[0] * c[0] ** 2 * sPs[0, 0])
-        solve = (
-            (lambda r: spd_solve(S, r))
-            if bands is None
-            else (lambda r: tridiagonal_spd_solve(S_diag, S_off, r))
-        )
+            inverse = _Banded(*(b.astype(s.dtype) for b in bands), s)
+        if self.base_axes is not None:
+            inverse = _BaseRow(inverse, self.base_axes.astype(s.dtype), s)
 
         def multiplier_solve(rhs, target=None):
-            y = apply(self.lift(rhs))
-            r = -jnp.sum(s * y[k:], axis=-1)
-            r = r if target is None else r + target
-            if k:
-                r = r + c * (s @ (P @ y[0]))
-            lam = solve(r)
-            w = y + apply(jnp.concatenate([jnp.zeros((k, 3), s.dtype), lam[:, None] * s]))
-            if k:
-                w = w - column[:, None] * (P @ w[0]) / column[0]
-            return self.drop(w)
+            return self.drop(inverse.solve(self.lift(rhs), target))
 
         return multiplier_solve
 
@@ -252,6 +210,115 @@ class AbstractConstantInertiaLagrangian(AbstractLagrangianSystem):
         del guess, quadratic, tol, max_steps
         v = self.multiplier_solver(q, args)(p)
         return v, RESULTS.where(all_finite(v), RESULTS.successful, RESULTS.singular)
+
+
+class _AbstractInverse(eqx.Module):
+    """`M^-1` and the Schur matrix `S_ij = (M^-1)_ij q_i . q_j` of the multipliers at a
+    configuration (its unit vectors `s`), over the rows of `lift`: the spheres' rows
+    start at `first` (1 with a base)."""
+
+    s: eqx.AbstractVar[jax.Array]
+
+    @abc.abstractmethod
+    def apply(self, x: jax.Array) -> jax.Array:
+        """`M^-1 x` for 3-D rows `x`."""
+
+    @abc.abstractmethod
+    def column(self) -> jax.Array:
+        """`M^-1 e_0`, the first column (used with a base)."""
+
+    @abc.abstractmethod
+    def schur_solve(self, r: jax.Array, base=None) -> jax.Array:
+        """`S^-1 r`; with a base's row (`base = (c, Minv_00, sP)`, `sP = s P`), of
+        `S - Minv_00 c c^T (s P s^T)` (only its first diagonal entry changes when `M^-1`
+        is tridiagonal)."""
+
+    def solve(self, z: jax.Array, target=None) -> jax.Array:
+        """`w = M^-1 (z + lam q)` with `q_i . w_i = target_i` (no base)."""
+        y = self.apply(z)
+        r = -jnp.sum(self.s * y, axis=-1)
+        lam = self.schur_solve(r if target is None else r + target)
+        return self.add_multipliers(y, lam)
+
+    def add_multipliers(self, y: jax.Array, lam: jax.Array) -> jax.Array:
+        """`y + M^-1 (lam q)` (the spheres' rows being the last ones)."""
+        padding = jnp.zeros((y.shape[0] - self.s.shape[0], 3), self.s.dtype)
+        return y + self.apply(jnp.concatenate([padding, lam[:, None] * self.s]))
+
+
+class _Dense(_AbstractInverse):
+    Minv: jax.Array
+    s: jax.Array
+    first: int = eqx.field(static=True)
+
+    def __init__(self, M, s):
+        self.Minv, self.s = spd_solve(M, jnp.eye(M.shape[0], dtype=s.dtype)), s
+        self.first = M.shape[0] - s.shape[0]
+
+    def apply(self, x):
+        return jnp.sum(self.Minv[:, :, None] * x[None], axis=1)
+
+    def column(self):
+        return self.Minv[:, 0]
+
+    def schur_solve(self, r, base=None):
+        k = self.first
+        S = self.Minv[k:, k:] * jnp.sum(self.s[:, None] * self.s[None], axis=-1)
+        if base is not None:
+            c, Minv00, sP = base
+            S = S - Minv00 * jnp.outer(c, c) * (sP @ self.s.T)
+        return spd_solve(S, r)
+
+
+class _Banded(_AbstractInverse):
+    d: jax.Array
+    e: jax.Array
+    s: jax.Array
+    first: int = eqx.field(static=True)
+
+    def __init__(self, d, e, s):
+        self.d, self.e, self.s, self.first = d, e, s, d.shape[0] - s.shape[0]
+
+    def apply(self, x):
+        return tridiagonal_matvec(self.d, self.e, x)
+
+    def column(self):
+        k = self.first
+        return jnp.zeros_like(self.d).at[: 1 + k].set(jnp.concatenate([self.d[:1], self.e[:k]]))
+
+    def schur_solve(self, r, base=None):
+        k = self.first
+        diagonal = self.d[k:]
+        off = self.e[k:] * jnp.sum(self.s[:-1] * self.s[1:], axis=-1)
+        if base is not None:
+            c, Minv00, sP = base
+            diagonal = diagonal.at[0].add(-Minv00 * c[0] ** 2 * (sP[0] @ self.s[0]))
+        return tridiagonal_spd_solve(diagonal, off, r)
+
+
+class _BaseRow(eqx.Module):
+    """A base's row added to `inverse`: the force normal to the base's subspace
+    (`P = I - A^T A`) that keeps it there, `-P w_0 / Minv_00` with `w = Minv (rhs + lam q)`,
+    is eliminated exactly: `x = w - Minv e_0 (P w_0) / Minv_00`, and `S` changes by the
+    rank-one term `Minv_00 c c^T (q_i . P q_j)`, `c = Minv[1:, 0] / Minv_00` (its first
+    diagonal entry only when `M^-1` is tridiagonal): still O(n)."""
+
+    inverse: _AbstractInverse
+    P: jax.Array
+
+    def __init__(self, inverse, A, s):
+        self.inverse, self.P = inverse, jnp.eye(3, dtype=s.dtype) - A.T @ A
+
+    def solve(self, z, target=None):
+        inverse, P, s = self.inverse, self.P, self.inverse.s
+        column = inverse.column()
+        c = column[1:] / column[0]
+        y = inverse.apply(z)
+        r = -jnp.sum(s * y[1:], axis=-1)
+        r = (r if target is None else r + target) + c * (s @ (P @ y[0]))
+        lam = inverse.schur_solve(r, (c, column[0], s @ P))
+        w = inverse.add_multipliers(y, lam)
+        return w - column[:, None] * (P @ w[0]) / column[0]
 
 
 class ConstantInertiaLagrangian(AbstractConstantInertiaLagrangian):
@@ -293,8 +360,20 @@ class ConstantInertiaLagrangian(AbstractConstantInertiaLagrangian):
         check_function(self.potential_fn, "potential", "U(t, q, args)", 3)
 
     @property
-    def n(self) -> int | None:
-        return None if callable(self.inertia_matrix) else self.inertia_matrix.shape[0]
+    def space(self) -> AbstractSpace:
+        """`Spheres(n)` with the inertia matrix's `n` (`Spheres()`, any `n`, for an
+        inertia function)."""
+        return Spheres(None if callable(self.inertia_matrix) else self.inertia_matrix.shape[0])
+
+    @property
+    def base_axes(self) -> None:
+        return None
+
+    def inverse_inertia_bands(self, args):
+        return None
+
+    def kinetic_energy(self, q, qdot, args):
+        return 0.5 * jnp.sum(self.inertia(args) * (qdot @ qdot.T))
 
     def inertia(self, args):
         M = self.inertia_matrix

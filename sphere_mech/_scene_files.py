@@ -42,6 +42,7 @@ from ._solvers.names import (  # noqa: F401 (DIFFRAX_SOLVERS, PLAIN_SOLVERS: the
     PLAIN_SOLVERS,
     parse_solver,
 )
+from ._spaces import chain_state
 
 
 class SceneFileError(ValueError):
@@ -267,7 +268,7 @@ def _initial(path, table, scene: Scene):
                 f"{expected}: {count} (at most {MAX_MAGNITUDE:g} in magnitude), got {_show(value)}",
             )
         x[key] = jnp.asarray(value, dtype=q.dtype)
-    return {"base": x["base"], "spheres": q}, {"base": x["base_velocity"], "spheres": qdot}
+    return chain_state(x["base"], q), chain_state(x["base_velocity"], qdot)
 
 
 def _spheres_initial(path, table, n: int):
@@ -343,7 +344,7 @@ class SceneSpec:
     - `name`: the scene's `name` (default: the file's stem).
     - `scene`: the `Scene` built from `[[effects]]`.
     - `y0`: the initial state `(q0, qdot0)` from `[initial]`: `(n, 3)` arrays (with a
-      `Base`, dicts `{"base": (m,), "spheres": (n, 3)}`).
+      `Base`, states of `sm.chain_space(m, n)`).
     - `solver`: the solver named in `[simulate]` (default `Projected(diffrax.Tsit5())`).
     - `solver_name`: the solver as the file spells it.
     - `t0`, `t1`: start and end times (s).

@@ -164,6 +164,7 @@ class Spheres(AbstractFactor):
     def check_shapes(self, q, v, v_name="v", q_name="q"):
         if self.n is not None and jnp.ndim(q) == 2 and jnp.shape(q)[0] != self.n:
             raise ValueError(
+                f"the state has {jnp.shape(q)[0]} spheres but the system has {self.n}: "
                 f"{q_name} must have shape ({self.n}, 3) (Spheres({self.n})), got {jnp.shape(q)}."
             )
         check_shapes(q, v, v_name, q_name)
@@ -454,3 +455,28 @@ def as_space(space) -> AbstractSpace:
         'non-empty dict of them with string keys, e.g. {"base": sm.Euclidean(3), '
         f'"cable": sm.Spheres(4)}}; got {space!r}.'
     )
+
+
+_BASE, _SPHERES = "base", "spheres"  # the keys of a chain_space with a base
+
+
+def chain_space(base: int | None, n: int | None) -> AbstractSpace:
+    """The space of spheres hanging from a pivot that may move (scenes, the fast path):
+    `Spheres(n)`, or with a point-mass base moving in `R^base` the product
+    `{"base": Euclidean(base), "spheres": Spheres(n)}`. Its states, velocities and
+    forces are taken apart by `chain_parts` and put together by `chain_state`: no other
+    module spells its keys."""
+    spheres = Spheres(n)
+    return spheres if base is None else Product({_BASE: Euclidean(base), _SPHERES: spheres})
+
+
+def chain_parts(tree):
+    """`(base, spheres)`: the parts of a state, velocity or force of a `chain_space`
+    (`base` is `None` without a base)."""
+    return (tree[_BASE], tree[_SPHERES]) if isinstance(tree, Mapping) else (None, tree)
+
+
+def chain_state(base, spheres):
+    """The state (velocity, force) of a `chain_space` with these parts (`base` `None`:
+    the spheres' array itself)."""
+    return spheres if base is None else {_BASE: base, _SPHERES: spheres}

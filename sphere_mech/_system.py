@@ -2,7 +2,7 @@
 families, `AbstractLagrangianSystem` and `AbstractHamiltonianSystem`."""
 
 import abc
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 
 import equinox as eqx
 import jax
@@ -134,31 +134,9 @@ class AbstractSystem(eqx.Module):
             return jnp.zeros((), dtype=tree_dtype(q))
         return tree_vdot(f, self.velocity(t, q, v, args))
 
-    @property
-    def n(self) -> int | None:
-        """The number of spheres when the system fixes it (scenes, constant-inertia
-        systems with an inertia matrix), else `None` (any `n`: `L` decides)."""
-        return None
-
-    def check_size(self, q: Points) -> None:
-        """Raise `ValueError` if `q` does not have the system's number of spheres.
-
-        **Arguments:**
-        - `q`: a configuration, `(n, 3)`.
-
-        **Returns:** `None`.
-        """
-        if self.n is None or isinstance(q, Mapping):
-            return  # a mixed space's factors check their own sizes
-        if jnp.ndim(q) == 2 and jnp.shape(q)[0] != self.n:
-            raise ValueError(
-                f"the state has {jnp.shape(q)[0]} spheres but the system has "
-                f"{self.n}: q must have shape ({self.n}, 3), got {jnp.shape(q)}."
-            )
-
     def check_state(self, q: Points, v: Tangents) -> State:
         """Raise a clear error if `(q, v)` is not a valid state (shape, number of
-        spheres, unit length, tangency, within `unit_tolerance`).
+        spheres, unit length, tangency, within `unit_tolerance`), as the space checks it.
 
         **Arguments:**
         - `q`: `(n, 3)` unit vectors.
@@ -166,7 +144,6 @@ class AbstractSystem(eqx.Module):
 
         **Returns:** the unchanged state `(q, v)`.
         """
-        self.check_size(q)
         self.space.check_shapes(q, v, self.state_name)
         return self.space.check_values(q, v, self.state_name)
 

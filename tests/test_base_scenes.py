@@ -65,7 +65,8 @@ def test_base_scene_fast_path_equals_general_path(axes):
             sm.PDPosition(20.0, 8.0, target=target, feedforward=2.0, step=0.5, step_time=0.2)
         ),
     )
-    assert scene.space.factors == {"base": sm.Euclidean(m), "spheres": sm.Spheres()}
+    assert scene.space == sm.chain_space(m, 3)
+    assert scene.space.factors == {"base": sm.Euclidean(m), "spheres": sm.Spheres(3)}
     k = jax.random.split(jax.random.PRNGKey(m), 4)
     s = sm.normalize(jax.random.normal(k[1], (3, 3)))
     q = {"base": jax.random.normal(k[0], (m,)), "spheres": s}

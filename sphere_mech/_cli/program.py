@@ -35,8 +35,7 @@ class Integrated:
 
     **Attributes:**
     - `t`, `q`, `v`: the save times `(T,)` and states `(T, n, 3)` (where the scene's state
-      is a dict, dicts of such arrays with a leading `T` axis, e.g. `{"base": (T, m),
-      "spheres": (T, n, 3)}`).
+      is a dict (`sm.chain_space`), dicts of such arrays with a leading `T` axis).
     - `steps`, `rejected_steps`: the solver's steps (all segments).
     - `wall_time_s`: the time the segments took.
     - `work_index`, `work`: with forces (else `None`), the indices into `t` of the start

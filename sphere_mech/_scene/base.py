@@ -2,7 +2,6 @@
 
 import abc
 import dataclasses
-from collections.abc import Mapping
 
 import equinox as eqx
 import jax
@@ -96,12 +95,6 @@ def check_axes(name: str, x) -> None:
                 f"mutually perpendicular, within {UNIT_TOLERANCE:g}), got "
                 f"{_show(x)}",
             )
-
-
-def spheres_of(q):
-    """The `(n, 3)` sphere part of a scene's state (the state itself without a `Base`),
-    for drives, which see the state but not the scene (effects call `scene.spheres`)."""
-    return q["spheres"] if isinstance(q, Mapping) else q
 
 
 def check_sign(name: str, x, unit: str = "", *, strict: bool = True, scalar=False) -> None:

@@ -8,8 +8,9 @@ import jax
 import jax.numpy as jnp
 
 from .._misc import tree_dtype
+from .._spaces import chain_parts, chain_state
 from . import base
-from .base import AbstractDrive, AbstractForce, ParameterError, spheres_of
+from .base import AbstractDrive, AbstractForce, ParameterError
 
 
 def _relative_omega(q, qdot, scene):
@@ -36,11 +37,8 @@ def _check_drive(field: str, drive, scene, shape=(3,)) -> None:
         e.field = f"{field}.{e.field}" if e.field else field
         raise
     spheres = jax.ShapeDtypeStruct((scene.n, 3), jnp.result_type(float))
-    state = (
-        spheres
-        if scene.base is None
-        else {"base": jax.ShapeDtypeStruct((scene.base.m,), spheres.dtype), "spheres": spheres}
-    )
+    base = None if scene.base is None else jax.ShapeDtypeStruct((scene.base.m,), spheres.dtype)
+    state = chain_state(base, spheres)
     out = jax.eval_shape(drive, jax.ShapeDtypeStruct((), spheres.dtype), state, state, None)
     if out.shape != shape:
         raise ParameterError(
@@ -151,7 +149,7 @@ class PDTorque(AbstractDrive):
         base.check_index(self, "link", self.link, scene.n)
 
     def __call__(self, t, q, qdot, args):
-        x, v = spheres_of(q)[self.link], spheres_of(qdot)[self.link]
+        x, v = chain_parts(q)[1][self.link], chain_parts(qdot)[1][self.link]
         return self.kp * jnp.cross(x, self.target) - self.kd * jnp.cross(x, v)
 
 
@@ -243,7 +241,7 @@ class BaseForce(AbstractForce):
     """A force on the `Base`, in its coordinates (one component per axis: the thrust of a
     drone, the push on a cart).
 
-    Virtual work `f . delta x`: the `"base"` entry of the generalized force.
+    Virtual work `f . delta x`: the base's part of the generalized force.
 
     **Arguments:**
     - `force`: `f` (N): a constant `(m,)` vector or a function
@@ -274,7 +272,7 @@ class BaseForce(AbstractForce):
 
     def generalized_force(self, t, q, qdot, scene, args):
         f = _evaluate(self.force, t, q, qdot, args, (scene.base.m,))
-        return {"base": f, "spheres": jnp.zeros_like(q["spheres"])}
+        return chain_state(f, jnp.zeros_like(chain_parts(q)[1]))
 
 
 class PDPosition(AbstractDrive):
@@ -313,7 +311,7 @@ class PDPosition(AbstractDrive):
             _base_vector(self, name, getattr(self, name), scene)
 
     def __call__(self, t, q, qdot, args):
-        x, v = q["base"], qdot["base"]
+        x, v = chain_parts(q)[0], chain_parts(qdot)[0]
         target = self.target + jnp.where(t >= self.step_time, self.step, 0.0)
         f = self.kp * (target - x) - self.kd * v + self.feedforward
         return jnp.broadcast_to(f, x.shape)

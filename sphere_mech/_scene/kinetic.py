@@ -99,10 +99,11 @@ class Base(AbstractEffect):
     """A point-mass base that moves and carries the scene's chain: a cart on a line, a
     trolley in a plane, a drone in space.
 
-    Its coordinates `x` along `axes` are the `"base"` entry of the scene's state, which
-    becomes a dict `{"base": (m,), "spheres": (n, 3)}` (velocities and generalized forces
-    alike); its point is `position + x @ axes`, and the chain hangs from it. The scene
-    keeps the O(n) fast path (the base is one more point of the chain's inertia).
+    Its coordinates `x` along `axes` join the unit vectors in the scene's state, whose
+    space becomes `sm.chain_space(m, n)` (a dict of the two: see there; velocities and
+    generalized forces alike); its point is `position + x @ axes`, and the chain hangs
+    from it. The scene keeps the O(n) fast path (the base is one more point of the
+    chain's inertia).
 
     **Arguments:**
     - `mass`: the base's mass (kg, `> 0`).

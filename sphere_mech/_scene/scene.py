@@ -9,6 +9,7 @@ import numpy as np
 
 from .._inertia import AbstractConstantInertiaLagrangian
 from .._misc import tree_dtype, tree_zeros_like
+from .._spaces import AbstractSpace, chain_parts, chain_space, chain_state
 from .base import AbstractEffect, AbstractForce, AbstractKinetic, AbstractPotential, ParameterError
 from .forces import BaseTorque, TipForce
 from .kinetic import Base, Chain, chain_inertia, chain_inverse_bands
@@ -23,9 +24,10 @@ class Scene(AbstractConstantInertiaLagrangian):
     traced, each under its class name (no force effect: `forces` is `None`). Each
     effect is checked against the scene (indices, counts) at construction.
 
-    With a `Base`, the scene's one `Chain` hangs from the moving base and the state is a
-    dict `{"base": (m,), "spheres": (n, 3)}` (the space `{"base": Euclidean(m),
-    "spheres": Spheres(n)}`); the fast path stays O(n).
+    With a `Base`, the scene's one `Chain` hangs from the moving base and the state
+    holds the base's coordinates `(m,)` beside the unit vectors `(n, 3)` (the space
+    `chain_space(m, n)`, the product of `Euclidean(m)` and `Spheres(n)`); the fast path
+    stays O(n).
 
     **Arguments:**
     - `effects`: the effects, in any order: at least one kinetic term (`Chain`,
@@ -77,6 +79,11 @@ class Scene(AbstractConstantInertiaLagrangian):
         return self.kinetic + base + self.potentials + self.force_effects
 
     @property
+    def space(self) -> AbstractSpace:
+        """`Spheres(n)`, or with a `Base` `chain_space(m, n)`."""
+        return chain_space(None if self.base is None else self.base.m, self.n)
+
+    @property
     def base_axes(self):
         return None if self.base is None else self.base.axes
 
@@ -126,16 +133,16 @@ class Scene(AbstractConstantInertiaLagrangian):
         """Positions of the masses the spheres carry, in the support frame.
 
         **Arguments:**
-        - `q`: the scene's configuration: `(n, 3)` unit vectors (with a `Base`, the dict
-          `{"base": (m,), "spheres": (n, 3)}`).
+        - `q`: the scene's configuration: `(n, 3)` unit vectors (with a `Base`, the state
+          of `chain_space(m, n)`).
 
         **Returns:** the positions, `(n, 3)` (m).
         """
-        s, o = self.spheres(q), self._offsets()
+        (base, s), o = chain_parts(q), self._offsets()
         x = jnp.concatenate(
             [k.positions(s[a:b]) for k, a, b in zip(self.kinetic, o[:-1], o[1:], strict=True)]
         ).astype(s.dtype)
-        return x if self.base is None else x + self.base.point(q["base"])
+        return x if base is None else x + self.base.point(base)
 
     def points(self, q) -> jax.Array:
         """Positions of every point mass: the base's point (with a `Base`) first, then
@@ -146,8 +153,8 @@ class Scene(AbstractConstantInertiaLagrangian):
 
         **Returns:** an `(n, 3)` array (`(n + 1, 3)` with a `Base`) (m).
         """
-        x = self.positions(q)
-        return x if self.base is None else jnp.concatenate([self.base.point(q["base"])[None], x])
+        x, base = self.positions(q), chain_parts(q)[0]
+        return x if base is None else jnp.concatenate([self.base.point(base)[None], x])
 
     def point_masses(self) -> jax.Array:
         """The masses at `points(q)`.
@@ -163,11 +170,9 @@ class Scene(AbstractConstantInertiaLagrangian):
         **Arguments:**
         - `f`: the spheres' part, `(n, 3)`.
 
-        **Returns:** `f`, or with a `Base` the dict with zeros on `"base"`.
+        **Returns:** `f`, or with a `Base` the force with zeros on the base.
         """
-        if self.base is None:
-            return f
-        return {"base": jnp.zeros((self.base.m,), f.dtype), "spheres": f}
+        return chain_state(None if self.base is None else jnp.zeros((self.base.m,), f.dtype), f)
 
     def parents(self) -> np.ndarray:
         """The joint structure of the scene.

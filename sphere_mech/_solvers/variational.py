@@ -62,7 +62,7 @@ class Variational(AbstractSolver):
     the forced Lagrange-d'Alembert integrator (discrete forces `h/2 f` at both ends of
     the step): reversible in form and of the same order, no longer symplectic.
     Hamiltonian systems are refused with a `ValueError`: simulate their Lagrangian form.
-    On a mixed space (`space={"base": Euclidean(m), ...}`) the multipliers act on the
+    On a mixed space (Euclidean factors beside the spheres) the multipliers act on the
     sphere factors only: a Euclidean factor steps by `x1 = x0 + h a` with its momentum
     `dL/dxdot` unprojected, and the step stays symplectic (tests/test_mixed.py).
 
