@@ -8,8 +8,8 @@ import dataclasses
 import jax
 import numpy as np
 
-from .._scene.kinetic import Chain, Particles, SharedSphere
-from .._scene.scene import Scene
+from ._scene.kinetic import Chain, Particles, SharedSphere
+from ._scene.scene import Scene
 
 
 @dataclasses.dataclass(frozen=True)
