@@ -87,27 +87,34 @@ _HINTS = (
 
 
 def code(result) -> jax.Array:
-    """The number of a result code: its index in `ITEMS` (an `int32` array, with the batch
-    axes of `result` under `vmap`), found with the items' public `==`. Codes stay items
-    inside the library; numbers are for the boundary (messages, the command line). A
-    concrete code gives a concrete number, inside `jit` too (as the items' `==` does)."""
+    """The number of a result code: its index in `ITEMS` (`int32`, with the batch axes of
+    `result` under `vmap`), found with the items' public `==`. Codes stay items inside the
+    library; numbers are for the boundary (messages, the command line). A concrete code
+    gives a concrete number, inside `jit` too (as the items' `==` does)."""
     with jax.ensure_compile_time_eval():
-        number = jnp.zeros(jnp.shape(result == RESULTS.successful), jnp.int32)
-        for i, item in enumerate(ITEMS[1:], start=1):
-            number = jnp.where(result == item, jnp.int32(i), number)
-    return number
+        matches = [result == item for item in ITEMS]
+    if any(isinstance(m, jax.core.Tracer) for m in matches):
+        return jnp.argmax(jnp.stack(matches, axis=-1), axis=-1).astype(jnp.int32)
+    return np.argmax(np.stack(matches, axis=-1), axis=-1).astype(np.int32)
+
+
+def _number(item) -> int:
+    """The number (`code`) of an item of `RESULTS` named in `ITEMS`, without comparing."""
+    return next(i for i, x in enumerate(ITEMS) if x is item)
+
+
+_OK = (_number(RESULTS.successful), _number(RESULTS.event_occurred))
 
 
 def failed(values) -> jax.Array:
     """Which code values are failures: neither success nor a terminating event."""
-    ok = [code(RESULTS.successful), code(RESULTS.event_occurred)]
-    return (values != ok[0]) & (values != ok[1])
+    return (values != _OK[0]) & (values != _OK[1])
 
 
 def _messages(max_steps) -> list[str]:
     """The error message of every code, indexed by its value."""
-    hints = {int(code(item)): hint for item, hint in _HINTS}
-    limit = {int(code(RESULTS.max_steps_reached)): f"max_steps={max_steps}; "}
+    hints = {_number(item): hint for item, hint in _HINTS}
+    limit = {_number(RESULTS.max_steps_reached): f"max_steps={max_steps}; "}
     return [
         f"{RESULTS[item]}{hints.get(i, '')} ({limit.get(i, '')}with throw=False "
         "nothing is raised and sol.result holds the code)"
