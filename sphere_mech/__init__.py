@@ -8,14 +8,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # the public names; imported on first use (see `__getattr__`)
+    from ._animation import animate as animate
     from ._batch import simulate_batch as simulate_batch
     from ._checks import unit_tolerance as unit_tolerance
-    from ._cli.animation import animate as animate
-    from ._cli.report import (
-        SceneResult as SceneResult,
-        run_scene as run_scene,
-        work_energy_balance as work_energy_balance,
-    )
     from ._fit.fit import FitResult as FitResult, fit as fit
     from ._geometry import (
         constraint_error as constraint_error,
@@ -43,6 +38,11 @@ if TYPE_CHECKING:  # the public names; imported on first use (see `__getattr__`)
         omega_from_qdot as omega_from_qdot,
         pi_from_mu as pi_from_mu,
         qdot_from_omega as qdot_from_omega,
+    )
+    from ._report import (
+        SceneResult as SceneResult,
+        run_scene as run_scene,
+        work_energy_balance as work_energy_balance,
     )
     from ._results import RESULTS as RESULTS
     from ._scene.base import (

@@ -31,6 +31,37 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
     )
 
 
+ITEMS = tuple(
+    getattr(RESULTS, name)
+    for name in (
+        # lineax's
+        "successful",
+        "max_steps_reached",
+        "singular",
+        "breakdown",
+        "stagnation",
+        "conlim",
+        "nonfinite_input",
+        # optimistix's
+        "nonlinear_max_steps_reached",
+        "nonlinear_divergence",
+        # diffrax's
+        "nonfinite",
+        "dt_min_reached",
+        "event_occurred",
+        "max_steps_rejected",
+        "internal_error",
+        # ours
+        "nonfinite_initial",
+        "event_root_failed",
+        "invalid_initial",
+    )
+)
+"""Every item of `RESULTS`; `code` numbers an item by its place here. A code that a new
+diffrax, optimistix or lineax adds fails the check below at import (add its name)."""
+if len(ITEMS) != len(RESULTS):
+    raise ImportError(f"sphere_mech.RESULTS has {len(RESULTS)} codes, _results.ITEMS {len(ITEMS)}")
+
 _NEWTON = (
     " The Newton iterations of an implicit step did not converge (or met a singular "
     "Jacobian): use a smaller dt0, an adaptive step-size controller (it retries a failed "
@@ -56,26 +87,38 @@ _HINTS = (
 
 
 def code(result) -> jax.Array:
-    """The integer value(s) of a result code (an array under `vmap`)."""
-    return jax.tree.leaves(result)[0]
+    """The number of a result code: its index in `ITEMS` (`int32`, with the batch axes of
+    `result` under `vmap`), found with the items' public `==`. Codes stay items inside the
+    library; numbers are for the boundary (messages, the command line). A concrete code
+    gives a concrete number, inside `jit` too (as the items' `==` does)."""
+    with jax.ensure_compile_time_eval():
+        matches = [result == item for item in ITEMS]
+    if any(isinstance(m, jax.core.Tracer) for m in matches):
+        return jnp.argmax(jnp.stack(matches, axis=-1), axis=-1).astype(jnp.int32)
+    return np.argmax(np.stack(matches, axis=-1), axis=-1).astype(np.int32)
+
+
+def _number(item) -> int:
+    """The number (`code`) of an item of `RESULTS` named in `ITEMS`, without comparing."""
+    return next(i for i, x in enumerate(ITEMS) if x is item)
+
+
+_OK = (_number(RESULTS.successful), _number(RESULTS.event_occurred))
 
 
 def failed(values) -> jax.Array:
     """Which code values are failures: neither success nor a terminating event."""
-    ok = [code(RESULTS.successful), code(RESULTS.event_occurred)]
-    return (values != ok[0]) & (values != ok[1])
+    return (values != _OK[0]) & (values != _OK[1])
 
 
 def _messages(max_steps) -> list[str]:
     """The error message of every code, indexed by its value."""
-    hints = {int(code(item)): hint for item, hint in _HINTS}
-    item = jax.tree.structure(RESULTS.successful)
-    items = [jax.tree.unflatten(item, [np.asarray(i, np.int32)]) for i in range(len(RESULTS))]
-    limit = {int(code(RESULTS.max_steps_reached)): f"max_steps={max_steps}; "}
+    hints = {_number(item): hint for item, hint in _HINTS}
+    limit = {_number(RESULTS.max_steps_reached): f"max_steps={max_steps}; "}
     return [
         f"{RESULTS[item]}{hints.get(i, '')} ({limit.get(i, '')}with throw=False "
         "nothing is raised and sol.result holds the code)"
-        for i, item in enumerate(items)
+        for i, item in enumerate(ITEMS)
     ]
 
 

@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 
 import sphere_mech as sm
+from sphere_mech._animation import MAX_FRAMES, frame_indices
 from sphere_mech._cli import main
-from sphere_mech._cli.animation import MAX_FRAMES, frame_indices
-from sphere_mech._cli.skeleton import skeleton
+from sphere_mech._drawing import skeleton
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 

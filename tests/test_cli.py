@@ -17,7 +17,7 @@ import pytest
 from sphere_mech._cli import CACHE_ENV, cache_dir, main
 from sphere_mech._cli.figures import figure
 from sphere_mech._cli.program import SEGMENTS, build, segment_times
-from sphere_mech._cli.report import run_scene
+from sphere_mech._report import run_scene
 from sphere_mech._scene_files import load_scene
 
 EXAMPLES = sorted((Path(__file__).resolve().parents[1] / "examples").glob("*.toml"))
@@ -597,7 +597,7 @@ def test_still_forced_scene_writes_strict_json(tmp_path, capsys):
 
 
 def test_strict_json_replaces_what_is_not_finite():
-    from sphere_mech._cli.report import strict_json
+    from sphere_mech._report import strict_json
 
     out = strict_json(
         {"a": 1.0, "b": float("inf"), "c": [0.0, float("nan")], "d": None}, {"d": "why"}

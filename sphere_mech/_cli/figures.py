@@ -6,7 +6,7 @@ and the constraint error (a panel only when it is above rounding level)."""
 
 import numpy as np
 
-from .skeleton import Skeleton, draw_static, equal_axes, skeleton
+from .._drawing import Skeleton, draw_static, equal_axes, skeleton
 
 SNAPSHOTS = 8
 LONG_CHAIN = 4  # more masses on one link: snapshots instead of every path

@@ -2,6 +2,7 @@
 
 import abc
 import dataclasses
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -155,6 +156,22 @@ class AbstractEffect(eqx.Module):
         """Raise `ValueError` if this effect does not fit `scene` (indices, counts)."""
 
 
+class Drawing(NamedTuple):
+    """What a picture shows of a kinetic term, its masses numbered from 0 (its own).
+
+    **Attributes:**
+    - `links`: polylines, each `(support, masses)`: the fixed `(3,)` point it starts from
+      and the masses it joins, in order (in a scene with a moving `Base`, the polyline
+      starts from the base's point instead).
+    - `spheres`: `(centre, radius)` of each sphere drawn (one that several masses share).
+    - `free`: the masses on no link.
+    """
+
+    links: tuple[tuple[np.ndarray, tuple[int, ...]], ...] = ()
+    spheres: tuple[tuple[np.ndarray, float], ...] = ()
+    free: tuple[int, ...] = ()
+
+
 class AbstractKinetic(AbstractEffect):
     """A block of spheres carrying one point mass each, with a constant scalar inertia.
 
@@ -167,12 +184,12 @@ class AbstractKinetic(AbstractEffect):
         """Number of spheres (= number of masses), static."""
         return self.masses.shape[0]
 
+    @abc.abstractmethod
     def point_masses(self) -> jax.Array:
         """The masses carried by the spheres (`masses` plus any payload).
 
         **Returns:** an `(n,)` array (kg).
         """
-        return self.masses
 
     @abc.abstractmethod
     def inertia(self) -> jax.Array:
@@ -199,20 +216,29 @@ class AbstractKinetic(AbstractEffect):
         **Returns:** the positions, `(n, 3)` (m).
         """
 
+    @abc.abstractmethod
     def parents(self) -> tuple[int, ...]:
         """The joint structure, for joint damping and joint torques.
 
         **Returns:** for each sphere, the local index of its parent in its joint (-1: the
         support).
         """
-        return (-1,) * self.n
 
+    @abc.abstractmethod
     def bends(self) -> tuple[tuple[int, int], ...]:
         """Where bending stiffness acts.
 
-        **Returns:** the local index pairs `(i, i + 1)` of consecutive links (none by default).
+        **Returns:** the local index pairs `(i, i + 1)` of consecutive links (may be none).
         """
-        return ()
+
+    @abc.abstractmethod
+    def drawing(self) -> Drawing:
+        """What a picture of this block shows (`sm.animate`, `sphere-mech run`'s figures);
+        called with concrete parameters, outside `jit`.
+
+        **Returns:** a `Drawing`: its links, shared spheres and free masses, numbered
+        locally.
+        """
 
 
 class AbstractPotential(AbstractEffect):

@@ -3,10 +3,12 @@
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .base import (
     AbstractEffect,
     AbstractKinetic,
+    Drawing,
     ParameterError,
     as_float,
     check_axes,
@@ -94,6 +96,9 @@ class Chain(AbstractKinetic):
     def bends(self):
         return tuple((i, i + 1) for i in range(self.n - 1))
 
+    def drawing(self):
+        return Drawing(links=((np.asarray(self.base, float), tuple(range(self.n))),))
+
 
 class Base(AbstractEffect):
     """A point-mass base that moves and carries the scene's chain: a cart on a line, a
@@ -148,23 +153,31 @@ class Base(AbstractEffect):
             )
 
 
+def sphere_masses(masses, radii, centers, count) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """`masses`, `radii` (one per sphere) and `centers` (`(n, 3)`: one `(3,)` centre
+    broadcast) of point masses on spheres, `count` of them (optional)."""
+    masses, radii = per_item(count, "count", masses=masses, radii=radii)
+    centers = as_float(centers)
+    centers = jnp.broadcast_to(centers, (masses.shape[0], 3)) if centers.ndim == 1 else centers
+    return masses, radii, centers
+
+
 class AbstractSphereMasses(AbstractKinetic):
     """Point masses `m_i` each on a sphere of radius `r_i` centred at `c_i`:
-    `x_i = c_i + r_i q_i`, `M = diag(m_i r_i^2)`."""
+    `x_i = c_i + r_i q_i`, `M = diag(m_i r_i^2)`; each sphere its own joint, no bending.
+    What a picture shows is each final class's (`drawing`)."""
 
-    masses: jax.Array
-    radii: jax.Array
-    centers: jax.Array
-
-    def __init__(self, masses, radii, centers, count):
-        self.masses, self.radii = per_item(count, "count", masses=masses, radii=radii)
-        centers = as_float(centers)
-        self.centers = jnp.broadcast_to(centers, (self.n, 3)) if centers.ndim == 1 else centers
+    masses: eqx.AbstractVar[jax.Array]
+    radii: eqx.AbstractVar[jax.Array]
+    centers: eqx.AbstractVar[jax.Array]
 
     def __check_init__(self):
         check_sign("masses", self.masses, " (kg)")
         check_sign("radii", self.radii, " (m)")
         check_shape("centers", self.centers, (self.n, 3), f"a (3,) or ({self.n}, 3) array")
+
+    def point_masses(self):
+        return self.masses
 
     def inertia(self):
         return jnp.diag(self.masses * self.radii**2)
@@ -175,6 +188,12 @@ class AbstractSphereMasses(AbstractKinetic):
 
     def positions(self, q):
         return self.centers + self.radii[:, None] * q
+
+    def parents(self):
+        return (-1,) * self.n
+
+    def bends(self):
+        return ()
 
 
 class Particles(AbstractSphereMasses):
@@ -188,6 +207,10 @@ class Particles(AbstractSphereMasses):
       scalars).
     """
 
+    masses: jax.Array
+    radii: jax.Array
+    centers: jax.Array
+
     def __init__(
         self,
         masses: jax.Array,
@@ -195,7 +218,11 @@ class Particles(AbstractSphereMasses):
         centers: jax.Array = (0.0, 0.0, 0.0),
         count: int | None = None,
     ):
-        super().__init__(masses, radii, centers, count)
+        self.masses, self.radii, self.centers = sphere_masses(masses, radii, centers, count)
+
+    def drawing(self):  # each particle on a link from its centre
+        centers = np.asarray(self.centers, float)
+        return Drawing(links=tuple((centers[i], (i,)) for i in range(self.n)))
 
 
 class SharedSphere(AbstractSphereMasses):
@@ -208,6 +235,10 @@ class SharedSphere(AbstractSphereMasses):
     - `count`: the number of beads (optional; needed when `masses` is a scalar).
     """
 
+    masses: jax.Array
+    radii: jax.Array
+    centers: jax.Array
+
     def __init__(
         self,
         masses: jax.Array,
@@ -217,4 +248,8 @@ class SharedSphere(AbstractSphereMasses):
     ):
         check_sign("radius", radius, " (m)", scalar=True)
         check_vector("center", as_float(center))
-        super().__init__(masses, radius, center, count)
+        self.masses, self.radii, self.centers = sphere_masses(masses, radius, center, count)
+
+    def drawing(self):  # the beads free on their sphere, drawn
+        centre, radius = np.asarray(self.centers[0], float), float(self.radii[0])
+        return Drawing(spheres=((centre, radius),), free=tuple(range(self.n)))

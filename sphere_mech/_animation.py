@@ -17,8 +17,8 @@ import diffrax
 import jax
 import numpy as np
 
-from .._system import AbstractSystem
-from .skeleton import Skeleton, draw_static, equal_axes, positions, skeleton
+from ._drawing import Skeleton, draw_static, equal_axes, positions, skeleton
+from ._system import AbstractSystem
 
 MAX_FRAMES = 150
 TRAIL = 1 / 6  # each tip's recent path: this fraction of the frames

@@ -3,7 +3,8 @@ or with forces the work-energy balance `E(t) - E(0) - W(t)`, `W = int power dt` 
 solver's own steps by the corrected trapezoidal rule `h/2 (P_k + P_{k+1}) + h^2/12 (P'_k -
 P'_{k+1})` (fourth order; `P' = dP/dt` along the flow by `jax.jvp`): in a run of the
 command line, summed during the integration (`WithWork`) and read at the end of every
-segment."""
+segment. The library's side of `sphere-mech run`: `_cli` writes the files of a
+`SceneResult`."""
 
 import dataclasses
 
@@ -13,8 +14,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._solvers.work import power_and_rate, work_step
-from .program import Integrated, build
+from ._solvers.work import power_and_rate, work_step
+from ._spaces import chain_parts
 
 
 @eqx.filter_jit
@@ -59,8 +60,7 @@ class SceneResult:
     **Attributes:**
     - `t`: the saved times, `(T,)`.
     - `q`, `v`: the saved states, `(T, n, 3)` each; where the scene's state is a dict (a
-      scene with a `Base`), dicts of arrays with a leading `T` axis, `{"base": (T, m),
-      "spheres": (T, n, 3)}`.
+      scene with a `Base`: `sm.chain_space`), dicts of arrays with a leading `T` axis.
     - `x`: the points drawn at `t`, `scene.points(q)`: `(T, n, 3)`, `(T, n + 1, 3)` with a
       `Base` (its point first).
     - `energy`: the energy `E` at `t`.
@@ -107,6 +107,10 @@ def run_scene(spec, *, t1=None, progress=False) -> SceneResult:
 
     **Returns:** a `SceneResult`.
     """
+    # The one import from the command line's package left: the segment program lives in
+    # `_cli/program.py` until it moves below `_cli` (then this becomes a top-level import).
+    from ._cli.program import build
+
     return scene_result(spec, build(spec, t1)[0].integrate(progress), t1)
 
 
@@ -128,9 +132,9 @@ def strict_json(summary: dict, reasons: dict) -> dict:
     return out | ({"not_computed": reasons} if reasons else {})
 
 
-def scene_result(spec, run: Integrated, t1=None) -> SceneResult:
+def scene_result(spec, run, t1=None) -> SceneResult:
     """The energy bookkeeping and summary of a run of `spec` up to `t1` (default: the
-    file's), from `Program.integrate`."""
+    file's), from `Program.integrate` (an `Integrated`: times, states, counts, work)."""
     scene, args, forced = spec.scene, None, spec.scene.has_forces
     t1, ts, wall = float(spec.t1 if t1 is None else t1), jnp.asarray(run.t), run.wall_time_s
     q, v = jax.vmap(scene.space.retract)(run.q, run.v) if forced else (run.q, run.v)
@@ -162,7 +166,7 @@ def scene_result(spec, run: Integrated, t1=None) -> SceneResult:
     q, v = jax.tree.map(np.asarray, (q, v))
     constraint = np.max(np.abs(np.linalg.norm(scene.spheres(q), axis=-1) - 1.0), axis=-1)
     x = np.asarray(jax.vmap(scene.points)(q))
-    base = {} if scene.base is None else {"base": q["base"][-1].tolist()}
+    base = {} if scene.base is None else {"base": chain_parts(q)[0][-1].tolist()}
     summary = {
         "scene": spec.name,
         "file": str(spec.path),

@@ -8,8 +8,7 @@ import dataclasses
 import jax
 import numpy as np
 
-from .._scene.kinetic import Chain, Particles, SharedSphere
-from .._scene.scene import Scene
+from ._scene.scene import Scene
 
 
 @dataclasses.dataclass(frozen=True)
@@ -53,27 +52,24 @@ def _anchor(anchors: list, point) -> int:
 
 
 def skeleton(system, n: int) -> Skeleton:
-    """The skeleton of a `Scene` from its kinetic terms (chains hang from their base or
-    the scene's moving `Base`, particles from their centres, beads on a `SharedSphere`
-    show the sphere), for `points(q)`; of any other system, the `n` points on the unit
-    sphere centred at the origin. A `Chain`'s offset from a moving `Base` is drawn as
-    part of its first link."""
+    """The skeleton of a `Scene`, for `points(q)`, from what each kinetic term draws
+    (`AbstractKinetic.drawing`: chains hang from their pivot, particles from their
+    centres, beads on a `SharedSphere` show the sphere); links start from the scene's
+    moving `Base` where it has one (a `Chain`'s offset from it is drawn as part of its
+    first link). Of any other system, the `n` points on the unit sphere centred at the
+    origin."""
     if not isinstance(system, Scene):
         return Skeleton(np.zeros((1, 3)), (), ((np.zeros(3), 1.0),), np.arange(n))
     anchors, links, spheres, free = [], [], [], []
     bases = [] if system.base is None else [0]  # points(q): the base's point first
     offset = len(bases)
     for k in system.kinetic:
-        masses = list(range(offset, offset + k.n))
-        if isinstance(k, Chain):
-            links.append((bases or [_anchor(anchors, k.base)]) + masses)
-        elif isinstance(k, Particles):
-            centers = np.asarray(k.centers)
-            links += [[_anchor(anchors, centers[j]), i] for j, i in enumerate(masses)]
-        else:
-            if isinstance(k, SharedSphere):
-                spheres.append((np.asarray(k.centers[0], float), float(k.radii[0])))
-            free += masses
+        k_links, k_spheres, k_free = k.drawing()
+        for support, masses in k_links:
+            start = bases or [_anchor(anchors, support)]
+            links.append(start + [offset + i for i in masses])
+        spheres += [(np.asarray(c, float), float(r)) for c, r in k_spheres]
+        free += [offset + i for i in k_free]
         offset += k.n
     anchors = np.asarray(anchors, dtype=float).reshape(-1, 3)
     index = lambda i: i + len(anchors) if i >= 0 else -1 - i
