@@ -1,6 +1,6 @@
 """Solve time of `sphere-mech run` against `sm.simulate` on every example scene.
 
-For each `examples/*.toml`: the command line's integration program (`_cli.program.build`,
+For each `examples/*.toml`: the command line's integration program (`_program.build`,
 compiled first, then `Program.integrate`: every segment, the work of the forces included)
 against `sm.simulate` with the file's solver, tolerances and `max_steps`, saving at the
 same times (`SaveAt(ts=...)`, compiled first, `block_until_ready`). Medians of
@@ -25,7 +25,7 @@ import diffrax  # noqa: E402
 import numpy as np  # noqa: E402
 
 import sphere_mech as sm  # noqa: E402
-from sphere_mech._cli.program import build  # noqa: E402
+from sphere_mech._program import build  # noqa: E402
 from sphere_mech._scene_files import load_scene  # noqa: E402
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]

@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._program import build
 from ._solvers.work import power_and_rate, work_step
 from ._spaces import chain_parts
 
@@ -97,7 +98,7 @@ def run_scene(spec, *, t1=None, progress=False) -> SceneResult:
     """Simulate a scene file's scene and report its energy bookkeeping.
 
     The run is the command line's: segment by segment with one compiled program (see
-    `sphere_mech._cli.program`), each segment `simulate`'s core with the file's solver and
+    `sphere_mech._program`), each segment `simulate`'s core with the file's solver and
     tolerances; a failure raises a `RuntimeError` with `simulate`'s message.
 
     **Arguments:**
@@ -107,10 +108,6 @@ def run_scene(spec, *, t1=None, progress=False) -> SceneResult:
 
     **Returns:** a `SceneResult`.
     """
-    # The one import from the command line's package left: the segment program lives in
-    # `_cli/program.py` until it moves below `_cli` (then this becomes a top-level import).
-    from ._cli.program import build
-
     return scene_result(spec, build(spec, t1)[0].integrate(progress), t1)
 
 

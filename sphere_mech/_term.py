@@ -2,6 +2,8 @@
 
 import diffrax
 import jax
+import jax.numpy as jnp
+import numpy as np
 
 from ._spaces import AbstractSpace, Spheres
 from ._system import AbstractSystem
@@ -54,9 +56,28 @@ def physical_time(terms, t):
     return terms.contr(0 * t, t)
 
 
-def space_of(terms) -> AbstractSpace:
-    """The configuration space of the system of the `MechanicsTerm` among `terms`;
-    `Spheres()` (plain `(n, 3)` arrays) for other diffrax terms, which the solvers that
-    only need a vector field (`Projected`, `LieRK(..., action="SO3xR3")`) accept."""
+def space_of(terms, y, solver: str) -> AbstractSpace:
+    """The configuration space of the states `y = (q, v)` that `solver` (its name, for
+    errors) integrates with `terms`: the space of the system of the `MechanicsTerm` among
+    `terms`; with other diffrax terms (which the solvers that only need a vector field,
+    `Projected` and `LieRK(..., action="SO3xR3")`, accept), a state of two plain `(n, 3)`
+    arrays is on `Spheres()`, anything else needs the `MechanicsTerm`. The state's
+    shapes are checked against it (`ValueError`)."""
+    if not (isinstance(y, tuple) and len(y) == 2):
+        raise ValueError(
+            f"{solver} integrates states y = (q, v) of two arrays of shape (n, 3) (points on "
+            "(S^2)^n and a tangent vector; dicts of arrays on a mixed space), got "
+            f"{jax.tree.map(jnp.shape, y)}."
+        )
     found = [x for x in jax.tree.leaves(terms, is_leaf=_is_mechanics) if _is_mechanics(x)]
-    return found[0].system.space if len(found) == 1 else Spheres()
+    if found:
+        space = found[0].system.space
+    elif all(isinstance(x, jax.Array | np.ndarray) for x in y):
+        space = Spheres()
+    else:
+        raise ValueError(
+            f"{solver} needs the configuration space of a state of dicts: integrate "
+            "sphere_mech.MechanicsTerm(system) (as sphere_mech.simulate does)."
+        )
+    space.check_shapes(*y)
+    return space

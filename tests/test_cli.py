@@ -16,7 +16,7 @@ import pytest
 
 from sphere_mech._cli import CACHE_ENV, cache_dir, main
 from sphere_mech._cli.figures import figure
-from sphere_mech._cli.program import SEGMENTS, build, segment_times
+from sphere_mech._program import SEGMENTS, build, segment_times
 from sphere_mech._report import run_scene
 from sphere_mech._scene_files import load_scene
 

@@ -137,8 +137,8 @@ def write_outputs(out: Path, result, scene, *, animation: bool = True) -> None:
 
     from .._animation import page, player
     from .._drawing import skeleton
+    from .._program import flat
     from .figures import plot
-    from .program import flat
 
     out.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=out, prefix=f"{TEMP_PREFIX}{os.getpid()}-"))
@@ -191,9 +191,9 @@ def run(scene=None, out=Path("sphere_mech_out"), *, t1=None, progress=True, anim
     """Run a scene file (default: the packaged default scene), optionally up to another
     end time `t1`; returns the summary. Compiled programs are served from JAX's persistent
     compilation cache where `enable_compilation_cache` turned it on."""
+    from .._program import build
     from .._report import scene_result
     from .._scene_files import load_scene
-    from .program import build
 
     jax.config.update("jax_enable_x64", True)
     path = DEFAULT_SCENE if scene is None else Path(scene)

@@ -1,7 +1,7 @@
 """Runge-Kutta-Munthe-Kaas methods over any explicit diffrax tableau, on T(S^2)^n."""
 
 from collections.abc import Callable
-from typing import Any, ClassVar
+from typing import Any
 
 import equinox as eqx
 import jax.lax as lax
@@ -19,21 +19,11 @@ from diffrax import (
 
 from .._lie import AbstractLieAction
 from .._misc import tree_sub
-from .._term import space_of, system_of
+from .._term import MechanicsTerm, space_of, system_of
 from .rk4 import RK4
 
 ACTIONS = ("SE3", "SO3xR3")
 ERROR_ESTIMATES = ("state", "algebra")
-
-
-def _check_state_structure(space, y0):
-    if not (isinstance(y0, tuple) and len(y0) == 2):
-        raise ValueError(
-            "LieRK integrates states y = (q, v) of two arrays of shape (n, 3) (points on "
-            "(S^2)^n and a tangent vector; dicts of arrays on a mixed space), got "
-            f"{jtu.tree_map(jnp.shape, y0)}."
-        )
-    space.check_shapes(*y0)
 
 
 def _combine(coeffs, ks):
@@ -159,7 +149,11 @@ class LieRK(AbstractAdaptiveSolver):
     action: str = eqx.field(static=True, default="SE3")
     error: str = eqx.field(static=True, default="state")
 
-    term_structure: ClassVar = AbstractTerm
+    @property
+    def term_structure(self):
+        """`MechanicsTerm` for the action `"SE3"`, which needs the system (its angular
+        variables); any diffrax term for `"SO3xR3"`, which needs only the vector field."""
+        return MechanicsTerm if self.action == "SE3" else AbstractTerm
 
     @property
     def interpolation_cls(self):
@@ -188,11 +182,12 @@ class LieRK(AbstractAdaptiveSolver):
     def error_order(self, terms):
         return self.solver.error_order(terms)
 
-    def _group(self, terms) -> AbstractLieAction:
-        """The group action this solver moves states with (for the system of `terms`)."""
+    def _group(self, terms, y) -> AbstractLieAction:
+        """The group action this solver moves states `y` with (for the system of `terms`)."""
         if self.action == "SO3xR3":
-            return space_of(terms).lie_action(self.action, False)
+            return space_of(terms, y, "LieRK").lie_action(self.action, False)
         system = system_of(terms)
+        space_of(terms, y, "LieRK")
         return system.space.lie_action(self.action, system.angular)
 
     def _stage_rows(self, dtype):
@@ -208,13 +203,11 @@ class LieRK(AbstractAdaptiveSolver):
         return index, jnp.asarray(a, dtype), jnp.asarray(tableau.c[: len(rows)], dtype)
 
     def init(self, terms, t0, t1, y0, args):
-        _check_state_structure(space_of(terms), y0)
-        self._group(terms)  # a static error now, if the action cannot work with `terms`
+        self._group(terms, y0)  # a static error now, if the action cannot work with `terms`
         return terms.vf(t0, y0, args)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
-        _check_state_structure(space_of(terms), y0)
-        tableau, group = self.solver.tableau, self._group(terms)
+        tableau, group = self.solver.tableau, self._group(terms, y0)
         h = terms.contr(t0, t1)
         f0 = solver_state
         if not (isinstance(made_jump, bool) and not made_jump):

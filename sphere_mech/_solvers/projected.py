@@ -36,12 +36,8 @@ class Projected(AbstractTransparentSolver):
         return self.solver.init(terms, t0, t1, y0, args)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
-        if not (isinstance(y0, tuple) and len(y0) == 2):
-            raise ValueError(
-                "Projected integrates states y = (q, v) of two (n, 3) arrays, got a "
-                f"{type(y0).__name__}."
-            )
+        space = space_of(terms, y0, "Projected")
         y1, y_error, dense_info, solver_state, result = self.solver.step(
             terms, t0, t1, y0, args, solver_state, made_jump
         )
-        return space_of(terms).retract(*y1), y_error, dense_info, solver_state, result
+        return space.retract(*y1), y_error, dense_info, solver_state, result

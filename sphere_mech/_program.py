@@ -105,7 +105,7 @@ class Program:
         if bar is not None:
             bar.close()
         if code is not None:
-            from .._results import raise_on_codes
+            from ._results import raise_on_codes
 
             raise_on_codes(np.array([code]), self.max_steps, "simulate")
         t = np.concatenate(
@@ -159,10 +159,10 @@ def build(spec, t1=None) -> tuple[Program, jax.stages.Compiled]:
     import equinox as eqx
     import jax.numpy as jnp
 
-    from .._misc import tree_dtype
-    from .._results import RESULTS, code, failed
-    from .._solve import prepare, solve, times
-    from .._solvers.work import WithWork, work_done
+    from ._misc import tree_dtype
+    from ._results import RESULTS, code, failed
+    from ._solve import prepare, solve, times
+    from ._solvers.work import WithWork, work_done
 
     ts, count = segment_times(spec.t0, float(spec.t1 if t1 is None else t1), spec.save_dt)
     run = prepare(
