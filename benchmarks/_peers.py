@@ -8,18 +8,15 @@ A method has a `name`, `prepare(q, v)` (a batch of sphere_mech states to its own
 point masses' positions at the end, `(batch, points, 3)`). Import after JAX is set up
 (`_options.parse_options`, then x64)."""
 
-import statistics
-import time
-
 import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
+from _harness import timing
 from _options import CORES
 from mujoco import rollout
 
 import sphere_mech as sm
-from sphere_mech._batch import _solve_batch
 
 try:
     from mujoco import mjx
@@ -250,20 +247,11 @@ def final_positions(methods, y, nsteps):
 
 def throughput(method, y, budget, repeats):
     """`(system-steps per second (median of repeats), compile time, seconds per step)`
-    of `method` on the batch of states `y`, with about `budget` system-steps a run."""
+    of `method` on the batch of states `y`, with about `budget` system-steps a run
+    (one repeat when the first call takes over 5 s); a repeat must not compile again."""
     batch = jax.tree.leaves(y)[0].shape[0]
     y = method.prepare(*y)
     nsteps = int(np.clip(budget // batch, 5, 2000))
-    start = time.perf_counter()
-    method.run(y, nsteps)
-    first = time.perf_counter() - start
-    times, steps = [], nsteps
-    cache = _solve_batch._cached._cache_size()
-    for _ in range(repeats if first < 5.0 else 1):  # slow configurations: one repeat
-        start = time.perf_counter()
-        _, steps = method.run(y, nsteps)
-        times.append(time.perf_counter() - start)
-    # eqx.debug.assert_max_traces in spirit: a repeated call must not compile again.
-    assert _solve_batch._cached._cache_size() == cache, "recompiled"
-    median = statistics.median(times)
-    return batch * steps / median, max(first - median, 0.0), median / steps
+    t = timing(lambda: method.run(y, nsteps), repeats, slow=5.0, what=method.name)
+    steps = t.result[1]
+    return batch * steps / t.median, t.compile, t.median / steps

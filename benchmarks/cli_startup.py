@@ -15,7 +15,6 @@ benchmarks/results/cli_startup.md.
 import argparse
 import os
 import pathlib
-import platform
 import statistics
 import subprocess
 import sys
@@ -23,8 +22,9 @@ import tempfile
 import threading
 import time
 
+from _harness import load, machine, publish, table
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-RESULTS = ROOT / "benchmarks" / "results"
 COMMAND = "import sys; from sphere_mech._cli import main; sys.exit(main())"
 
 
@@ -67,7 +67,7 @@ def main():
     parser.add_argument("--repeats", type=int, default=5)
     repeats = parser.parse_args().repeats
     rows = {"first": [], "second": []}
-    load = [os.getloadavg()[0]]
+    loads = [load()]
     with tempfile.TemporaryDirectory() as tmp:
         for k in range(repeats):
             cache, out = pathlib.Path(tmp) / f"cache{k}", pathlib.Path(tmp) / f"out{k}"
@@ -78,30 +78,24 @@ def main():
                     f"total {rows[run][-1][1]:.2f} s",
                     file=sys.stderr,
                 )
-            load.append(os.getloadavg()[0])
+            loads.append(load())
     med = {run: [statistics.median(r[i] for r in rows[run]) for i in (0, 1)] for run in rows}
     ratio = [
         statistics.median(b[i] / a[i] for a, b in zip(rows["first"], rows["second"], strict=True))
         for i in (0, 1)
     ]
-    machine = (
-        f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
-        f"load average {min(load):.1f}-{max(load):.1f} during the runs"
+    publish(
+        f"`sphere-mech run` (default scene), medians of {repeats} pairs; {machine(loads)}.\n\n"
+        + table(
+            ["run", "time to first step (s)", "total (s)"],
+            [
+                *((run, f"{med[run][0]:.2f}", f"{med[run][1]:.2f}") for run in rows),
+                ("second / first", f"{ratio[0]:.2f}", f"{ratio[1]:.2f}"),
+            ],
+        )
+        + "\n",
+        "cli_startup.md",
     )
-    table = "\n".join(
-        [
-            f"`sphere-mech run` (default scene), medians of {repeats} pairs; {machine}.",
-            "",
-            "| run | time to first step (s) | total (s) |",
-            "|---|---|---|",
-            *(f"| {run} | {med[run][0]:.2f} | {med[run][1]:.2f} |" for run in rows),
-            f"| second / first | {ratio[0]:.2f} | {ratio[1]:.2f} |",
-            "",
-        ]
-    )
-    print(table)
-    RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "cli_startup.md").write_text(table)
 
 
 if __name__ == "__main__":

@@ -14,6 +14,9 @@ tol 1e-8 against the closed form `sqrt(l/g) K(sin^2(1/2))`.
 Prints a markdown table (nothing is written).
 """
 
+import sys
+from pathlib import Path
+
 import diffrax
 import jax
 import jax.numpy as jnp
@@ -23,6 +26,8 @@ from scipy.integrate import solve_ivp
 from scipy.special import ellipk
 
 jax.config.update("jax_enable_x64", True)
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _harness, when the tests import us
+from _harness import publish, table  # noqa: E402
 
 import sphere_mech as sm  # noqa: E402
 
@@ -88,8 +93,7 @@ def event_time(solver, tol=1e-8):
 
 def main():
     ref = reference()
-    print("| solver | tol | max error at steps | max error at SaveAt(ts) | ratio |")
-    print("|---|---|---|---|---|")
+    rows = []
     for name, inner in (
         ("Dopri5", diffrax.Dopri5()),
         ("Tsit5", diffrax.Tsit5()),
@@ -97,11 +101,17 @@ def main():
     ):
         for tol in (1e-6, 1e-9, 1e-12):
             at_steps, at_ts, _, _ = errors(sm.LieRK(inner), tol, ref)
-            print(
-                f"| LieRK({name}) | {tol:.0e} | {at_steps:.1e} | {at_ts:.1e} | "
-                f"{at_ts / at_steps:.1f} |",
-                flush=True,
+            rows.append(
+                (
+                    f"LieRK({name})",
+                    f"{tol:.0e}",
+                    f"{at_steps:.1e}",
+                    f"{at_ts:.1e}",
+                    f"{at_ts / at_steps:.1f}",
+                )
             )
+    columns = ["solver", "tol", "max error at steps", "max error at SaveAt(ts)", "ratio"]
+    publish(table(columns, rows))
     exact = np.sqrt(LENGTH / G) * ellipk(np.sin(0.5) ** 2)
     print(f"\nevent at tol 1e-8, exact time {exact:.12f} s:")
     for name, solver in (

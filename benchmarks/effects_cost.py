@@ -4,20 +4,20 @@ An 8-link chain is built with gravity only, then with one more effect at a time 
 damping, a PD base torque, a tip force, bending stiffness, a spring, a vibrating
 support). For each scene we count the equations of the vector field's jaxpr (nested
 jaxprs included) and time one step of `simulate` with fixed-step `Projected(RK4())`
-(4 vector-field evaluations), the best of interleaved rounds after compiling.
+(4 vector-field evaluations), the median (and the minimum) of interleaved rounds after
+compiling.
 Ratios are to the gravity-only scene measured in the same run.
 
 Run: python benchmarks/effects_cost.py   (writes benchmarks/results/effects_cost.png)
 """
-
-import time
-from pathlib import Path
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 
 jax.config.update("jax_enable_x64", True)
+from _harness import publish, pyplot, save_figure, table, timings  # noqa: E402
+
 import sphere_mech as sm  # noqa: E402
 
 N_LINKS, STEPS, DT, REPEATS = 8, 4000, 1e-3, 7
@@ -71,31 +71,41 @@ def main():
         count_equations(jax.make_jaxpr(lambda y, sc=sc: sc.rates(0.1, y, None))(y0).jaxpr)
         for _, sc, _ in cases
     ]
-    for _, scene, solve in cases:
-        jax.block_until_ready(solve(scene, y0))  # compile everything first
-    best = [float("inf")] * len(cases)
-    for _ in range(REPEATS):  # interleaved rounds: machine load affects all alike
-        for k, (_, scene, solve) in enumerate(cases):
-            start = time.perf_counter()
-            jax.block_until_ready(solve(scene, y0))
-            best[k] = min(best[k], (time.perf_counter() - start) / STEPS)
-    rows = [(name, e, t) for (name, _, _), e, t in zip(cases, eqns, best, strict=True)]
+    # interleaved rounds: machine load affects all alike
+    measured = timings([lambda c=c: c[2](c[1], y0) for c in cases], REPEATS, what="the scenes")
+    rows = [
+        (name, e, t.median / STEPS, t.min / STEPS)
+        for (name, _, _), e, t in zip(cases, eqns, measured, strict=True)
+    ]
     base = rows[0]
-    print(
+    publish(
         f"Cost of effects, {N_LINKS}-link chain, fixed-step Projected(RK4), dt={DT}, "
-        f"{STEPS} steps, best of {REPEATS} interleaved rounds; ratios to gravity-only "
-        f"in the same run\n"
+        f"{STEPS} steps, median of {REPEATS} interleaved rounds; ratios to gravity-only "
+        f"in the same run\n\n"
+        + table(
+            [
+                "scene",
+                "jaxpr equations of the vector field",
+                "ratio",
+                "time per step (us)",
+                "ratio",
+                "min time per step (us)",
+            ],
+            [
+                (
+                    name,
+                    e,
+                    f"{e / base[1]:.2f}",
+                    f"{1e6 * t:.1f}",
+                    f"{t / base[2]:.2f}",
+                    f"{1e6 * t_min:.1f}",
+                )
+                for name, e, t, t_min in rows
+            ],
+            "lrrrrr",
+        )
     )
-    print("| scene | jaxpr equations of the vector field | ratio | time per step (us) | ratio |")
-    print("|---|---:|---:|---:|---:|")
-    for name, e, t in rows:
-        print(f"| {name} | {e} | {e / base[1]:.2f} | {1e6 * t:.1f} | {t / base[2]:.2f} |")
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    fig, axes = pyplot().subplots(1, 2, figsize=(11, 4))
     names = [r[0] for r in rows]
     axes[0].bar(names, [r[1] / base[1] for r in rows], color="tab:gray")
     axes[0].set_title("jaxpr equations / gravity-only")
@@ -104,11 +114,7 @@ def main():
     for ax in axes:
         ax.tick_params(axis="x", rotation=35)
         ax.axhline(1.0, color="k", lw=0.5)
-    fig.tight_layout()
-    out = Path(__file__).parent / "results" / "effects_cost.png"
-    out.parent.mkdir(exist_ok=True)
-    fig.savefig(out, dpi=110)
-    print(f"\nfigure: {out}")
+    save_figure(fig, "effects_cost.png", dpi=110)
 
 
 if __name__ == "__main__":

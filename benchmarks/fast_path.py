@@ -14,8 +14,8 @@ own accelerations. Prints a markdown table; writes benchmarks/results/fast_path.
 
 Second table: the variational integrator on the same chains, whose Newton solve uses the
 same O(n) multiplier solve. Cost per step of one trajectory (`sm.simulate`, float64,
-fixed step `--dt`, default 1e-3, from a chain released near its hanging position, best
-of 5 runs) of
+fixed step `--dt`, default 1e-3, from a chain released near its hanging position, median
+(and minimum) of 5 runs) of
 `Variational(2)` and `Variational(4)` against `Projected(RK4())` measured in the same run
 (ratios), and of the dense-Newton `Variational(2, fast_path=False)` (the path general
 systems take) for n <= 32, checked to agree with the O(n) path.
@@ -31,23 +31,16 @@ evaluation as in the first table. Writes benchmarks/results/fast_path_base.md.
 """
 
 import argparse
-import pathlib
-import statistics
-import time
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import matplotlib
 import numpy as np
 
 jax.config.update("jax_enable_x64", True)
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
+from _harness import publish, pyplot, save_figure, table, timing  # noqa: E402
 
 import sphere_mech as sm  # noqa: E402
-
-RESULTS = pathlib.Path(__file__).parent / "results"
 
 
 def make_systems(n):
@@ -116,14 +109,14 @@ def base_table(rows, batch, repeats):
         "a `Base` on a line. General path: the same energies and forces through "
         "`sm.Lagrangian` on the product space; fixed pivot: the chain of the same n without "
         "a base, in the same run.\n\n"
-        "| base | n | fast path (us/eval) | general path (us/eval) | speed-up "
-        "| fast / fixed pivot | max rel. difference |\n"
-        "|---|---:|---:|---:|---:|---:|---:|\n"
     )
-    return header + "".join(
-        f"| {name} | {n} | {f * 1e6:.3f} | {s * 1e6:.3f} | {s / f:.1f}x | {f / p:.2f} | {e:.1e} |\n"
+    columns = ["base", "n", "fast path (us/eval)", "general path (us/eval)", "speed-up"]
+    columns += ["fast / fixed pivot", "max rel. difference"]
+    cells = [
+        (name, n, f"{f * 1e6:.3f}", f"{s * 1e6:.3f}", f"{s / f:.1f}x", f"{f / p:.2f}", f"{e:.1e}")
         for name, n, f, s, p, e in rows
-    )
+    ]
+    return header + table(columns, cells, "lrrrrrr") + "\n"
 
 
 def batched_rates(system):
@@ -138,16 +131,9 @@ def batched_rates(system):
 
 
 def time_per_evaluation(fn, q, qdot, repeats):
-    """(median seconds per single evaluation, seconds of the first call = compilation)."""
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn(q, qdot))
-    compile_time = time.perf_counter() - t0
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(q, qdot))
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times) / len(jax.tree.leaves(q)[0]), compile_time
+    """(median seconds per single evaluation, compile time)."""
+    t = timing(lambda: fn(q, qdot), repeats)
+    return t.median / len(jax.tree.leaves(q)[0]), t.compile
 
 
 def start_state(n):
@@ -158,9 +144,8 @@ def start_state(n):
 
 
 def time_per_step(system, solver, y0, dt, steps, repeats):
-    """(minimum over `repeats` runs of the seconds per step of one trajectory: the least
-    disturbed run on a shared machine; final state; seconds of the first call:
-    compilation and one run)."""
+    """(seconds per step of one trajectory, median and minimum over `repeats` runs;
+    final state; seconds of the first call: compilation and one run)."""
 
     def run():
         sol = sm.simulate(
@@ -171,17 +156,10 @@ def time_per_step(system, solver, y0, dt, steps, repeats):
             dt0=jnp.asarray(dt),
             max_steps=steps + 1,
         )
-        return jax.block_until_ready(sol.ys)
+        return sol.ys
 
-    t0 = time.perf_counter()
-    final = run()
-    first = time.perf_counter() - t0
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        run()
-        times.append(time.perf_counter() - t0)
-    return min(times) / steps, final, first
+    t = timing(run, repeats, what=type(solver).__name__)
+    return t.median / steps, t.min / steps, t.result, t.first
 
 
 def variational_rows(ns, dt, steps, repeats):
@@ -191,17 +169,19 @@ def variational_rows(ns, dt, steps, repeats):
     for n in ns:
         chain, _ = make_systems(n)
         y0 = start_state(n)
-        rk4, _, _ = time_per_step(chain, sm.Projected(sm.RK4()), y0, dt, steps, repeats)
-        var2, (q2, _), compile2 = time_per_step(chain, sm.Variational(), y0, dt, steps, repeats)
-        var4, _, _ = time_per_step(chain, sm.Variational(4), y0, dt, steps, repeats)
+        rk4, rk4_min, _, _ = time_per_step(chain, sm.Projected(sm.RK4()), y0, dt, steps, repeats)
+        var2, var2_min, (q2, _), compile2 = time_per_step(
+            chain, sm.Variational(), y0, dt, steps, repeats
+        )
+        var4, _, _, _ = time_per_step(chain, sm.Variational(4), y0, dt, steps, repeats)
         dense, difference = float("nan"), float("nan")
         if n <= 32:
-            dense, (qd, _), _ = time_per_step(
+            dense, _, (qd, _), _ = time_per_step(
                 chain, sm.Variational(fast_path=False), y0, dt, steps, repeats
             )
             difference = float(jnp.max(jnp.abs(q2[-1] - qd[-1])))
             assert difference < 1e-9, f"O(n) and dense variational steps disagree: {difference}"
-        rows.append((n, rk4, var2, var4, dense, difference, compile2))
+        rows.append((n, rk4, var2, var4, dense, difference, compile2, var2_min / rk4_min))
         print(
             f"n={n}: Projected(RK4) {rk4 * 1e6:.1f} us/step, Variational(2) "
             f"{var2 * 1e6:.1f}, Variational(4) {var4 * 1e6:.1f}, dense Variational(2) "
@@ -214,20 +194,31 @@ def variational_rows(ns, dt, steps, repeats):
 def variational_table(rows, dt, steps, repeats):
     header = (
         f"Variational integrator, cost per step of one trajectory (float64, dt = {dt:g}, "
-        f"{steps} steps from a chain released near its hanging position, best of "
+        f"{steps} steps from a chain released near its hanging position, median of "
         f"{repeats} runs), against Projected(RK4()) in the same run. Dense: "
         "Variational(2, fast_path=False), Newton with the dense Jacobian (n <= 32); "
         "max |q| difference: its final state against the O(n) path's.\n\n"
-        "| n | Projected(RK4) (us/step) | Variational(2) (us/step) | Variational(2) / RK4 "
-        "| Variational(4) (us/step) | Variational(4) / RK4 | dense Variational(2) (us/step) "
-        "| dense / O(n) | max abs q difference | first call of Variational(2) (s) |\n"
-        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n"
     )
-    return header + "".join(
-        f"| {n} | {r * 1e6:.1f} | {v2 * 1e6:.1f} | {v2 / r:.2f} | {v4 * 1e6:.1f} "
-        f"| {v4 / r:.2f} | {d * 1e6:.1f} | {d / v2:.1f} | {e:.1e} | {c:.1f} |\n"
-        for n, r, v2, v4, d, e, c in rows
-    )
+    columns = [
+        "n",
+        "Projected(RK4) (us/step)",
+        "Variational(2) (us/step)",
+        "Variational(2) / RK4",
+        "Variational(4) (us/step)",
+        "Variational(4) / RK4",
+        "dense Variational(2) (us/step)",
+        "dense / O(n)",
+        "max abs q difference",
+        "first call of Variational(2) (s)",
+        "Variational(2) / RK4, fastest runs",
+    ]
+    cells = [
+        (n, f"{r * 1e6:.1f}", f"{v2 * 1e6:.1f}", f"{v2 / r:.2f}", f"{v4 * 1e6:.1f}")
+        + (f"{v4 / r:.2f}", f"{d * 1e6:.1f}", f"{d / v2:.1f}", f"{e:.1e}", f"{c:.1f}")
+        + (f"{fastest:.2f}",)
+        for n, r, v2, v4, d, e, c, fastest in rows
+    ]
+    return header + table(columns, cells, "r" * len(columns)) + "\n"
 
 
 def main():
@@ -243,10 +234,8 @@ def main():
     ns = [1, 2, 4, 8] if opts.quick else [1, 2, 4, 8, 16, 32, 64]
     repeats = 5 if opts.quick else 20
     if opts.base:
-        table = base_table(base_rows(ns, opts.batch, repeats), opts.batch, repeats)
-        print(table)
-        RESULTS.mkdir(exist_ok=True)
-        (RESULTS / "fast_path_base.md").write_text(table)
+        rows = base_rows(ns, opts.batch, repeats)
+        publish(base_table(rows, opts.batch, repeats), "fast_path_base.md")
         return
     rows = []
     for n in ns:
@@ -277,27 +266,23 @@ def main():
     header = (
         f"Acceleration evaluations, float64, jit(vmap) over a batch of {opts.batch} states, "
         f"median of {repeats} repeats, {jax.device_count()} device(s).\n\n"
-        "| n | fast path (us/eval) | general path (us/eval) | speed-up | compile fast (s) "
-        "| compile general (s) | max rel. difference | legendre(chain) (us/eval) "
-        "| legendre / fast |\n"
-        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n"
     )
-    table = header + "".join(
-        f"| {n} | {f * 1e6:.3f} | {s * 1e6:.3f} | {r:.1f}x | {cf:.2f} | {cs:.2f} | {e:.1e} "
-        f"| {h * 1e6:.3f} | {hr:.2f} |\n"
+    columns = ["n", "fast path (us/eval)", "general path (us/eval)", "speed-up"]
+    columns += ["compile fast (s)", "compile general (s)", "max rel. difference"]
+    columns += ["legendre(chain) (us/eval)", "legendre / fast"]
+    cells = [
+        (n, f"{f * 1e6:.3f}", f"{s * 1e6:.3f}", f"{r:.1f}x", f"{cf:.2f}", f"{cs:.2f}")
+        + (f"{e:.1e}", f"{h * 1e6:.3f}", f"{hr:.2f}")
         for n, f, s, r, cf, cs, e, h, hr in rows
-    )
+    ]
     var_repeats = 3 if opts.quick else 5
     var_rows = variational_rows(ns[1:], opts.dt, opts.steps, var_repeats)
     var_table = variational_table(var_rows, opts.dt, opts.steps, var_repeats)
     print()
-    print(table)
-    print(var_table)
-    RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "fast_path.md").write_text(table + "\n" + var_table)
+    publish(header + table(columns, cells, "r" * len(columns)) + "\n\n" + var_table, "fast_path.md")
 
     n_arr = np.array([r[0] for r in rows])
-    fig, (ax1, ax2, ax3) = plt.subplots(1, 3, figsize=(15, 4))
+    fig, (ax1, ax2, ax3) = pyplot().subplots(1, 3, figsize=(15, 4))
     ax1.loglog(n_arr, [r[1] * 1e6 for r in rows], "o-", label="fast path (constant inertia)")
     ax1.loglog(n_arr, [r[2] * 1e6 for r in rows], "s-", label="general path (autodiff Hessian)")
     ax1.loglog(n_arr, [r[7] * 1e6 for r in rows], "^-", label="legendre(chain): Hamilton")
@@ -327,9 +312,7 @@ def main():
     fig.suptitle(
         f"Chain pendulum, float64: accelerations (batch {opts.batch}) and integrator steps"
     )
-    fig.tight_layout()
-    fig.savefig(RESULTS / "fast_path.png", dpi=120)
-    print(f"wrote {RESULTS / 'fast_path.png'} and {RESULTS / 'fast_path.md'}")
+    save_figure(fig, "fast_path.png")
 
 
 if __name__ == "__main__":

@@ -13,17 +13,13 @@ Prints a markdown table and writes benchmarks/results/fit_adjoint.png.
 
 import pathlib
 import sys
-import time
 
 import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
+from _harness import publish, pyplot, save_figure, table, timing
 
 jax.config.update("jax_enable_x64", True)
 sys.path.insert(0, str(pathlib.Path(__file__).parents[1] / "tests"))
@@ -32,16 +28,6 @@ from test_fit import START, TRUE, _initial_states, _record, damped_chain, mass_p
 import sphere_mech as sm  # noqa: E402
 
 SIM = dict(rtol=1e-7, atol=1e-9)
-
-
-def median_time(fn, repeats=5):
-    jax.block_until_ready(fn())  # compile
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - t)
-    return float(np.median(times))
 
 
 def main():
@@ -72,21 +58,27 @@ def main():
         ).params
     )
     rows = [
-        ("gradient of the loss", median_time(lambda: rev(START)), median_time(lambda: fwd(START))),
+        (
+            "gradient of the loss",
+            timing(lambda: rev(START), what="reverse").median,
+            timing(lambda: fwd(START), what="forward").median,
+        ),
         (
             "fit (Levenberg-Marquardt)",
-            median_time(lambda: fit("bwd"), 3),
-            median_time(lambda: fit("fwd"), 3),
+            timing(lambda: fit("bwd"), 3, what="fit, reverse").median,
+            timing(lambda: fit("fwd"), 3, what="fit, forward").median,
         ),
     ]
     fitted = fit("fwd")
-    print("| task | reverse (checkpointed) [s] | forward [s] | reverse / forward |")
-    print("|---|---|---|---|")
-    for name, t_rev, t_fwd in rows:
-        print(f"| {name} | {t_rev:.3f} | {t_fwd:.3f} | {t_rev / t_fwd:.1f} |")
+    publish(
+        table(
+            ["task", "reverse (checkpointed) [s]", "forward [s]", "reverse / forward"],
+            [(name, f"{r:.3f}", f"{f:.3f}", f"{r / f:.1f}") for name, r, f in rows],
+        )
+    )
     print("\nfitted / true - 1:", {k: f"{float(fitted[k] / TRUE[k] - 1):+.1e}" for k in TRUE})
 
-    fig, ax = plt.subplots(figsize=(5, 3))
+    fig, ax = pyplot().subplots(figsize=(5, 3))
     x = np.arange(len(rows))
     ax.bar(x - 0.2, [r[1] for r in rows], 0.4, label="reverse (RecursiveCheckpointAdjoint)")
     ax.bar(x + 0.2, [r[2] for r in rows], 0.4, label="forward (ForwardMode)")
@@ -94,10 +86,7 @@ def main():
     ax.set_yscale("log")
     ax.set_ylabel("time [s]")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    out = pathlib.Path(__file__).parent / "results" / "fit_adjoint.png"
-    fig.savefig(out, dpi=120)
-    print(f"figure: {out}")
+    save_figure(fig, "fit_adjoint.png")
 
 
 if __name__ == "__main__":

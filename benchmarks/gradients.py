@@ -8,55 +8,36 @@ The loss is a weighted sum of the final positions of chain pendulums (unit masse
 g = 9.81), differentiated with respect to the chain's n lengths. Cases: n = 2 and 8,
 float32 and float64, fixed-step `Projected(RK4())` at dt0 = 1e-3 and adaptive
 `Projected(Tsit5())` (default tolerances), one trajectory (`simulate`) and a batch
-(`simulate_batch`, B = 256 at n = 2, 64 at n = 8). Times: after compilation, minimum of
-repeats, the three programs of a row taking turns (so that a burst of load from other
-processes hits all three); the ratios are value_and_grad time / forward time, all
-measured in the same run.
+(`simulate_batch`, B = 256 at n = 2, 64 at n = 8). Times: after compilation, median (and
+minimum) of repeats, the three programs of a row taking turns (so that a burst of load
+from other processes hits all three); the ratios are value_and_grad time / forward time,
+all measured in the same run.
 Prints a markdown table and writes benchmarks/results/gradients.{md,png}.
 
     python benchmarks/gradients.py [--quick]
 """
 
 import argparse
-import os
-import pathlib
 import platform
-import time
 
 import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import matplotlib
 import numpy as np
 
 jax.config.update("jax_enable_x64", True)
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
+from _harness import load, publish, pyplot, save_figure, table, timings  # noqa: E402
 
 import sphere_mech as sm  # noqa: E402
 from sphere_mech._solve import BATCH_FORWARD_COLUMNS, FORWARD_COLUMNS  # noqa: E402
 
-RESULTS = pathlib.Path(__file__).parent / "results"
 OLD = diffrax.RecursiveCheckpointAdjoint()
 SOLVERS = {  # name: (solver, dt0, t1)
     "RK4 (fixed, dt 1e-3)": (sm.Projected(sm.RK4()), 1e-3, 0.3),
     "Tsit5 (adaptive)": (sm.Projected(diffrax.Tsit5()), 1e-2, 1.0),
 }
 BATCH = {2: 256, 8: 64}
-
-
-def min_times(fns, repeats):
-    """The minimum time of each of `fns` (compiled first), calling them in turn."""
-    for fn in fns:
-        jax.block_until_ready(fn())
-    best = [np.inf] * len(fns)
-    for _ in range(repeats):
-        for i, fn in enumerate(fns):
-            start = time.perf_counter()
-            jax.block_until_ready(fn())
-            best[i] = min(best[i], time.perf_counter() - start)
-    return best
 
 
 def loss_fn(n, dtype, solver_name, batch):
@@ -87,7 +68,7 @@ def measure(n, dtype, solver_name, batch, repeats):
     g_old, g_new = old(lengths)[1], new(lengths)[1]
     tol = 1e-6 if dtype == jnp.float64 else 2e-2
     assert np.allclose(g_old, g_new, rtol=tol, atol=tol), (g_old, g_new)
-    return min_times([lambda f=f: f(lengths) for f in (forward, old, new)], repeats)
+    return timings([lambda f=f: f(lengths) for f in (forward, old, new)], repeats)
 
 
 def main():
@@ -95,41 +76,61 @@ def main():
     parser.add_argument("--quick", action="store_true", help="n = 2, float64 only")
     quick = parser.parse_args().quick
     ns, dtypes = ((2,), (jnp.float64,)) if quick else ((2, 8), (jnp.float32, jnp.float64))
-    rows, loads = [], [os.getloadavg()[0]]
+    rows, loads = [], [load()]
     for n in ns:
         for dtype in dtypes:
             for solver_name in SOLVERS:
                 for batch in (0, BATCH[n]):
-                    t_fwd, t_old, t_new = measure(n, dtype, solver_name, batch, 7)
-                    loads.append(os.getloadavg()[0])
+                    fwd, old, new = measure(n, dtype, solver_name, batch, 7)
+                    loads.append(load())
                     api = f"simulate_batch (B = {batch})" if batch else "simulate"
-                    rows.append((n, jnp.dtype(dtype).name, solver_name, api, t_fwd, t_old, t_new))
-                    print(f"  {rows[-1]}", flush=True)
-    head = (
-        "| n | dtype | solver | call | forward [ms] | value_and_grad / forward, old default "
-        "(RecursiveCheckpointAdjoint) | new default | old / new |\n" + "|---" * 8 + "|"
+                    rows.append((n, jnp.dtype(dtype).name, solver_name, api, fwd, old, new))
+                    print(f"  {rows[-1][:4]}: {fwd.median * 1e3:.2f} ms", flush=True)
+    text = table(
+        [
+            "n",
+            "dtype",
+            "solver",
+            "call",
+            "forward [ms]",
+            "value_and_grad / forward, old default (RecursiveCheckpointAdjoint)",
+            "new default",
+            "old / new",
+            "forward, min [ms]",
+            "old / new, min",
+        ],
+        [
+            (
+                n,
+                dt,
+                s,
+                api,
+                f"{f.median * 1e3:.2f}",
+                f"{o.median / f.median:.1f}",
+                f"{w.median / f.median:.1f}",
+                f"{o.median / w.median:.1f}",
+                f"{f.min * 1e3:.2f}",
+                f"{o.min / w.min:.1f}",
+            )
+            for n, dt, s, api, f, o, w in rows
+        ],
     )
-    lines = [
-        f"| {n} | {dt} | {s} | {api} | {f * 1e3:.2f} | {o / f:.1f} | {w / f:.1f} | {o / w:.1f} |"
-        for n, dt, s, api, f, o, w in rows
-    ]
     machine = f"{platform.processor() or platform.machine()}, {jax.devices()[0].platform}"
-    text = "\n".join([head, *lines])
-    print(text)
-    RESULTS.mkdir(exist_ok=True)
     suffix = "_quick" if quick else ""
-    (RESULTS / f"gradients{suffix}.md").write_text(
+    publish(
         f"value_and_grad time / forward time.\n\nMachine: {machine} (2-core shared CPU when run "
         f"by the project), `python benchmarks/gradients.py{' --quick' * quick}`; load "
         f"average (1 min) {min(loads):.1f} to {max(loads):.1f} during the run.\n"
         f"Forward-mode Jacobian when at most {FORWARD_COLUMNS} scalars are "
         f"differentiated in `simulate`, {BATCH_FORWARD_COLUMNS} in `simulate_batch` "
-        "(here the n lengths).\n\n" + text + "\n"
+        "(here the n lengths).\n\n" + text + "\n",
+        f"gradients{suffix}.md",
     )
-    fig, ax = plt.subplots(figsize=(9, 3.8))
+    ratios = [(o.median / f.median, w.median / f.median) for *_, f, o, w in rows]
+    fig, ax = pyplot().subplots(figsize=(9, 3.8))
     x = np.arange(len(rows))
-    ax.bar(x - 0.2, [o / f for *_, f, o, w in rows], 0.4, label="old default (checkpointed)")
-    ax.bar(x + 0.2, [w / f for *_, f, o, w in rows], 0.4, label="new default")
+    ax.bar(x - 0.2, [old for old, _ in ratios], 0.4, label="old default (checkpointed)")
+    ax.bar(x + 0.2, [new for _, new in ratios], 0.4, label="new default")
     ax.axhline(4, color="k", ls="--", lw=0.8, label="target: fixed 4x, adaptive 6x")
     ax.axhline(6, color="k", ls=":", lw=0.8)
     labels = [
@@ -140,9 +141,7 @@ def main():
     ax.set_yscale("log")
     ax.set_ylabel("value_and_grad / forward")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(RESULTS / f"gradients{suffix}.png", dpi=120)
-    print(f"wrote {RESULTS}/gradients{suffix}.md, .png")
+    save_figure(fig, f"gradients{suffix}.png")
 
 
 if __name__ == "__main__":

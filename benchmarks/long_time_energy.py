@@ -11,7 +11,8 @@ Run: python benchmarks/long_time_energy.py [--steps N] [--dt H]
 """
 
 import argparse
-import time
+import functools
+import sys
 from pathlib import Path
 
 import diffrax
@@ -20,6 +21,8 @@ import jax.numpy as jnp
 import numpy as np
 
 jax.config.update("jax_enable_x64", True)
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _harness, when the tests import us
+from _harness import publish, pyplot, save_figure, table, timing  # noqa: E402
 
 import sphere_mech as sm  # noqa: E402
 
@@ -29,41 +32,27 @@ V0 = sm.project(Q0, jnp.array([[0.0, 2.0, 0.0], [2.0, 0.0, 0.0]]))
 WINDOWS = 100
 
 
-def _energy(t, y, args):
-    system, user_args = args
-    return system.energy(t, y[0], y[1], user_args), sm.constraint_error(y[0])
+def _energy(system, t, y, args):
+    return system.energy(t, y[0], y[1], args), sm.constraint_error(y[0])
 
 
 def run(solver, dt, steps, system=CHAIN, y0=(Q0, V0)):
     """`steps` fixed steps through `sm.simulate`; returns times, relative energy errors,
     constraint errors, the result code and the wall time (after compilation)."""
-    saveat = diffrax.SaveAt(steps=True, fn=_energy)
-    go = lambda: sm.simulate(
+    saveat = diffrax.SaveAt(steps=True, fn=functools.partial(_energy, system))
+    go = lambda t1: sm.simulate(
         system,
         y0,
-        jnp.asarray(dt * steps),
+        jnp.asarray(t1),
         solver=solver,
         dt0=jnp.asarray(dt),
         saveat=saveat,
         max_steps=steps,
         throw=False,
     )
-    jax.block_until_ready(
-        sm.simulate(
-            system,
-            y0,
-            jnp.asarray(dt * 10),
-            solver=solver,
-            dt0=jnp.asarray(dt),
-            saveat=saveat,
-            max_steps=steps,
-            throw=False,
-        ).ys
-    )  # compile once (same shapes)
-    start = time.perf_counter()
-    sol = go()
-    jax.block_until_ready(sol.ys)
-    wall = time.perf_counter() - start
+    # compiled once on 10 steps (the same shapes), then one timed run
+    t = timing(lambda: go(dt * steps), 1, warmup=lambda: go(dt * 10).ys, what=type(solver).__name__)
+    sol, wall = t.result, t.median
     e0 = float(system.energy(0.0, *y0, None))
     k = int(sol.stats["num_steps"])
     energy, constraint = (np.asarray(x[:k]) for x in sol.ys)
@@ -99,32 +88,34 @@ def main():
         results[name] = run(solver, opts.dt, opts.steps)
         print(f"ran {name}", flush=True)
     base_wall = results["Projected(RK4)"][4]  # plain RK4 may stop early (it diverges)
-    print(
-        f"\nDouble spherical pendulum, {opts.steps} steps of dt = {opts.dt} "
-        f"(T = {opts.steps * opts.dt:g} s), E0 = {float(CHAIN.energy(0.0, Q0, V0)):.4f}\n"
-    )
-    print(
-        "| method | result | max rel. energy error | envelope slope (1/s) | envelope growth "
-        "over run | max constraint error | wall time (s) | time / Projected(RK4) |"
-    )
-    print("|---|---|---|---|---|---|---|---|")
+    rows = []
     for name, (t, err, cons, result, wall) in results.items():
         _, _, slope, growth = envelope_trend(t, err)
         status = "ok" if result == sm.RESULTS.successful else "failed"
-        print(
-            f"| {name} | {status} | {np.nanmax(err):.3e} | {slope:.3e} | {growth:+.3f} | "
-            f"{np.nanmax(cons):.1e} | {wall:.1f} | {wall / base_wall:.2f} |"
+        rows.append(
+            (
+                name,
+                status,
+                f"{np.nanmax(err):.3e}",
+                f"{slope:.3e}",
+                f"{growth:+.3f}",
+                f"{np.nanmax(cons):.1e}",
+                f"{wall:.1f}",
+                f"{wall / base_wall:.2f}",
+            )
         )
+    columns = ["method", "result", "max rel. energy error", "envelope slope (1/s)"]
+    columns += ["envelope growth over run", "max constraint error", "wall time (s)"]
+    publish(
+        f"\nDouble spherical pendulum, {opts.steps} steps of dt = {opts.dt} "
+        f"(T = {opts.steps * opts.dt:g} s), E0 = {float(CHAIN.energy(0.0, Q0, V0)):.4f}\n\n"
+        + table([*columns, "time / Projected(RK4)"], rows)
+    )
     plot(results, opts)
 
 
 def plot(results, opts):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(8, 4.5))
+    fig, ax = pyplot().subplots(figsize=(8, 4.5))
     for name, (t, err, *_) in results.items():
         centres, maxima, slope, _ = envelope_trend(t, err)
         (line,) = ax.semilogy(centres, maxima, label=name)
@@ -139,11 +130,7 @@ def plot(results, opts):
         f"Double spherical pendulum, {opts.steps:.0e} steps, dt = {opts.dt} (dashed: fitted trend)"
     )
     ax.legend()
-    out = Path(__file__).parent / "results" / "long_time_energy.png"
-    out.parent.mkdir(exist_ok=True)
-    fig.tight_layout()
-    fig.savefig(out, dpi=120)
-    print(f"\nfigure: {out}")
+    save_figure(fig, "long_time_energy.png")
 
 
 if __name__ == "__main__":

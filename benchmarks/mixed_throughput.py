@@ -54,7 +54,6 @@ OPTS = parse_options(__doc__.splitlines()[0])
 
 import datetime  # noqa: E402
 import json  # noqa: E402
-import os  # noqa: E402
 import pathlib  # noqa: E402
 import platform  # noqa: E402
 from typing import NamedTuple  # noqa: E402
@@ -62,18 +61,15 @@ from typing import NamedTuple  # noqa: E402
 import diffrax  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
-import matplotlib  # noqa: E402
 import numpy as np  # noqa: E402
 
 jax.config.update("jax_enable_x64", OPTS.dtype == "float64")
-matplotlib.use("Agg")
 import _peers as peers  # noqa: E402
-import matplotlib.pyplot as plt  # noqa: E402
+from _harness import RESULTS, load, publish, pyplot, save_figure, table  # noqa: E402
 from _peers import DT, HAVE_MJX, G, chain_xml, final_positions, joint_state  # noqa: E402
 
 import sphere_mech as sm  # noqa: E402
 
-RESULTS = pathlib.Path(__file__).parent / "results"
 AGREEMENT = {"float64": 1e-8, "float32": 1e-3}[OPTS.dtype]
 """Largest position difference accepted between methods after 0.2 s, as in
 throughput.py (MJX: 1e-6, its own difference from MuJoCo C there)."""
@@ -278,35 +274,32 @@ def report(records, stem, setting):
             for name in (name for name in names if batch in by_method[name]):
                 rate, compile_s = by_method[name][batch]
                 lines.append(
-                    f"| {kind} | {batch} | {name} | {rate:.3g} | {rate / base:.2f} "
-                    f"| {compile_s:.1f} |"
+                    (kind, batch, name, f"{rate:.3g}", f"{rate / base:.2f}", f"{compile_s:.1f}")
                 )
-    table = (
-        f"| system | batch | method | system-steps/s | ratio to {peer} | compile (s) |\n"
-        "|---|---|---|---|---|---|\n" + "\n".join(lines)
+    throughput = table(
+        ["system", "batch", "method", "system-steps/s", f"ratio to {peer}", "compile (s)"], lines
     )
-    agreement = (
-        "| system | method | from sphere_mech | from the exact solution |\n"
-        "|---|---|---|---|\n"
-        + "\n".join(
-            f"| {kind} | {name} | {e['difference']:.1e} | {e['rk4_error']:.1e} |"
+    agreement = table(
+        ["system", "method", "from sphere_mech", "from the exact solution"],
+        [
+            (kind, name, f"{e['difference']:.1e}", f"{e['rk4_error']:.1e}")
             for kind, errs in records["agreement"].items()
             for name, e in errs.items()
             if name != "sphere_mech"
-        )
+        ],
     )
-    load = " and ".join(f"{x:.1f}" for x in records["load"])
-    text = (
+    loads = " and ".join(f"{x:.1f}" for x in records["load"])
+    publish(
         f"Command: `{records['command']}`. Measured on {setting}, {records['date']} "
-        f"(1-minute load average {load} at the start and the end).\n\n"
+        f"(1-minute load average {loads} at the start and the end).\n\n"
         "Agreement: max position difference after 0.2 s (4 random states), from "
         "sphere_mech and from the exact solution (`Projected(Dopri8())` at 1e-13); "
         f"sphere_mech's own RK4 error is the bare scan's.\n\n{agreement}\n\n"
-        f"Throughput:\n\n{table}\n"
+        f"Throughput:\n\n{throughput}\n",
+        f"{stem}.md",
     )
-    print("\n" + text)
-    (RESULTS / f"{stem}.md").write_text(text)
 
+    plt = pyplot()
     colors = {"sphere_mech": "C0", GENERAL: "C2", "bare scan": "C1", "MuJoCo": "C3", "MJX": "C4"}
     kinds = list(records["batch"])
     fig, axes = plt.subplots(1, len(kinds), figsize=(5.5 * len(kinds), 4.2), sharey=True)
@@ -318,9 +311,7 @@ def report(records, stem, setting):
         ax.legend()
     axes[0].set_ylabel("system-steps per second")
     fig.suptitle(setting, fontsize=9)
-    fig.tight_layout()
-    fig.savefig(RESULTS / f"{stem}.png", dpi=120)
-    print(f"wrote {RESULTS / stem}.md, .json and .png")
+    save_figure(fig, f"{stem}.png")
 
 
 def cpu_name():
@@ -349,11 +340,11 @@ def main():
         "command": " ".join(["python benchmarks/mixed_throughput.py", *sys.argv[1:]]),
         "setting": setting,
         "date": datetime.date.today().isoformat(),
-        "load": [os.getloadavg()[0]],
+        "load": [load()],
         "agreement": {kind: check_agreement(kind) for kind in SYSTEMS},
     }
     records["batch"] = {kind: measure(kind, batches, budget) for kind in SYSTEMS}
-    records["load"].append(os.getloadavg()[0])
+    records["load"].append(load())
     stem = f"mixed_throughput_{OPTS.device}"
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / f"{stem}.json").write_text(json.dumps(records, indent=1))

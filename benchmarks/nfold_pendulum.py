@@ -23,8 +23,8 @@ links' outer ends, g = 9.81, every link horizontal along (1, 0, 0) at rest, T = 
   constant-inertia chain, state (q, qdot)) with `diffrax.diffeqsolve`.
 - Counted: accepted and rejected steps, vector-field evaluations (from the step counts:
   1 + (accepted + rejected) x (stages - 1) for first-same-as-last tableaus, as executed;
-  for the baseline also its MATLAB code's 7 per attempt), wall time (minimum of repeats
-  after compilation).
+  for the baseline also its MATLAB code's 7 per attempt), wall time (median of repeats
+  after compilation; one repeat, so also its minimum).
 
 Comparison at equal error: for each method and P, its evaluations and accepted steps are
 interpolated (log-log, between its tolerances) at the baseline's final error.
@@ -39,7 +39,7 @@ import argparse
 import dataclasses
 import json
 import math
-import time
+import sys
 from pathlib import Path
 from typing import ClassVar
 
@@ -51,10 +51,11 @@ import numpy as np
 import scipy.integrate
 
 jax.config.update("jax_enable_x64", True)
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _harness, when the tests import us
+from _harness import RESULTS as RESULTS_DIR, publish, pyplot, save_figure, table, timing  # noqa: E402
 
 import sphere_mech as sm  # noqa: E402
 
-RESULTS_DIR = Path(__file__).resolve().parent / "results"
 T = 3.0
 G = 9.81
 TOTAL_LENGTH = 5.0
@@ -221,22 +222,16 @@ def _solve(chain, solver, controller, y0):
 
 
 def run(chain, solver, controller, y0, reference, repeats=1):
-    start = time.perf_counter()
-    out = jax.block_until_ready(_solve(chain, solver, controller, y0))
-    first = time.perf_counter() - start
-    walls = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        out = jax.block_until_ready(_solve(chain, solver, controller, y0))
-        walls.append(time.perf_counter() - start)
-    (q, qdot), (acc, rej), ok = out
+    t = timing(lambda: _solve(chain, solver, controller, y0), repeats, what=type(solver).__name__)
+    (q, qdot), (acc, rej), ok = t.result
     error = float(np.linalg.norm(state_vector(q, qdot) - reference))
     return dict(
         error=error if bool(ok) else float("nan"),
         accepted=int(acc),
         rejected=int(rej),
-        wall=min(walls),
-        compile=max(first - min(walls), 0.0),
+        wall=t.median,
+        wall_min=t.min,
+        compile=t.compile,
         success=bool(ok),
     )
 
@@ -312,11 +307,7 @@ def equal_error_table(rows, ps):
     baseline's error, per P (geometric mean over P where interpolable)."""
     base = {r["P"]: r for r in rows if r["method"] == PAPER}
     labels = [m for m in dict.fromkeys(r["method"] for r in rows) if m != PAPER]
-    lines = [
-        "| method | " + " | ".join(f"P={p}" for p in ps) + " | geo. mean |",
-        "|---|" + "---|" * (len(ps) + 1),
-    ]
-    summary = {}
+    lines, summary = [], {}
     for m in labels:
         cells, ratios = [], []
         for p in ps:
@@ -328,8 +319,8 @@ def equal_error_table(rows, ps):
         mean = tuple(float(np.exp(np.mean(np.log(x)))) for x in zip(*ratios, strict=True))
         summary[m] = mean if ratios else (float("nan"), float("nan"))
         tail = f"{mean[0]:.2f} / {mean[1]:.2f}" if ratios else "—"
-        lines.append(f"| {m} | " + " | ".join(cells) + f" | {tail} |")
-    return "\n".join(lines), summary
+        lines.append((m, *cells, tail))
+    return table(["method", *(f"P={p}" for p in ps), "geo. mean"], lines), summary
 
 
 def best_at_one_tolerance(rows, ps, method):
@@ -346,43 +337,41 @@ def best_at_one_tolerance(rows, ps, method):
 
 def comparison_table(rows, ps, method, tol, mine, tsit_tol, tsit):
     base = {r["P"]: r for r in rows if r["method"] == PAPER}
-    lines = [
-        f"| P | {PAPER}: accepted / rejected / evals (MATLAB evals) / error | "
-        f"{method} tol {tol:.0e}: accepted / rejected / evals / error | "
-        f"Projected(Tsit5) tol {tsit_tol:.0e}: accepted / rejected / evals / error |",
-        "|---|---|---|---|",
+    columns = [
+        "P",
+        f"{PAPER}: accepted / rejected / evals (MATLAB evals) / error",
+        f"{method} tol {tol:.0e}: accepted / rejected / evals / error",
+        f"Projected(Tsit5) tol {tsit_tol:.0e}: accepted / rejected / evals / error",
     ]
+    cells = []
     for p in ps:
         b, m, t = base[p], mine[p], tsit[p]
-        lines.append(
-            f"| {p} | {b['accepted']} / {b['rejected']} / {b['evaluations']} "
-            f"({b['evaluations_matlab']}) / {b['error']:.2e} | {m['accepted']} / "
-            f"{m['rejected']} / {m['evaluations']} / {m['error']:.2e} | {t['accepted']} / "
-            f"{t['rejected']} / {t['evaluations']} / {t['error']:.2e} |"
+        cells.append(
+            (
+                p,
+                f"{b['accepted']} / {b['rejected']} / {b['evaluations']} "
+                f"({b['evaluations_matlab']}) / {b['error']:.2e}",
+                f"{m['accepted']} / {m['rejected']} / {m['evaluations']} / {m['error']:.2e}",
+                f"{t['accepted']} / {t['rejected']} / {t['evaluations']} / {t['error']:.2e}",
+            )
         )
-    return "\n".join(lines)
+    return table(columns, cells)
 
 
 def full_table(rows):
-    lines = [
-        "| P | method | tol | accepted | rejected | evals | error at T | time (ms) |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for r in rows:
-        lines.append(
-            f"| {r['P']} | {r['method']} | {r['tol']:.0e} | {r['accepted']} | "
-            f"{r['rejected']} | {r['evaluations']} | {r['error']:.2e} | "
-            f"{1e3 * r['wall']:.1f} |"
-        )
-    return "\n".join(lines)
+    columns = ["P", "method", "tol", "accepted", "rejected", "evals", "error at T", "time (ms)"]
+    return table(
+        columns,
+        [
+            (r["P"], r["method"], f"{r['tol']:.0e}", r["accepted"], r["rejected"])
+            + (r["evaluations"], f"{r['error']:.2e}", f"{1e3 * r['wall']:.1f}")
+            for r in rows
+        ],
+    )
 
 
-def figure(rows, ps, path):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+def figure(rows, ps, out, name):
+    plt = pyplot()
     shown = [p for p in (2, 10, 20) if p in ps]
     labels = [m for m in dict.fromkeys(r["method"] for r in rows) if m != PAPER]
     fig, axes = plt.subplots(1, len(shown), figsize=(5.0 * len(shown), 4.4), squeeze=False)
@@ -403,8 +392,7 @@ def figure(rows, ps, path):
         ax.grid(True, which="major", alpha=0.3)
     axes[0][0].set_ylabel("vector-field evaluations")
     axes[0][-1].legend(fontsize=7, loc="upper right")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    save_figure(fig, name, out)
 
 
 def main(argv=None):
@@ -445,13 +433,11 @@ def report(rows, ps, out, name):
             full_table(rows),
         ]
     )
-    print("\n" + text)
-    (out / f"{name}.md").write_text(text + "\n")
+    publish(text + "\n", f"{name}.md", out)
     (out / f"{name}.json").write_text(
         json.dumps(dict(rows=rows, best=best, tol=tol, summary=summary), indent=1)
     )
-    figure(rows, ps, out / f"{name}.png")
-    print(f"\nwrote {out / name}.{{md,json,png}}")
+    figure(rows, ps, out, f"{name}.png")
 
 
 if __name__ == "__main__":

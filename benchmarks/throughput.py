@@ -46,17 +46,14 @@ def add_arguments(parser):
 OPTS = parse_options(__doc__.splitlines()[0], add_arguments)
 
 import json  # noqa: E402
-import pathlib  # noqa: E402
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
-import matplotlib  # noqa: E402
 import numpy as np  # noqa: E402
 
 jax.config.update("jax_enable_x64", OPTS.dtype == "float64")
-matplotlib.use("Agg")
 import _peers as peers  # noqa: E402
-import matplotlib.pyplot as plt  # noqa: E402
+from _harness import RESULTS, publish, pyplot, save_figure, table  # noqa: E402
 from _peers import (  # noqa: E402
     DT,
     HAVE_MJX,
@@ -72,7 +69,6 @@ from _peers import (  # noqa: E402
 import sphere_mech as sm  # noqa: E402
 from sphere_mech._linalg import spd_solve  # noqa: E402
 
-RESULTS = pathlib.Path(__file__).parent / "results"
 AGREEMENT = {"float64": 1e-8, "float32": 1e-3}[OPTS.dtype]
 """Largest position difference accepted between methods after 0.2 s (float32: its
 rounding amplified over 200 steps)."""
@@ -100,6 +96,8 @@ def chain(n):
 
 
 class SphereMech(peers.SphereMech):
+    name = "sphere_mech"  # also the class's: the tables name the methods by class
+
     def __init__(self, n):
         super().__init__(chain(n), chain(n).positions)
 
@@ -193,12 +191,11 @@ def check_agreement(n=3, batch=4, nsteps=200):
     others = [cls(n) for cls in methods() if cls is not SphereMech]
     pos = final_positions([SphereMech(n), *others], y, nsteps)
     errors = {m.name: float(np.max(np.abs(pos[m.name] - pos[SphereMech.name]))) for m in others}
-    lines = [f"| {name} | {err:.1e} |" for name, err in errors.items()]
-    print(
+    publish(
         f"\nAgreement with sphere_mech, max |x_i| difference after {nsteps * DT:g} s "
-        f"(n = {n}, {batch} random states):\n\n| method | difference |\n|---|---|"
+        f"(n = {n}, {batch} random states):\n\n"
+        + table(["method", "difference"], [(name, f"{err:.1e}") for name, err in errors.items()])
     )
-    print("\n".join(lines))
     bound = {name: MJX_AGREEMENT if name == MJX.name else AGREEMENT for name in errors}
     assert all(errors[name] < bound[name] for name in errors), errors
     return errors
@@ -250,31 +247,24 @@ def report(records, errors, stem, setting):
         rows.append((int(n), int(batch), name, rate, rate / base, compile_s))
     order = {name: i for i, name in enumerate(names)}
     rows.sort(key=lambda r: (r[0], r[1], order.get(r[2], len(order))))
-    table = (
-        f"| method | n | batch | pendulum-steps/s | ratio to {peer} | compile (s) |\n"
-        "|---|---|---|---|---|---|\n"
-        + "\n".join(
-            f"| {m} | {n} | {b} | {r:.3g} | {x:.2f} | {c:.1f} |" for n, b, m, r, x, c in rows
-        )
+    batch_table = table(
+        ["method", "n", "batch", "pendulum-steps/s", f"ratio to {peer}", "compile (s)"],
+        [(m, n, b, f"{r:.3g}", f"{x:.2f}", f"{c:.1f}") for n, b, m, r, x, c in rows],
     )
     cost = {}
     for key, value in records["cost"].items():
         name, n = key.split("|")
         cost.setdefault(int(n), {})[name] = value
     cost_names = [name for name in names if any(name in c for c in cost.values())]
-    cost_table = (
-        "| n | "
-        + " | ".join(f"{m} (us/step)" for m in cost_names)
-        + " |\n|---|"
-        + "---|" * len(cost_names)
-        + "\n"
-        + "\n".join(
-            f"| {n} | " + " | ".join(f"{c.get(m, np.nan) * 1e6:.2f}" for m in cost_names) + " |"
+    cost_table = table(
+        ["n", *(f"{m} (us/step)" for m in cost_names)],
+        [
+            (n, *(f"{c.get(m, np.nan) * 1e6:.2f}" for m in cost_names))
             for n, c in sorted(cost.items())
-        )
+        ],
     )
-    print("\n" + table + "\n\nOne trajectory, cost per RK4 step:\n\n" + cost_table)
 
+    plt = pyplot()
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 4.2))
     colors = dict(
         zip(
@@ -307,15 +297,14 @@ def report(records, errors, stem, setting):
         ax2.loglog(*zip(*pts, strict=True), marker="o", color=colors[name], label=name)
     ax2.set(xlabel="links n", ylabel="microseconds per step", title="One trajectory")
     ax2.legend()
-    fig.tight_layout()
-    fig.savefig(RESULTS / f"{stem}.png", dpi=120)
+    save_figure(fig, f"{stem}.png")
     agreement = "\n".join(f"- {k}: {v:.1e}" for k, v in errors.items())
-    (RESULTS / f"{stem}.md").write_text(
+    publish(
         f"Measured on: {setting}.\n\n"
         f"Agreement with sphere_mech (max position difference after 0.2 s):\n{agreement}\n\n"
-        f"{table}\n\nOne trajectory, cost per RK4 step:\n\n{cost_table}\n"
+        f"{batch_table}\n\nOne trajectory, cost per RK4 step:\n\n{cost_table}\n",
+        f"{stem}.md",
     )
-    print(f"\nwrote {RESULTS / stem}.png and {RESULTS / stem}.md")
 
 
 def main():

@@ -40,8 +40,7 @@ import argparse
 import dataclasses
 import json
 import math
-import statistics
-import time
+import sys
 from collections.abc import Callable
 from pathlib import Path
 
@@ -52,10 +51,11 @@ import jax.numpy as jnp
 import numpy as np
 
 jax.config.update("jax_enable_x64", True)
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _harness, when the tests import us
+from _harness import RESULTS as RESULTS_DIR, publish, save_figure, table, timing  # noqa: E402
 
 import sphere_mech as sm  # noqa: E402
 
-RESULTS_DIR = Path(__file__).resolve().parent / "results"
 REFERENCE_TOL = 1e-14
 
 # ----------------------------------------------------------------------------------------
@@ -340,24 +340,6 @@ def _last(tree):
     return jax.tree.map(lambda a: a[-1], tree)
 
 
-def _timed(fn, repeats, budget=2.0, fast=0.3, most=30):
-    """First-call time and median of further calls: `repeats` of them (fewer when that
-    takes over `budget` seconds, more, up to `most`, while they take under `fast`)."""
-    start = time.perf_counter()
-    jax.block_until_ready(fn())
-    first = time.perf_counter() - start
-    times = []
-    while (
-        not times
-        or (len(times) < repeats and sum(times) < budget)
-        or (len(times) < most and sum(times) < fast)
-    ):
-        start = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - start)
-    return first, statistics.median(times), min(times)
-
-
 @eqx.filter_jit
 def _mapped(fn, *xs):
     """`jax.vmap(fn)(*xs)`, compiled once per function (a pytree) and shapes: the energy
@@ -391,8 +373,9 @@ def measure(scene, method, param, ref_points, repeats, max_steps):
         energy = jax.tree_util.Partial(_mapped, jax.tree_util.Partial(_energy, scene.chain))
         constraint = lambda ys: float(sm.constraint_error(scene.chain.spheres(ys[0])))
 
-    first, wall, fastest = _timed(lambda: run(False), repeats)
-    _, ys, ok, num_steps = run(False)
+    # `repeats` runs, fewer past 2 s in all, more (up to 30) while under 0.3 s
+    timed = timing(lambda: run(False), repeats, budget=2.0, fast=0.3, most=30, what=method.label)
+    _, ys, ok, num_steps = timed.result
     final_error = float(jnp.max(jnp.linalg.norm(points(_last(ys[0])) - ref_points, axis=-1)))
 
     _CALLS[0] = 0
@@ -414,9 +397,9 @@ def measure(scene, method, param, ref_points, repeats, max_steps):
         final_error=final_error,
         energy_error=energy_error,
         constraint_error=constraint(ys_all),
-        wall_time=wall,
-        wall_time_min=fastest,
-        compile_time=max(first - wall, 0.0),
+        wall_time=timed.median,
+        wall_time_min=timed.min,
+        compile_time=timed.compile,
         evaluations=evaluations,
         steps=int(num_steps),
         success=ok,
@@ -506,41 +489,35 @@ def _fmt(x, spec=".1e"):
 
 
 def markdown_table(rows):
-    head = (
-        "| scene | method | tol / dt | error at t1 | max energy error | max constraint "
-        "error | time (ms) | compile (s) | force evals | steps |"
-    )
-    lines = [head, "|" + "---|" * 10]
+    columns = ["scene", "method", "tol / dt", "error at t1", "max energy error"]
+    columns += ["max constraint error", "time (ms)", "compile (s)", "force evals", "steps"]
+    cells = []
     for r in rows:
         compile_s = "cached" if r["compile_time"] < 0.05 else f"{r['compile_time']:.1f}"
         param = ("tol " if r["adaptive"] else "dt ") + f"{r['param']:.0e}"
-        lines.append(
-            f"| {r['scene']} | {r['method']} | {param} | {_fmt(r['final_error'])} | "
-            f"{_fmt(r['energy_error'])} | {_fmt(r['constraint_error'])} | "
-            f"{1e3 * r['wall_time']:.2f} | {compile_s} | {r['evaluations']} | {r['steps']}"
-            + ("" if r["success"] else " (failed)")
-            + " |"
+        cells.append(
+            (r["scene"], r["method"], param, _fmt(r["final_error"]), _fmt(r["energy_error"]))
+            + (_fmt(r["constraint_error"]), f"{1e3 * r['wall_time']:.2f}", compile_s)
+            + (r["evaluations"], f"{r['steps']}" + ("" if r["success"] else " (failed)"))
         )
-    return "\n".join(lines)
+    return table(columns, cells)
 
 
 def ratio_table(rows, base="Projected(Tsit5)", other="angles + Tsit5 (LNN-style)"):
     """Same-tolerance comparison of the angle baseline against `base`, per scene."""
-    lines = [
-        f"| scene | tol | {other}: time / ours | evals / ours | its error | our error |",
-        "|---|---|---|---|---|---|",
-    ]
+    columns = ["scene", "tol", f"{other}: time / ours", "evals / ours", "its error", "our error"]
+    cells = []
     index = {(r["scene"], r["method"], r["param"]): r for r in rows}
     for (scene, method, param), r in index.items():
         ours = index.get((scene, base, param))
         if method != other or ours is None:
             continue
-        lines.append(
-            f"| {scene} | {param:.0e} | {r['wall_time'] / ours['wall_time']:.1f} | "
-            f"{r['evaluations'] / max(ours['evaluations'], 1):.1f} | "
-            f"{_fmt(r['final_error'])} | {_fmt(ours['final_error'])} |"
+        cells.append(
+            (scene, f"{param:.0e}", f"{r['wall_time'] / ours['wall_time']:.1f}")
+            + (f"{r['evaluations'] / max(ours['evaluations'], 1):.1f}",)
+            + (_fmt(r["final_error"]), _fmt(ours["final_error"]))
         )
-    return "\n".join(lines)
+    return table(columns, cells)
 
 
 def figure(rows, path=None):
@@ -591,8 +568,7 @@ def figure(rows, path=None):
     legend_height = 0.3 + 0.2 * -(-len(names) // 4)  # inches, 4 names a row
     fig.tight_layout(rect=(0, legend_height / fig.get_figheight(), 1, 1))
     if path is not None:
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
+        save_figure(fig, Path(path).name, Path(path).parent, dpi=110, layout=False)
     return fig
 
 
@@ -708,22 +684,19 @@ def run(quick=False, out=None, log=print, scenes=None):
         log(f"merged into {Path(out) / stem}.json")
     rows, info = results["rows"], results["info"]
 
-    table, ratios = markdown_table(rows), ratio_table(rows)
-    log("\n" + table + "\n\nAngle baseline against ours at the same tolerance:\n\n" + ratios)
+    text = (
+        "# Work-precision results\n\n"
+        + "\n".join(f"- {k}: {v}" for k, v in info.items())
+        + "\n\n"
+        + markdown_table(rows)
+        + "\n\n## Angle baseline / ours, same tolerance\n\n"
+        + ratio_table(rows)
+        + "\n"
+    )
+    publish(text, None if out is None else f"{stem}.md", out, show=log)
     if out is not None:
-        out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / f"{stem}.md").write_text(
-            "# Work-precision results\n\n"
-            + "\n".join(f"- {k}: {v}" for k, v in info.items())
-            + "\n\n"
-            + table
-            + "\n\n## Angle baseline / ours, same tolerance\n\n"
-            + ratios
-            + "\n"
-        )
-        (out / f"{stem}.json").write_text(json.dumps(results, indent=1))
-        figure(rows, out / f"{stem}.png")
+        (Path(out) / f"{stem}.json").write_text(json.dumps(results, indent=1))
+        figure(rows, Path(out) / f"{stem}.png")
     return results
 
 
