@@ -30,7 +30,7 @@ jax.config.update("jax_enable_x64", True)
 from _harness import load, publish, pyplot, save_figure, table, timings  # noqa: E402
 
 import sphere_mech as sm  # noqa: E402
-from sphere_mech._solve import BATCH_FORWARD_COLUMNS, FORWARD_COLUMNS  # noqa: E402
+from sphere_mech._adjoint import BATCH_FORWARD_COLUMNS, FORWARD_COLUMNS  # noqa: E402
 
 OLD = diffrax.RecursiveCheckpointAdjoint()
 SOLVERS = {  # name: (solver, dt0, t1)

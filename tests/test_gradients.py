@@ -12,7 +12,7 @@ import pytest
 
 import sphere_mech as sm
 from sphere_mech._linalg import spd_solve, tridiagonal_spd_solve
-from sphere_mech._solve import BATCH_FORWARD_COLUMNS, FORWARD_COLUMNS, default_adjoint
+from sphere_mech._adjoint import BATCH_FORWARD_COLUMNS, FORWARD_COLUMNS, default_adjoint
 
 N, T1 = 2, 0.3
 LENGTHS = jnp.array([1.0, 0.7])
