@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 import sphere_mech as sm
-from sphere_mech._linalg import spd_solve, tridiagonal_spd_solve
 from sphere_mech._adjoint import BATCH_FORWARD_COLUMNS, FORWARD_COLUMNS, default_adjoint
+from sphere_mech._linalg import spd_solve, tridiagonal_spd_solve
 
 N, T1 = 2, 0.3
 LENGTHS = jnp.array([1.0, 0.7])
