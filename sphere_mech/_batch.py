@@ -12,7 +12,8 @@ from jax.sharding import Mesh, PartitionSpec
 from ._adjoint import forward_mode_hint
 from ._misc import rows
 from ._results import RESULTS, raise_on_failure
-from ._solve import DEFAULT_MAX_STEPS, prepare, run_options, solve
+from ._simulate import simulate
+from ._solve import prepare, shared_signature, solve
 from ._system import AbstractSystem
 
 BATCH_AXIS = "batch"
@@ -101,30 +102,20 @@ def simulate_batch(
     y0,
     t1,
     *,
-    t0=0.0,
     args=None,
     batch_args: bool = True,
     batch_system: bool = False,
-    solver: diffrax.AbstractSolver | None = None,
-    dt0=None,
-    rtol=None,
-    atol=None,
-    stepsize_controller: diffrax.AbstractStepSizeController | None = None,
-    saveat: diffrax.SaveAt | None = None,
-    max_steps: int | None = DEFAULT_MAX_STEPS,
-    progress: bool = False,
-    adjoint: diffrax.AbstractAdjoint | None = None,
-    event: diffrax.Event | None = None,
-    throw: bool = True,
     chunk_size: int | None = None,
     devices=None,
+    **options,
 ) -> diffrax.Solution:
     """Integrate a batch of trajectories: `simulate` over a leading batch axis.
 
     **Arguments:**
-    - `system`, `t1`, `t0`, `solver`, `dt0`, `rtol`, `atol`, `stepsize_controller`,
-      `saveat`, `max_steps`, `adjoint`, `event`: as in `sphere_mech.simulate`
-      (shared by every trajectory; `system` too unless `batch_system=True`). The
+    - `system`, `t1`, and the keyword options of `sphere_mech.simulate` (`t0`, `solver`,
+      `dt0`, `rtol`, `atol`, `stepsize_controller`, `saveat`, `max_steps`, `progress`,
+      `adjoint`, `event`, `throw`; `inspect.signature(simulate_batch)` lists them):
+      as there, shared by every trajectory (`system` too unless `batch_system=True`). The
       default adjoint (`None`) uses forward mode for at most 2 differentiated scalars
       here (8 in `simulate`): under `vmap` forward mode's cost grows with every column
       and reverse mode's does not.
@@ -163,7 +154,7 @@ def simulate_batch(
     `sol.ys = (q, v)` of shape `(batch, times, n, 3)`, `sol.result` and
     `sol.stats["num_steps"]` per trajectory. The output is sharded over the devices.
     """
-    run = prepare(system, y0, args, batched=True, **run_options(locals()))
+    run = prepare(system, y0, args, batched=True, t1=t1, **options)
     one_state = jax.tree.map(lambda x: x[0], run.y0)
     size = len(run.valid)
     if batch_args and args is not None:
@@ -187,4 +178,7 @@ def simulate_batch(
     padded = -(-size // (chunk * len(devices))) * chunk * len(devices)
     with forward_mode_hint():
         sol = _solve_batch(static, chunk, mesh, shared, batched, run.y0, run.valid, size, padded)
-    return raise_on_failure(sol, max_steps, "simulate_batch") if throw else sol
+    return raise_on_failure(sol, run.opts.max_steps, "simulate_batch") if run.throw else sol
+
+
+simulate_batch.__signature__ = shared_signature(simulate_batch, simulate)

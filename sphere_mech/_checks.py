@@ -13,6 +13,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._geometry import constraint_error
+
 UNIT_TOLERANCE = {np.dtype("float64"): 1e-6, np.dtype("float32"): 1e-4}
 
 
@@ -59,8 +61,7 @@ def off_unit(q, q_name: str = "q") -> tuple[jax.Array, str]:
     """`(problem, message)`: whether some finite `|q_i|` differs from 1 by more than
     `unit_tolerance`."""
     tol = unit_tolerance(jnp.result_type(q))
-    err = jnp.max(jnp.abs(jnp.linalg.norm(q, axis=-1) - 1.0))
-    return err > tol, (
+    return constraint_error(q) > tol, (
         f"{q_name} is not on the spheres: some |q_i| differs from 1 by more than {tol:g} "
         "(normalize q, e.g. with sphere_mech.normalize)."
     )

@@ -13,7 +13,7 @@ from diffrax import RESULTS
 from ._hamiltonian import AngularHamiltonian, Hamiltonian
 from ._lagrangian import AngularLagrangian
 from ._misc import fill_zeros, tree_sub, tree_vdot
-from ._spaces import AbstractSpace
+from ._spaces import AbstractSpace, Spheres
 from ._system import AbstractHamiltonianSystem, AbstractLagrangianSystem, AbstractSystem
 
 
@@ -26,7 +26,7 @@ def omega_from_qdot(q, qdot):
 
     **Returns:** the angular velocities `omega`, `(n, 3)`, tangent at `q` too.
     """
-    return jnp.cross(q, qdot)
+    return Spheres().from_linear(q, qdot)
 
 
 def qdot_from_omega(q, omega):
@@ -38,7 +38,7 @@ def qdot_from_omega(q, omega):
 
     **Returns:** the velocities `qdot`, `(n, 3)`.
     """
-    return jnp.cross(omega, q)
+    return Spheres().to_linear(q, omega)
 
 
 def pi_from_mu(q, mu):
@@ -51,7 +51,7 @@ def pi_from_mu(q, mu):
 
     **Returns:** the angular momenta `pi` (form 4), `(n, 3)`.
     """
-    return jnp.cross(q, mu)
+    return Spheres().from_linear(q, mu)
 
 
 def mu_from_pi(q, pi):
@@ -63,7 +63,7 @@ def mu_from_pi(q, pi):
 
     **Returns:** the momenta `mu` (form 3), `(n, 3)`.
     """
-    return jnp.cross(pi, q)
+    return Spheres().to_linear(q, pi)
 
 
 class _Reparametrized(eqx.Module):

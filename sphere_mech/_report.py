@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._geometry import constraint_error
 from ._program import build
 from ._solvers.work import power_and_rate, work_step
 from ._spaces import chain_parts
@@ -161,7 +162,7 @@ def scene_result(spec, run, t1=None) -> SceneResult:
             "max_relative_energy_error": float(np.max(np.abs(error))),
         }
     q, v = jax.tree.map(np.asarray, (q, v))
-    constraint = np.max(np.abs(np.linalg.norm(scene.spheres(q), axis=-1) - 1.0), axis=-1)
+    constraint = np.asarray(jax.vmap(constraint_error)(scene.spheres(q)))
     x = np.asarray(jax.vmap(scene.points)(q))
     base = {} if scene.base is None else {"base": chain_parts(q)[0][-1].tolist()}
     summary = {

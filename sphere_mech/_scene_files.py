@@ -20,7 +20,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._scene.base import MAX_MAGNITUDE, UNIT_TOLERANCE, ParameterError
+from ._checks import unit_tolerance
+from ._scene.base import MAX_MAGNITUDE, ParameterError
 from ._scene.forces import (
     BaseForce,
     BaseTorque,
@@ -281,12 +282,12 @@ def _spheres_initial(path, table, n: int):
         q, qdot = _per_sphere(path, table, "q", n), np.zeros((n, 3))
         norms = np.linalg.norm(q, axis=-1)
         bad = int(np.argmax(np.abs(norms - 1.0)))
-        if abs(norms[bad] - 1.0) > UNIT_TOLERANCE:
+        if abs(norms[bad] - 1.0) > unit_tolerance(q.dtype):
             raise SceneFileError(
                 path,
                 "initial.q",
                 f"unit vectors (length 1 within "
-                f"{UNIT_TOLERANCE:g}), got length {norms[bad]:.6g} for "
+                f"{unit_tolerance(q.dtype):g}), got length {norms[bad]:.6g} for "
                 f"q[{bad}]",
             )
     else:
@@ -309,7 +310,8 @@ def _spheres_initial(path, table, n: int):
     if "qdot" in table:
         qdot = _per_sphere(path, table, "qdot", n)
     if np.any(
-        np.abs(np.sum(q * qdot, axis=-1)) > UNIT_TOLERANCE * (1.0 + np.linalg.norm(qdot, axis=-1))
+        np.abs(np.sum(q * qdot, axis=-1))
+        > unit_tolerance(q.dtype) * (1.0 + np.linalg.norm(qdot, axis=-1))
     ):
         raise SceneFileError(
             path, "initial.qdot", "velocities tangent to the spheres (q_i . qdot_i = 0)"

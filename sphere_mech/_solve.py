@@ -2,6 +2,7 @@
 options, the same result codes and the same errors."""
 
 import functools
+import inspect
 import math
 from typing import Any
 
@@ -173,6 +174,7 @@ class Run(eqx.Module):
     dt0: Any
     opts: Options
     valid: Any  # which initial states are valid (one entry per member of a batch)
+    throw: bool = eqx.field(static=True)  # raise for a failed run (after the solve)
 
     @property
     def inputs(self) -> tuple:
@@ -190,6 +192,9 @@ def prepare(system, y0, args=None, *, batched: bool = False, throw: bool = True,
 
     **Returns:** a `Run`."""
     what = "simulate_batch" if batched else "simulate"
+    unknown = sorted(set(options_) - set(OPTION_NAMES))
+    if unknown:
+        raise TypeError(f"{what}() got unexpected keyword arguments {unknown}")
     q0, v0 = state_pair(y0, "(batch, n, 3)" if batched else "(n, 3)")
     if batched:
         leading = {jnp.shape(x)[:1] for x in jax.tree.leaves((q0, v0))}
@@ -209,7 +214,7 @@ def prepare(system, y0, args=None, *, batched: bool = False, throw: bool = True,
     y0, valid = initial_states(system.space, system.state_name, y0, what, throw or not batched)
     if not batched:
         y0 = jax.tree.map(lambda x: x[0], y0)
-    return Run(system, y0, args, t0, t1, dt0, opts, valid)
+    return Run(system, y0, args, t0, t1, dt0, opts, valid, throw)
 
 
 OPTION_NAMES = (
@@ -231,9 +236,19 @@ OPTION_NAMES = (
 
 
 def run_options(scope: dict) -> dict:
-    """The shared options among the arguments `scope` of `simulate` or `simulate_batch`
-    (their `locals()`): one list of names instead of two spelled-out calls."""
+    """The shared options among the arguments `scope` of `simulate` (its `locals()`)."""
     return {name: scope[name] for name in OPTION_NAMES}
+
+
+def shared_signature(fn, like) -> inspect.Signature:
+    """The signature of `fn(..., **options)` with its `options` spelled out as `like`'s
+    (`simulate_batch` takes `simulate`'s options: one list of them, shown by `help` and
+    `inspect.signature`)."""
+    own = inspect.signature(fn).parameters
+    options = [p for name, p in inspect.signature(like).parameters.items() if name in OPTION_NAMES]
+    params = [p for p in own.values() if p.kind is not p.VAR_KEYWORD]
+    params = params[:3] + [p for p in options if p.name not in own] + params[3:]
+    return inspect.signature(fn).replace(parameters=params)
 
 
 def times(dtype, *ts):

@@ -346,14 +346,22 @@ def _check_keys(tree, keys, name):
         )
 
 
+def _factorwise(method: str):
+    """A `Product`'s `method`: each factor's own on its entries of the arguments (states,
+    vectors, bases: dicts with the factors' keys)."""
+
+    def apply(self, *trees):
+        return {k: getattr(f, method)(*(t[k] for t in trees)) for k, f in self.factors.items()}
+
+    apply.__doc__ = getattr(AbstractSpace, method).__doc__
+    return apply
+
+
 class Product(AbstractSpace):
     """The product of the factors of a dict: states are dicts with the same keys, one
     array per factor. Built by `as_space` from a system's `space=` dict."""
 
     factors: dict[str, AbstractFactor]
-
-    def _map(self, fn, *trees):
-        return {k: fn(f, *(t[k] for t in trees)) for k, f in self.factors.items()}
 
     def check_shapes(self, q, v, v_name="v", q_name="q"):
         _check_keys(q, self.factors, q_name)
@@ -373,32 +381,15 @@ class Product(AbstractSpace):
         for k, factor in self.factors.items():
             factor.check_forces(f[k], q[k], f"{q_name}[{k!r}]")
 
-    def normalize(self, q):
-        return self._map(lambda f, q: f.normalize(q), q)
-
-    def project(self, q, v):
-        return self._map(lambda f, q, v: f.project(q, v), q, v)
-
-    def to_linear(self, q, w):
-        return self._map(lambda f, q, w: f.to_linear(q, w), q, w)
-
-    def from_linear(self, q, x):
-        return self._map(lambda f, q, x: f.from_linear(q, x), q, x)
-
-    def bracket(self, a, b):
-        return self._map(lambda f, a, b: f.bracket(a, b), a, b)
-
-    def normal_acceleration(self, q, qdot):
-        return self._map(lambda f, q, v: f.normal_acceleration(q, v), q, qdot)
-
-    def normal_multiplier(self, q, r):
-        return self._map(lambda f, q, r: f.normal_multiplier(q, r), q, r)
-
-    def exp(self, q, v):
-        return self._map(lambda f, q, v: f.exp(q, v), q, v)
-
-    def tangent_basis(self, q):
-        return self._map(lambda f, q: f.tangent_basis(q), q)
+    normalize = _factorwise("normalize")
+    project = _factorwise("project")
+    to_linear = _factorwise("to_linear")
+    from_linear = _factorwise("from_linear")
+    bracket = _factorwise("bracket")
+    normal_acceleration = _factorwise("normal_acceleration")
+    normal_multiplier = _factorwise("normal_multiplier")
+    exp = _factorwise("exp")
+    tangent_basis = _factorwise("tangent_basis")
 
     def to_tangent(self, T, v):
         return jnp.concatenate([f.to_tangent(T[k], v[k]) for k, f in self.factors.items()])

@@ -9,8 +9,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-UNIT_TOLERANCE = 1e-6
-"""How far from unit length a `direction` or `target` may be."""
+from .._checks import unit_tolerance
+
 MAX_MAGNITUDE = 1e100
 """The largest magnitude of a parameter: products and squares of a few such numbers (an
 energy `m g l`, a kinetic energy `m v^2`) stay finite in float64."""
@@ -72,28 +72,28 @@ def check_shape(name: str, x, shape: tuple, what: str) -> None:
 def check_vector(name: str, x, unit: bool = False) -> None:
     check_shape(name, x, (3,), "a (3,) vector")
     check_magnitude(name, x)
-    if unit and _concrete(x) and not abs(np.linalg.norm(x) - 1.0) <= UNIT_TOLERANCE:
+    tol = unit_tolerance(jnp.result_type(x))
+    if unit and _concrete(x) and not abs(np.linalg.norm(x) - 1.0) <= tol:
         raise ParameterError(
-            name,
-            f"{name} must be a unit vector (length 1 within {UNIT_TOLERANCE:g}), got {_show(x)}",
+            name, f"{name} must be a unit vector (length 1 within {tol:g}), got {_show(x)}"
         )
 
 
 def check_axes(name: str, x) -> None:
-    """`(m, 3)` rows, `1 <= m <= 3`, orthonormal within `UNIT_TOLERANCE` (unless traced)."""
+    """`(m, 3)` rows, `1 <= m <= 3`, orthonormal within `unit_tolerance` (unless traced)."""
     if jnp.ndim(x) != 2 or jnp.shape(x)[1] != 3 or not 1 <= jnp.shape(x)[0] <= 3:
         raise ParameterError(
             name,
             f"{name} must be an (m, 3) array of m = 1, 2 or 3 directions, got shape {jnp.shape(x)}",
         )
     if _concrete(x):
-        x = np.asarray(x)
+        x, tol = np.asarray(x), unit_tolerance(jnp.result_type(x))
         error = np.max(np.abs(x @ x.T - np.eye(x.shape[0])))
-        if not error <= UNIT_TOLERANCE:
+        if not error <= tol:
             raise ParameterError(
                 name,
                 f"{name} must be orthonormal rows (unit length, "
-                f"mutually perpendicular, within {UNIT_TOLERANCE:g}), got "
+                f"mutually perpendicular, within {tol:g}), got "
                 f"{_show(x)}",
             )
 
