@@ -1,6 +1,6 @@
 """Scenes with a `Base`: a cart, a trolley or a drone carrying a chain, on the O(n) fast
 path of R^m x (S^2)^n (state keys "base" and "spheres"), against the general path, the
-Cartesian reference of `test_mixed`, the dense variational step and finite differences;
+Cartesian reference of `test_mixed` (helpers.py), the dense variational step and finite differences;
 the fit of a payload mass and a cable's damping."""
 
 import diffrax
@@ -8,8 +8,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import jaxpr_equations
-from test_mixed import T1, TIGHT, G, cart_pendulum, flying_chain, initial_state
+from helpers import (
+    T1,
+    TIGHT,
+    G,
+    cart_pendulum,
+    flying_chain,
+    jaxpr_equations,
+    mixed_initial_state,
+)
 
 import sphere_mech as sm
 from sphere_mech._solvers.discrete_mechanics import substep
@@ -101,7 +108,7 @@ def test_base_scene_against_cartesian_reference(make):
     the Cartesian reference to 1e-8 over 2 s; without forces the energy is conserved."""
     model = make()
     scene = base_scene(model, forced=True)
-    y0 = initial_state(model)
+    y0 = mixed_initial_state(model)
     sol = sm.simulate(scene, tuple(map(as_scene_state, y0)), T1, **TIGHT)
     x_ref, r_ref = model.reference(*y0, forced=True)
     q = sol.ys[0]

@@ -13,6 +13,7 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+from helpers import CART_SCENE
 
 from sphere_mech._cli import CACHE_ENV, cache_dir, main
 from sphere_mech._cli.figures import figure
@@ -40,23 +41,8 @@ t1 = 0.5
 """
 
 
+MASSES = "masses = [1.0, 1.0]"
 ONE_VALUE = "masses = [1.0, 1.0]\nlengths = [1.0, 1.0]"
-CART = """
-[[effects]]
-type = "base"
-mass = 1.0
-axes = [[1.0, 0.0, 0.0]]
-[[effects]]
-type = "chain"
-masses = 0.5
-lengths = 0.8
-[initial]
-polar_deg = 140.0
-azimuth_deg = 90.0
-base_velocity = [0.0]
-[simulate]
-t1 = 0.1
-"""
 STILL = """
 name = "still bead"
 [[effects]]
@@ -122,123 +108,118 @@ def test_default_run_writes_four_sane_files(default_run):
     assert len(page) < 8e6
 
 
+def run_cli(scene, out, *options):
+    """`sphere-mech run SCENE --out OUT OPTIONS...` in this process: the exit status."""
+    return main(["run", str(scene), "--out", str(out), *options])
+
+
 def _bad(tmp_path, text):
     path = tmp_path / "bad.toml"
     path.write_text(text)
     return path
 
 
-ERRORS = {
-    "unknown effect": (
-        GOOD.replace('type = "gravity"', 'type = "magnetism"'),
-        "effects[1].type",
-        "effect type",
-    ),
-    "unknown field": (
-        GOOD.replace("masses = [1.0, 1.0]", "masses = [1.0, 1.0]\ncolour = 1"),
-        "effects[0].colour",
-        "no such field",
-    ),
-    "missing field": (GOOD.replace("lengths = [1.0, 1.0]\n", ""), "effects[0].lengths", "missing"),
-    "wrong type": (
-        GOOD.replace("masses = [1.0, 1.0]", 'masses = "heavy"'),
-        "effects[0].masses",
-        "array of numbers",
-    ),
-    "wrong integer": (
-        GOOD.replace("masses = [1.0, 1.0]", "masses = 1.0\nlinks = 2.5"),
-        "effects[0].links",
-        "an integer",
-    ),
-    "old table": (GOOD.replace("[simulate]", "[integrator]"), "integrator", "no such field"),
-    "old key": (GOOD.replace("t1 = 0.5", "duration = 0.5"), "simulate.duration", "no such field"),
-    "bad solver": (
-        GOOD.replace("Projected(Tsit5)", "rk4"),
-        "simulate.solver",
-        "spelled as in Python",
-    ),
-    "syntax": (GOOD.replace("t1 = 0.5", "t1 = "), "(syntax)", "valid TOML"),
-    "link out of range": (
-        GOOD + '[[effects]]\ntype = "base_torque"\ntorque = [0.0, 0.0, 1.0]\nlink = 7\n',
-        "effects[2].link",
-        "got 7",
-    ),
+EDITS = {  # case: (text of GOOD, what replaces it, field, what the error says)
+    "unknown effect": ('type = "gravity"', 'type = "magnetism"', "effects[1].type", "effect type"),
+    "unknown field": (MASSES, MASSES + "\ncolour = 1", "effects[0].colour", "no such field"),
+    "missing field": ("lengths = [1.0, 1.0]\n", "", "effects[0].lengths", "missing"),
+    "wrong type": (MASSES, 'masses = "heavy"', "effects[0].masses", "array of numbers"),
+    "wrong integer": (MASSES, "masses = 1.0\nlinks = 2.5", "effects[0].links", "an integer"),
+    "old table": ("[simulate]", "[integrator]", "integrator", "no such field"),
+    "old key": ("t1 = 0.5", "duration = 0.5", "simulate.duration", "no such field"),
+    "bad solver": ("Projected(Tsit5)", "rk4", "simulate.solver", "spelled as in Python"),
+    "syntax": ("t1 = 0.5", "t1 = ", "(syntax)", "valid TOML"),
     "wrong unit": (
-        GOOD.replace("polar_deg = [90.0, 120.0]", "polar_deg = [90.0, 240.0]"),
+        "polar_deg = [90.0, 120.0]",
+        "polar_deg = [90.0, 240.0]",
         "initial.polar_deg",
         "degrees",
     ),
     "non-unit direction": (
-        GOOD.replace(
-            "polar_deg = [90.0, 120.0]\nazimuth_deg = [0.0, 90.0]",
-            "q = [[1.0, 0.0, 0.0], [1.0, 1.0, 0.0]]",
-        ),
+        "polar_deg = [90.0, 120.0]\nazimuth_deg = [0.0, 90.0]",
+        "q = [[1.0, 0.0, 0.0], [1.0, 1.0, 0.0]]",
         "initial.q",
         "unit vectors",
     ),
     "negative mass": (
-        GOOD.replace("masses = [1.0, 1.0]", "masses = [1.0, -1.0]"),
+        MASSES,
+        "masses = [1.0, -1.0]",
         "effects[0].masses",
         "masses must be > 0 (kg), got [1.0, -1.0]",
     ),
     "negative length": (
-        GOOD.replace("lengths = [1.0, 1.0]", "lengths = [-1.0, 1.0]"),
+        "lengths = [1.0, 1.0]",
+        "lengths = [-1.0, 1.0]",
         "effects[0].lengths",
         "> 0",
     ),
     # sizes and ranges: refused where read, before anything is allocated or integrated
     "negative links": (
-        GOOD.replace(ONE_VALUE, "masses = 1.0\nlengths = 1.0\nlinks = -2"),
+        ONE_VALUE,
+        "masses = 1.0\nlengths = 1.0\nlinks = -2",
         "effects[0].links",
         "links must be an integer from 1 to 100000, got -2",
     ),
     "huge links": (
-        GOOD.replace(ONE_VALUE, f"masses = 1.0\nlengths = 1.0\nlinks = {2**63 - 1}"),
+        ONE_VALUE,
+        f"masses = 1.0\nlengths = 1.0\nlinks = {2**63 - 1}",
         "effects[0].links",
         "from 1 to 100000",
     ),
     "1e9 links": (
-        GOOD.replace(ONE_VALUE, "masses = 1.0\nlengths = 1.0\nlinks = 1000000000"),
+        ONE_VALUE,
+        "masses = 1.0\nlengths = 1.0\nlinks = 1000000000",
         "effects[0].links",
         "from 1 to 100000",
     ),
     "huge mass": (
-        GOOD.replace("masses = [1.0, 1.0]", "masses = [1.0, 1e308]"),
+        MASSES,
+        "masses = [1.0, 1e308]",
         "effects[0].masses",
         "masses must be finite and at most 1e+100 in magnitude, got 1e+308",
     ),
     "huge g": (
-        GOOD.replace('type = "gravity"', 'type = "gravity"\ng = 1e308'),
+        'type = "gravity"',
+        'type = "gravity"\ng = 1e308',
         "effects[1].g",
         "g must be finite and at most 1e+100",
     ),
-    "huge gain": (
-        GOOD + '[[effects]]\ntype = "base_torque"\ntorque = { type = "pd_torque", kp = 1e308 }\n',
-        "effects[2].torque.kp",
-        "kp must be finite and at most 1e+100",
-    ),
-    "huge t1": (
-        GOOD.replace("t1 = 0.5", "t1 = 1e308"),
-        "simulate.t1",
-        "t1 must be at most 1e+100 s",
-    ),
-    "tiny save_dt": (
-        GOOD + "[output]\nsave_dt = 1e-300",
-        "output.save_dt",
-        "save_dt must give at most 1e+08 saved numbers",
-    ),
+    "huge t1": ("t1 = 0.5", "t1 = 1e308", "simulate.t1", "t1 must be at most 1e+100 s"),
     "tiny fixed step": (
-        GOOD.replace('"Projected(Tsit5)"', '"RK4"\ndt0 = 1e-300'),
+        '"Projected(Tsit5)"',
+        '"RK4"\ndt0 = 1e-300',
         "simulate.dt0",
         "dt0 must give at most max_steps = 100000 fixed steps",
     ),
     "deep solver": (
-        GOOD.replace('"Projected(Tsit5)"', '"' + "Projected(" * 3000 + "Tsit5" + ")" * 3000 + '"'),
+        '"Projected(Tsit5)"',
+        '"' + "Projected(" * 3000 + "Tsit5" + ")" * 3000 + '"',
         "simulate.solver",
         "solver must be at most 200 characters",
     ),
+}
+ADDED = {  # case: (what follows GOOD, field, what the error says)
+    "link out of range": (
+        '[[effects]]\ntype = "base_torque"\ntorque = [0.0, 0.0, 1.0]\nlink = 7\n',
+        "effects[2].link",
+        "got 7",
+    ),
+    "huge gain": (
+        '[[effects]]\ntype = "base_torque"\ntorque = { type = "pd_torque", kp = 1e308 }\n',
+        "effects[2].torque.kp",
+        "kp must be finite and at most 1e+100",
+    ),
+    "tiny save_dt": (
+        "[output]\nsave_dt = 1e-300",
+        "output.save_dt",
+        "save_dt must give at most 1e+08 saved numbers",
+    ),
+}
+ERRORS = {  # case: (scene file, field, what the error says)
+    **{case: (GOOD.replace(old, new), *error) for case, (old, new, *error) in EDITS.items()},
+    **{case: (GOOD + added, *error) for case, (added, *error) in ADDED.items()},
     "huge base velocity": (
-        CART.replace("base_velocity = [0.0]", "base_velocity = [1e308]"),
+        CART_SCENE.format(extra="", simulate="").replace("base = [0.0]", "base_velocity = [1e308]"),
         "initial.base_velocity",
         "at most 1e+100 in magnitude",
     ),
@@ -249,7 +230,7 @@ ERRORS = {
 def test_scene_file_error_is_one_line_exit_2(case, tmp_path, capsys):
     text, field, expected = ERRORS[case]
     path = _bad(tmp_path, text)
-    assert main(["run", str(path), "--out", str(tmp_path / "out")]) == 2
+    assert run_cli(path, tmp_path / "out") == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "Traceback" not in err
     assert err.startswith(f"sphere-mech: error: {path}: {field}: ")
@@ -272,7 +253,7 @@ def test_error_from_the_installed_command(tmp_path):
 @pytest.mark.parametrize("example", EXAMPLES, ids=lambda p: p.stem)
 def test_every_example_runs(example, tmp_path, capsys):
     out = tmp_path / "out"
-    assert main(["run", str(example), "--out", str(out), "--t1", "0.1", "--no-progress"]) == 0
+    assert run_cli(example, out, "--t1", "0.1", "--no-progress") == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["t1"] == 0.1 and summary["max_constraint_error"] < 1e-12
     error = summary.get(
@@ -288,7 +269,7 @@ def test_drone_flies_the_step_and_its_work_balances(tmp_path):
     damping closes the balance to the tolerances, and the files hold the base."""
     out = tmp_path / "out"
     drone = next(p for p in EXAMPLES if p.stem == "drone_cable")
-    assert main(["run", str(drone), "--out", str(out), "--no-progress", "--no-animation"]) == 0
+    assert run_cli(drone, out, "--no-progress", "--no-animation") == 0
     summary = json.loads((out / "summary.json").read_text())
     np.testing.assert_allclose(summary["base"], [1.0, 0.0, 0.0], atol=0.05)  # measured 0.025
     assert summary["max_relative_work_energy_balance"] < 1e-6  # measured 1.2e-8
@@ -303,14 +284,14 @@ def test_drone_flies_the_step_and_its_work_balances(tmp_path):
 def test_failing_runs_keep_previous_outputs(tmp_path, capsys):
     out = tmp_path / "out"
     good = _bad(tmp_path, GOOD)
-    assert main(["run", str(good), "--out", str(out), "--no-progress"]) == 0
+    assert run_cli(good, out, "--no-progress") == 0
     before = {f: (out / f).read_bytes() for f in FILES}
     # a scene-file error, then a solver failure (too few steps)
     bad = _bad(tmp_path, GOOD.replace("masses = [1.0, 1.0]", "masses = [1.0, -1.0]"))
-    assert main(["run", str(bad), "--out", str(out)]) == 2
+    assert run_cli(bad, out) == 2
     few = tmp_path / "few.toml"
     few.write_text(GOOD.replace("t1 = 0.5", "t1 = 0.5\nmax_steps = 3"))
-    assert main(["run", str(few), "--out", str(out), "--no-progress"]) == 1
+    assert run_cli(few, out, "--no-progress") == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and "simulation failed" in err[-1]
     assert {f: (out / f).read_bytes() for f in FILES} == before
@@ -320,9 +301,9 @@ def test_failing_runs_keep_previous_outputs(tmp_path, capsys):
 def test_no_animation(tmp_path, capsys):
     out = tmp_path / "out"
     good = _bad(tmp_path, GOOD)
-    assert main(["run", str(good), "--out", str(out), "--no-progress"]) == 0
+    assert run_cli(good, out, "--no-progress") == 0
     assert (out / "animation.html").exists()
-    assert main(["run", str(good), "--out", str(out), "--no-progress", "--no-animation"]) == 0
+    assert run_cli(good, out, "--no-progress", "--no-animation") == 0
     assert sorted(p.name for p in out.iterdir()) == sorted(FILES[:3])  # no stale animation
     assert capsys.readouterr().out.splitlines()[-1].endswith("summary.json, plot.png")
 
@@ -425,12 +406,7 @@ def test_stale_temporary_folders_are_removed(tmp_path, capsys):
     for folder in (stale, live):
         folder.mkdir(parents=True)
         (folder / "trajectory.npz").write_bytes(b"partial")
-    assert (
-        main(
-            ["run", str(_bad(tmp_path, GOOD)), "--out", str(out), "--no-progress", "--no-animation"]
-        )
-        == 0
-    )
+    assert run_cli(_bad(tmp_path, GOOD), out, "--no-progress", "--no-animation") == 0
     assert not stale.exists() and live.exists()
     assert sorted(p.name for p in out.glob(".sphere-mech-*")) == [live.name]
 
@@ -440,20 +416,7 @@ def test_no_cache_writes_nothing(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv(CACHE_ENV, str(tmp_path / "cache"))
     assert cache_dir() == tmp_path / "cache"
     good = _bad(tmp_path, GOOD)
-    assert (
-        main(
-            [
-                "run",
-                str(good),
-                "--out",
-                str(tmp_path / "out"),
-                "--no-progress",
-                "--no-animation",
-                "--no-cache",
-            ]
-        )
-        == 0
-    )
+    assert run_cli(good, tmp_path / "out", "--no-progress", "--no-animation", "--no-cache") == 0
     assert not (tmp_path / "cache").exists()
     assert jax.config.jax_compilation_cache_dir is None
     monkeypatch.setenv(CACHE_ENV, "off")
@@ -543,8 +506,8 @@ def test_end_time_must_follow_t0(tmp_path, capsys):
     one line naming `--t1`, nothing written."""
     path = _bad(tmp_path, GOOD.replace("t1 = 0.5", "t0 = 10.0\nt1 = 10.5"))
     out = tmp_path / "out"
-    assert main(["run", str(path), "--out", str(out), "--t1", "5"]) == 2
-    assert main(["run", str(path), "--out", str(out), "--t1", "inf"]) == 2
+    assert run_cli(path, out, "--t1", "5") == 2
+    assert run_cli(path, out, "--t1", "inf") == 2
     err = capsys.readouterr().err.splitlines()
     assert err[0] == (
         f"sphere-mech: error: {path}: --t1: --t1 must be a time in s after "
@@ -562,7 +525,7 @@ def test_output_folder_is_checked_before_integrating(tmp_path, capsys):
     good, blocker = _bad(tmp_path, GOOD), tmp_path / "file"
     blocker.write_text("not a folder")
     for out in (blocker, blocker / "sub"):
-        assert main(["run", str(good), "--out", str(out), "--no-progress"]) == 2
+        assert run_cli(good, out, "--no-progress") == 2
         captured = capsys.readouterr()
         assert captured.out == "" and captured.err.count("\n") == 1
         assert captured.err.startswith(
@@ -575,19 +538,7 @@ def test_still_forced_scene_writes_strict_json(tmp_path, capsys):
     """A forced scene in which nothing moves: the relative work-energy balance (0/0) is
     null with its reason, and summary.json is strict JSON (no NaN)."""
     out = tmp_path / "out"
-    assert (
-        main(
-            [
-                "run",
-                str(_bad(tmp_path, STILL)),
-                "--out",
-                str(out),
-                "--no-progress",
-                "--no-animation",
-            ]
-        )
-        == 0
-    )
+    assert run_cli(_bad(tmp_path, STILL), out, "--no-progress", "--no-animation") == 0
     text = (out / "summary.json").read_text()
     summary = json.loads(text, parse_constant=lambda c: pytest.fail(f"{c} in summary.json"))
     assert summary["max_relative_work_energy_balance"] is None

@@ -1,5 +1,7 @@
 """Gradients through `simulate` and parameter fitting with `fit`."""
 
+import functools
+
 import diffrax
 import equinox as eqx
 import jax
@@ -8,7 +10,7 @@ import jax.random as jr
 import numpy as np
 import optimistix as optx
 import pytest
-from helpers import max_rel_error
+from helpers import SIM, DampedChain, central_differences, chain_initial_states, max_rel_error
 
 import sphere_mech as sm
 
@@ -19,27 +21,11 @@ P0 = jnp.array([1.0, 0.5, 1.0, 0.7, 9.81])  # m1, m2, l1, l2, g
 TOL = dict(rtol=1e-12, atol=1e-12)
 
 
-def _initial_states(num):
-    q = sm.normalize(jnp.array([[1.0, 0.2, -1.0], [0.6, -0.4, -1.0]]))
-    v = sm.project(q, jnp.array([[0.0, 1.0, 0.0], [0.5, 0.0, 0.3]]))
-    w = jnp.linspace(0.0, 1.0, num)[:, None, None] * jnp.array([0.0, 0.3, 0.2])
-    return jax.vmap(
-        lambda w_: (
-            sm.rotate(jnp.broadcast_to(w_, (2, 3)), q),
-            sm.rotate(jnp.broadcast_to(w_, (2, 3)), v),
-        )
-    )(w)
-
-
 def _quantity(p, y0, adjoint, solver=None, dt0=None, tol=TOL):
     """A weighted sum of the tip position after 1 s."""
     chain = sm.chain_pendulum(p[:2], p[2:4], p[4])
     sol = sm.simulate(chain, y0, 1.0, adjoint=adjoint, solver=solver, dt0=dt0, **tol)
     return jnp.dot(chain.positions(sol.ys[0][-1])[-1], jnp.array([1.0, 2.0, 3.0]))
-
-
-def _central_differences(f, p, eps):
-    return jnp.stack([(f(p + e) - f(p - e)) / (2 * eps) for e in eps * jnp.eye(p.size)], -1)
 
 
 @pytest.fixture(scope="module")
@@ -49,12 +35,12 @@ def adaptive():
     rev = lambda p, y: _quantity(p, y, diffrax.RecursiveCheckpointAdjoint())
     fwd = lambda p, y: _quantity(p, y, diffrax.ForwardMode())
     batch = lambda f: eqx.filter_jit(jax.vmap(f, in_axes=(None, 0)))
-    return batch(rev), batch(jax.grad(rev)), batch(jax.jacfwd(fwd)), _initial_states(3)
+    return batch(rev), batch(jax.grad(rev)), batch(jax.jacfwd(fwd)), chain_initial_states(3)
 
 
 def test_gradient_adaptive_matches_finite_differences(adaptive):
     value, grad, _, y0 = adaptive
-    fd = _central_differences(lambda p: value(p, y0), P0, 1e-5)
+    fd = central_differences(lambda p: value(p, y0), P0, 1e-5)
     g = grad(P0, y0)
     assert g.shape == (3, 5)
     assert max_rel_error(g, fd) < 1e-6
@@ -70,7 +56,7 @@ def test_forward_mode_matches_reverse_mode(adaptive):
 def test_gradient_fixed_steps_and_initial_state():
     """RK4 with fixed steps: gradient with respect to the parameters and a directional
     derivative with respect to the initial velocity, against finite differences."""
-    y0 = jax.tree.map(lambda x: x[0], _initial_states(1))
+    y0 = jax.tree.map(lambda x: x[0], chain_initial_states(1))
     kw = dict(solver=sm.Projected(sm.RK4()), dt0=0.01, tol={})
 
     @eqx.filter_jit
@@ -78,7 +64,7 @@ def test_gradient_fixed_steps_and_initial_state():
         return _quantity(p, (y0[0], v0), diffrax.RecursiveCheckpointAdjoint(), **kw)
 
     g_p, g_v = jax.jit(jax.grad(f, argnums=(0, 1)))(P0, y0[1])
-    assert max_rel_error(g_p, _central_differences(lambda p: f(p, y0[1]), P0, 1e-5)) < 1e-6
+    assert max_rel_error(g_p, central_differences(lambda p: f(p, y0[1]), P0, 1e-5)) < 1e-6
     direction = sm.project(y0[0], jnp.array([[0.3, -0.2, 0.5], [0.1, 0.4, -0.2]]))
     eps = 1e-5
     fd = (f(P0, y0[1] + eps * direction) - f(P0, y0[1] - eps * direction)) / (2 * eps)
@@ -87,32 +73,6 @@ def test_gradient_fixed_steps_and_initial_state():
 
 # ----------------------------------------------------------------------------------------
 # Fitting a damped double spherical pendulum.
-
-
-class DampedChain(sm.AbstractConstantInertiaLagrangian):
-    """A chain pendulum with viscous joint damping, from the Rayleigh function
-    `R = c/2 sum_i |omega_i - omega_{i-1}|^2` (`omega_0 = 0`): `f = -dR/dqdot`."""
-
-    chain: sm.AbstractSystem  # sm.chain_pendulum(...)
-    damping: jax.Array
-
-    def inertia(self, args=None):
-        return self.chain.inertia(args)
-
-    def potential(self, t, q, args=None):
-        return self.chain.potential(t, q, args)
-
-    @property
-    def forces(self):
-        return self.damping_force
-
-    def damping_force(self, t, q, qdot, args):
-        def rayleigh(qdot_):
-            w = jnp.cross(q, qdot_)
-            rel = w - jnp.concatenate([jnp.zeros_like(w[:1]), w[:-1]])
-            return 0.5 * self.damping * jnp.sum(rel**2)
-
-        return -jax.grad(rayleigh)(qdot)
 
 
 def damped_chain(p):
@@ -128,7 +88,6 @@ def mass_positions(system, t, q, v):
 
 TRUE = dict(ratio=jnp.array(0.5), l1=jnp.array(1.0), l2=jnp.array(0.7), c=jnp.array(0.1))
 START = {k: 1.3 * v for k, v in TRUE.items()}
-SIM = dict(rtol=1e-7, atol=1e-9)
 
 
 def _record(y0, t1, num, key, truth=TRUE, noise=1e-3):
@@ -151,7 +110,7 @@ def _rel_errors(params, truth=TRUE):
 
 
 def test_fit_recovers_parameters(getkey):
-    y0 = jax.tree.map(lambda x: x[0], _initial_states(1))
+    y0 = jax.tree.map(lambda x: x[0], chain_initial_states(1))
     ts, obs = _record(y0, 5.0, 51, getkey())
     result = sm.fit(
         damped_chain, START, ts, obs, mass_positions, y0=y0, positive=True, simulate_options=SIM
@@ -185,29 +144,22 @@ def _shooting(t1, segments, key, single_steps=30):
     ts, obs = _record((Q_CHAOS, V_CHAOS), t1, int(20 * t1) + 1, key, TRUE_CHAOS)
     q, v = _states_from_data(ts, obs)
     bounds = np.round(np.linspace(0, len(ts) - 1, segments + 1)).astype(int)
-    options = dict(positive=True, fit_initial_state=True, simulate_options=SIM)
-    multiple = sm.fit(
+    fit = functools.partial(
+        sm.fit,
         damped_chain,
         START_CHAOS,
         ts,
         obs,
         mass_positions,
         y0=(q[0], v[0]),
-        segments=segments,
-        segment_states=(q[bounds[1:-1]], v[bounds[1:-1]]),
-        max_steps=60,
-        **options,
+        positive=True,
+        fit_initial_state=True,
+        simulate_options=SIM,
     )
-    single = sm.fit(
-        damped_chain,
-        START_CHAOS,
-        ts,
-        obs,
-        mass_positions,
-        y0=(q[0], v[0]),
-        max_steps=single_steps,
-        **options,
+    multiple = fit(
+        segments=segments, segment_states=(q[bounds[1:-1]], v[bounds[1:-1]]), max_steps=60
     )
+    single = fit(max_steps=single_steps)
     return multiple, single
 
 
@@ -234,7 +186,7 @@ def test_multiple_shooting_chaotic_20s(getkey):
 
 
 def test_fit_errors():
-    y0 = jax.tree.map(lambda x: x[0], _initial_states(1))
+    y0 = jax.tree.map(lambda x: x[0], chain_initial_states(1))
     ts = jnp.linspace(0.0, 1.0, 11)
     obs = jnp.zeros((11, 2, 3))
     with pytest.raises(ValueError, match="observations must have shape"):

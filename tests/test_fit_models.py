@@ -9,8 +9,7 @@ import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 import pytest
-from helpers import max_rel_error
-from test_fit import SIM, DampedChain, _initial_states
+from helpers import SIM, DampedChain, chain_initial_states, max_rel_error
 
 import sphere_mech as sm
 
@@ -42,7 +41,7 @@ def neural_lagrangian(mlp):
 
 def test_learned_potential(getkey):
     truth = sm.ConstantInertiaLagrangian(CHAIN.inertia(), stiff_joint)
-    y0 = _initial_states(3)
+    y0 = chain_initial_states(3)
     ts = jnp.linspace(0.0, 1.5, 16)
     simulate_q = lambda system, y: sm.simulate(
         system, y, ts[-1], saveat=diffrax.SaveAt(ts=ts), **SIM

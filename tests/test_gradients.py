@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import central_differences
 
 import sphere_mech as sm
 from sphere_mech._adjoint import BATCH_FORWARD_COLUMNS, FORWARD_COLUMNS, default_adjoint
@@ -16,7 +17,7 @@ from sphere_mech._linalg import spd_solve, tridiagonal_spd_solve
 
 N, T1 = 2, 0.3
 LENGTHS = jnp.array([1.0, 0.7])
-SOLVERS = {
+GRADIENT_RUNS = {  # the solver options of the differentiated runs, by kind of steps
     "fixed": dict(solver=sm.Projected(sm.RK4()), dt0=0.01),
     "adaptive": dict(solver=sm.Projected(diffrax.Tsit5()), rtol=1e-10, atol=1e-12),
 }
@@ -34,7 +35,7 @@ def _loss(batch, kind, adjoint, **kw):
 
     def loss(lengths):
         chain = sm.chain_pendulum(jnp.ones(N), lengths, 9.81)
-        opts = dict(adjoint=adjoint, **SOLVERS[kind], **kw)
+        opts = dict(adjoint=adjoint, **GRADIENT_RUNS[kind], **kw)
         if batch:
             q1 = sm.simulate_batch(chain, (q, v), T1, **opts).ys[0][:, -1]
         else:
@@ -42,10 +43,6 @@ def _loss(batch, kind, adjoint, **kw):
         return jnp.sum(q1 @ WEIGHTS)
 
     return loss
-
-
-def _central_differences(f, x, h=1e-5):
-    return np.array([(f(x.at[i].add(h)) - f(x.at[i].add(-h))) / (2 * h) for i in range(x.size)])
 
 
 def _compiled_value_and_grad(max_steps):
@@ -66,7 +63,7 @@ def test_default_gradient_matches_differences_and_old_adjoint(value_and_grad_def
     value_old, grad_old = eqx.filter_jit(jax.value_and_grad(old))(LENGTHS)
     assert value == pytest.approx(float(value_old), rel=1e-13)
     np.testing.assert_allclose(grad, grad_old, rtol=1e-10, atol=1e-12)
-    fd = _central_differences(eqx.filter_jit(loss), LENGTHS)
+    fd = central_differences(eqx.filter_jit(loss), LENGTHS)
     np.testing.assert_allclose(grad, fd, rtol=1e-7, atol=1e-9)
     assert np.all(np.abs(grad) > 1e-2)  # a gradient that could be wrong
 
@@ -81,7 +78,7 @@ def test_default_gradient_matches_forward_mode_and_differences(batch, kind):
     grad = eqx.filter_jit(jax.grad(loss))(LENGTHS)
     forward = eqx.filter_jit(jax.jacfwd(_loss(batch, kind, diffrax.ForwardMode())))(LENGTHS)
     np.testing.assert_allclose(grad, forward, rtol=1e-12, atol=1e-13)
-    fd = _central_differences(eqx.filter_jit(loss), LENGTHS)
+    fd = central_differences(eqx.filter_jit(loss), LENGTHS)
     np.testing.assert_allclose(grad, fd, rtol=1e-6, atol=1e-8)
     assert np.all(np.abs(grad) > 1e-2)  # a gradient that could be wrong
 
@@ -94,7 +91,7 @@ def test_many_columns_reverse_mode_matches_forward_mode():
     chain = sm.chain_pendulum(jnp.ones(N), LENGTHS, 9.81)
 
     def final(y0, adjoint):
-        sol = sm.simulate_batch(chain, y0, T1, adjoint=adjoint, **SOLVERS["fixed"])
+        sol = sm.simulate_batch(chain, y0, T1, adjoint=adjoint, **GRADIENT_RUNS["fixed"])
         return jnp.sum(sol.ys[0][:, -1] @ WEIGHTS) + jnp.sum(sol.ys[1][:, -1] ** 2)
 
     rev = eqx.filter_jit(jax.grad(lambda y: final(y, None)))(y0)
@@ -115,14 +112,14 @@ def test_between_the_thresholds(batch):
 
     def loss(x):
         chain = sm.chain_pendulum(x[:N], x[N:], 9.81)
-        opts = dict(adjoint=None, **SOLVERS["fixed"])
+        opts = dict(adjoint=None, **GRADIENT_RUNS["fixed"])
         if batch:
             return jnp.sum(sm.simulate_batch(chain, (q, v), T1, **opts).ys[0][:, -1] @ WEIGHTS)
         return jnp.sum(sm.simulate(chain, (q[0], v[0]), T1, **opts).ys[0][-1] @ WEIGHTS)
 
     x = jnp.concatenate([jnp.array([1.0, 1.5]), LENGTHS])
     grad = eqx.filter_jit(jax.grad(loss))(x)
-    fd = _central_differences(eqx.filter_jit(loss), x)
+    fd = central_differences(eqx.filter_jit(loss), x)
     np.testing.assert_allclose(grad, fd, rtol=1e-6, atol=1e-8)
     assert np.all(np.abs(grad) > 1e-3)  # a gradient that could be wrong
 

@@ -1,8 +1,8 @@
 """Mixed configuration spaces R^m x (S^2)^n: a point-mass base (a cart on a line, a point
-in space) carrying a chain of point masses, against an independent reference written
-here: Cartesian coordinates with the link lengths imposed by Lagrange multipliers (the
-index-1 DAE reduced to an ODE by solving for the multipliers), integrated by scipy's
-DOP853 at tight tolerances."""
+in space) carrying a chain of point masses, against an independent reference (in
+helpers.py): Cartesian coordinates with the link lengths imposed by Lagrange multipliers
+(the index-1 DAE reduced to an ODE by solving for the multipliers), integrated by
+scipy's DOP853 at tight tolerances."""
 
 import diffrax
 import equinox as eqx
@@ -11,119 +11,29 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 import pytest
-import test_forms as forms
-from helpers import form_outputs
-from jax.flatten_util import ravel_pytree
-from scipy.integrate import solve_ivp
+from helpers import (
+    T1,
+    TIGHT,
+    TS,
+    G,
+    MixedModel,
+    assert_energy_balance,
+    assert_forms_agree,
+    cart_pendulum,
+    flying_chain,
+    max_rel_error,
+    mixed_angular,
+    mixed_initial_state,
+    random_forces,
+    random_lagrangian,
+    random_params,
+)
 
 import sphere_mech as sm
 from sphere_mech._solvers.discrete_mechanics import substep
 
-G = 9.81
-T1 = 2.0
-TS = np.linspace(0.0, T1, 11)
-
-
-# ----------------------------------------------------------------------------------------
-# The model: a base of mass M at E x (E: 3 x m, orthonormal columns), links of lengths
-# l_i with point masses m_i at r_i = E x + sum_{j <= i} l_j q_j, gravity -g e3 on every
-# mass, and an optional force F(t) on the base (virtual work F . delta x).
-# ----------------------------------------------------------------------------------------
-
-
-class Model:
-    def __init__(self, M, masses, lengths, E, drive):
-        self.M, self.masses, self.lengths = M, np.asarray(masses), np.asarray(lengths)
-        self.E, self.drive = np.asarray(E, dtype=float), drive
-        self.m, self.n = self.E.shape[1], len(masses)
-        self.space = {"base": sm.Euclidean(self.m), "chain": sm.Spheres(self.n)}
-
-    # --- sphere_mech: L on R^m x (S^2)^n ---------------------------------------------
-
-    def positions(self, q):
-        E, lengths = jnp.asarray(self.E), jnp.asarray(self.lengths)
-        return E @ q["base"] + jnp.cumsum(lengths[:, None] * q["chain"], axis=0)
-
-    def lagrangian(self, t, q, qdot, args):
-        E, masses, e3 = jnp.asarray(self.E), jnp.asarray(self.masses), jnp.array([0, 0, 1.0])
-        vb = E @ qdot["base"]
-        kinetic = 0.5 * self.M * vb @ vb
-        kinetic += 0.5 * jnp.sum(masses * jnp.sum(self.positions(qdot) ** 2, axis=-1))
-        potential = self.M * G * (E @ q["base"]) @ e3 + G * masses @ (self.positions(q) @ e3)
-        return kinetic - potential
-
-    def forces(self, t, q, qdot, args):
-        return {"base": self.drive(t), "chain": jnp.zeros_like(q["chain"])}
-
-    def system(self, forced):
-        return sm.Lagrangian(
-            self.lagrangian, forces=self.forces if forced else None, space=self.space
-        )
-
-    # --- reference: Cartesian coordinates X = (x, r_1, ..., r_n) with multipliers ------
-
-    def reference(self, q0, v0, forced, ts=TS):
-        m, n, E = self.m, self.n, self.E
-        inv_mass = np.concatenate([np.full(m, 1 / self.M), np.repeat(1 / self.masses, 3)])
-
-        def rhs(t, y):
-            X, V = y[: m + 3 * n], y[m + 3 * n :]
-            r = X[m:].reshape(n, 3)
-            rv = V[m:].reshape(n, 3)
-            prev = np.vstack([E @ X[:m], r[:-1]])
-            prev_v = np.vstack([E @ V[:m], rv[:-1]])
-            d, dv = r - prev, rv - prev_v
-            J = np.zeros((n, m + 3 * n))  # rows: gradients of |r_i - r_{i-1}|^2 / 2
-            for i in range(n):
-                J[i, m + 3 * i : m + 3 * i + 3] = d[i]
-                if i == 0:
-                    J[i, :m] = -E.T @ d[i]
-                else:
-                    J[i, m + 3 * i - 3 : m + 3 * i] = -d[i]
-            F = np.zeros(m + 3 * n)
-            F[:m] = -self.M * G * E.T @ np.array([0, 0, 1.0])
-            if forced:
-                F[:m] += np.asarray(self.drive(t))
-            F[m:] = (-G * self.masses[:, None] * np.array([0, 0, 1.0])).reshape(-1)
-            # d^2/dt^2 of the constraints = J A + |dv_i|^2 = 0, A = inv_mass (F - J^T lam)
-            JM = J * inv_mass
-            lam = np.linalg.solve(JM @ J.T, JM @ F + np.sum(dv**2, axis=1))
-            return np.concatenate([V, inv_mass * (F - J.T @ lam)])
-
-        x0, xd0 = np.asarray(q0["base"]), np.asarray(v0["base"])
-        r0 = E @ x0 + np.cumsum(self.lengths[:, None] * np.asarray(q0["chain"]), axis=0)
-        rd0 = E @ xd0 + np.cumsum(self.lengths[:, None] * np.asarray(v0["chain"]), axis=0)
-        y0 = np.concatenate([x0, r0.reshape(-1), xd0, rd0.reshape(-1)])
-        sol = solve_ivp(
-            rhs, (ts[0], ts[-1]), y0, method="DOP853", t_eval=ts, rtol=1e-13, atol=1e-13
-        )
-        assert sol.success
-        X = sol.y[: m + 3 * n].T
-        return X[:, :m], X[:, m:].reshape(len(ts), n, 3)
-
-
-def cart_pendulum():
-    """A spherical pendulum on a cart on the x axis, driven by F(t) = 2 sin(3 t)."""
-    drive = lambda t: 2.0 * jnp.sin(3.0 * t) * jnp.ones(1)
-    return Model(1.5, [0.7], [0.8], [[1.0], [0.0], [0.0]], drive)
-
-
-def flying_chain():
-    """A point mass in 3-D carrying a 2-link chain, pushed by a constant force."""
-    drive = lambda t: jnp.array([0.4, -0.2, 1.5 * 1.0 * G])
-    return Model(1.0, [0.3, 0.2], [0.6, 0.4], np.eye(3), drive)
-
-
-def initial_state(model, seed=0):
-    q_s, v_s = sm.random_state(jax.random.PRNGKey(seed), model.n, speed=1.5)
-    rng = np.random.default_rng(seed)
-    q0 = {"base": jnp.asarray(rng.normal(size=model.m)), "chain": q_s}
-    v0 = {"base": jnp.asarray(rng.normal(size=model.m)), "chain": v_s}
-    return q0, v0
-
-
-SAVE = diffrax.SaveAt(ts=jnp.asarray(TS))
-TIGHT = dict(solver=sm.Projected(diffrax.Dopri8()), rtol=1e-12, atol=1e-12, saveat=SAVE)
+# The models (`MixedModel`: `cart_pendulum`, `flying_chain`) and their Cartesian reference
+# live in helpers.py, shared with test_base_scenes.
 
 
 @pytest.fixture(scope="module")
@@ -133,7 +43,7 @@ def tight_runs():
     out = {}
     for make, forced in ((cart_pendulum, True), (flying_chain, False)):
         model = make()
-        y0 = initial_state(model, seed=int(forced))
+        y0 = mixed_initial_state(model, seed=int(forced))
         system = model.system(forced=forced)
         out[make.__name__] = (model, system, forced, y0, sm.simulate(system, y0, T1, **TIGHT))
     return out
@@ -172,7 +82,7 @@ def test_momentum_and_forces_per_factor():
     momentum along the line); the sphere momentum is projected; forces and power."""
     model = cart_pendulum()
     system = model.system(forced=True)
-    q, v = initial_state(model, seed=2)
+    q, v = mixed_initial_state(model, seed=2)
     mu = system.momentum(0.0, q, v)
     m, M, length = model.masses[0], model.M, model.lengths[0]
     expected = (M + m) * v["base"][0] + m * length * v["chain"][0, 0]
@@ -188,7 +98,7 @@ def test_momentum_and_forces_per_factor():
 def test_simulate_batch_matches_simulate():
     model = cart_pendulum()
     system = model.system(forced=True)
-    states = [initial_state(model, seed=s) for s in range(3)]
+    states = [mixed_initial_state(model, seed=s) for s in range(3)]
     y0 = jax.tree.map(lambda *xs: jnp.stack(xs), *states)
     opts = dict(solver=sm.Projected(sm.RK4()), dt0=0.01)
     batch = sm.simulate_batch(system, y0, 0.5, **opts)
@@ -200,8 +110,8 @@ def test_simulate_batch_matches_simulate():
 
 # ----------------------------------------------------------------------------------------
 # The four forms agree on a random configuration-dependent, time-dependent Lagrangian
-# with forces on R^3 x (S^2)^2: test_forms' random L and forces, read on the stacked
-# rows (x, q_1, q_2).
+# with forces on R^3 x (S^2)^2: the random L and forces of test_forms (in helpers.py),
+# read on the stacked rows (x, q_1, q_2).
 # ----------------------------------------------------------------------------------------
 
 N_CHAIN = 2
@@ -218,11 +128,11 @@ def unpack(rows):
 
 
 def mixed_lagrangian(t, q, qdot, p):
-    return forms.lagrangian(t, pack(q), pack(qdot), p)
+    return random_lagrangian(t, pack(q), pack(qdot), p)
 
 
 def mixed_forces(t, q, qdot, p):
-    return unpack(forms.forces(t, pack(q), pack(qdot), p))
+    return unpack(random_forces(t, pack(q), pack(qdot), p))
 
 
 MIXED_LAG = sm.Lagrangian(
@@ -236,69 +146,22 @@ MIXED_FORMS = dict(
     ham_ang=sm.angular(sm.legendre(MIXED_LAG)),
     ham_newton=sm.legendre(MIXED_LAG, quadratic=False),
 )
-SECOND = dict(
-    lag="qddot", ang="omegadot", ham="mudot", ang_ham="pidot", ham_ang="pidot", ham_newton="mudot"
-)
-
-
-def on_chain(fn, a, b):
-    """`fn` on the chain factor, `b` unchanged on the base: the angular variables."""
-    return {"base": b["base"], "chain": fn(a["chain"], b["chain"])}
-
-
-@eqx.filter_jit
-def evaluate_forms(systems, t, q, qdot, p):
-    lag = systems["lag"]
-    qddot = lag.acceleration(t, q, qdot, p)
-    mu = lag.momentum(t, q, qdot, p)
-    _, mudot = jax.jvp(
-        lambda t_, q_, v_: lag.momentum(t_, q_, v_, p),
-        (t, q, qdot),
-        (jnp.ones_like(t), qdot, qddot),
-    )
-    pi = on_chain(jnp.cross, q, mu)
-    pidot = on_chain(jnp.cross, q, mudot)
-    pidot["chain"] = pidot["chain"] + jnp.cross(qdot["chain"], mu["chain"])
-    ref = dict(
-        qddot=qddot,
-        omegadot=on_chain(jnp.cross, q, qddot),
-        mudot=mudot,
-        pidot=pidot,
-        pi=pi,
-        dL_dt=jax.grad(lambda t_: lag.lagrangian(t_, q, qdot, p))(t),
-    )
-    variables = dict(
-        lag=qdot, ang=on_chain(jnp.cross, q, qdot), ham=mu, ang_ham=pi, ham_ang=pi, ham_newton=mu
-    )
-    out = form_outputs(systems, variables, t, q, qdot, qddot, p)
-    out["ang"]["momentum"] = systems["ang"].momentum(t, q, variables["ang"], p)
-    return ref, out
-
-
-def rel(x, y):
-    x, y = ravel_pytree(x)[0], ravel_pytree(y)[0]
-    return float(jnp.max(jnp.abs(x - y)) / jnp.max(jnp.abs(y)))
 
 
 @pytest.mark.parametrize("seed,t", [(0, 0.3), (1, -1.2), (2, 1.7)])
 def test_four_forms_agree_on_mixed_space(seed, t):
-    q0, v0 = initial_state(Model(1.0, [1.0] * N_CHAIN, [1.0] * N_CHAIN, np.eye(3), None), seed=seed)
-    p = forms.random_params(seed, N_CHAIN + 1)
+    q0, v0 = mixed_initial_state(
+        MixedModel(1.0, [1.0] * N_CHAIN, [1.0] * N_CHAIN, np.eye(3), None), seed=seed
+    )
+    p = random_params(seed, N_CHAIN + 1)
     t = jnp.asarray(t, dtype=jnp.float64)
-    ref, out = evaluate_forms(MIXED_FORMS, t, q0, v0, p)
-    energy, dL_dt = out["lag"]["energy"], float(ref["dL_dt"])
+    ref, out = assert_forms_agree(MIXED_FORMS, t, q0, v0, p, TOL, angular=mixed_angular)
+    dL_dt = float(ref["dL_dt"])
     assert abs(float(out["lag"]["power"])) > 1e-3 and abs(dL_dt) > 1e-3  # not vacuous
-    for name, o in out.items():
-        qdot_k, vdot_k = o["rates"]
-        assert rel(qdot_k, v0) < TOL, name
-        assert rel(vdot_k, ref[SECOND[name]]) < TOL, name
-        assert abs(float(o["energy"] - energy)) < TOL * (1 + abs(float(energy))), name
-        power = float(o["power"])  # dE/dt = power - dL/dt in every form
-        assert abs(float(o["dE"]) - (power - dL_dt)) < TOL * (1 + abs(power) + abs(dL_dt))
-    assert rel(out["ang"]["momentum"], ref["pi"]) < TOL
+    assert_energy_balance(ref, out, TOL)  # dE/dt = power - dL/dt in every form
     # the Euclidean momentum is dL/dxdot, unprojected
     dL_dv = jax.grad(mixed_lagrangian, argnums=2)(t, q0, v0, p)
-    assert rel(MIXED_LAG.momentum(t, q0, v0, p)["base"], dL_dv["base"]) < 1e-15
+    assert max_rel_error(MIXED_LAG.momentum(t, q0, v0, p)["base"], dL_dv["base"]) < 1e-15
 
 
 # ----------------------------------------------------------------------------------------
@@ -314,7 +177,7 @@ def test_lie_group_solvers_against_reference(make, solver):
     """LieRK4 (SO(3) x R^3 on the spheres) and LieRK(Dopri8) (SE(3)): positions to 1e-8,
     |q_i| = 1 to rounding without any projection of q."""
     model = make()
-    q0, v0 = initial_state(model)
+    q0, v0 = mixed_initial_state(model)
     sol = sm.simulate(
         model.system(forced=True),
         (q0, v0),
@@ -351,7 +214,7 @@ def test_variational_energy_bounded_and_reversible():
     With the drive, the forced integrator converges to the reference at order 2."""
     model = cart_pendulum()
     system = model.system(forced=False)
-    y0 = initial_state(model, seed=3)
+    y0 = mixed_initial_state(model, seed=3)
     sol = variational_run(system, y0, 0.02, 40.0, saveat=diffrax.SaveAt(steps=True))
     k = int(sol.stats["num_steps"])
     assert k == 2000
@@ -371,7 +234,7 @@ def test_variational_energy_bounded_and_reversible():
 
 def test_variational_forced_converges_to_reference():
     model = cart_pendulum()
-    y0 = initial_state(model, seed=4)
+    y0 = mixed_initial_state(model, seed=4)
     x_ref, r_ref = model.reference(*y0, forced=True, ts=np.array([0.0, 0.5]))
     errors = []
     for h in (0.01, 0.005):
@@ -385,7 +248,7 @@ def test_variational_symplectic_on_mixed_space():
     """The pullback of dx ^ dp_x + sum dq_i ^ dmu_i is preserved by a step."""
     model = cart_pendulum()
     system = model.system(forced=False)
-    q, qdot = initial_state(model, seed=5)
+    q, qdot = mixed_initial_state(model, seed=5)
     mu = system.momentum(0.0, q, qdot)
 
     def flow(q, mu):
@@ -525,7 +388,7 @@ def cart_data():
     """Noise-free observations of the cart pendulum (M = 1.5, m = 0.7) from the Cartesian
     reference."""
     model = cart_pendulum()
-    y0 = initial_state(model, seed=3)
+    y0 = mixed_initial_state(model, seed=3)
     x_ref, r_ref = model.reference(*y0, forced=True, ts=FIT_TS)
     return y0, np.concatenate([x_ref, r_ref[:, 0]], axis=1)
 
@@ -565,7 +428,7 @@ def test_fit_recovers_masses_on_mixed_space(cart_data, segments):
 def test_bad_mixed_input_raises():
     model = cart_pendulum()
     system = model.system(forced=False)
-    q0, v0 = initial_state(model)
+    q0, v0 = mixed_initial_state(model)
     acc = lambda q, v: system.acceleration(0.0, q, v)
     with pytest.raises(eqx.EquinoxRuntimeError, match=r"q\['chain'\] is not on the spheres"):
         acc({**q0, "chain": 1.1 * q0["chain"]}, v0)

@@ -33,17 +33,18 @@ def cartesian_chain_lagrangian(masses, lengths, g):
 # ----------------------------------------------------------------------------------------
 
 
-def double_pendulum_angles(th, dth, m1, m2, l1, l2, g):
-    """Textbook: theta'' of the planar double pendulum (point masses, massless rods)."""
+def double_pendulum_angles(th, dth, m1, m2, l1, l2, g, xp=np):
+    """Textbook: theta'' of the planar double pendulum (point masses, massless rods);
+    `xp` is numpy or jax.numpy."""
     d = th[0] - th[1]
-    A = np.array([[(m1 + m2) * l1, m2 * l2 * np.cos(d)], [l1 * np.cos(d), l2]])
-    b = -np.array(
+    A = xp.array([[(m1 + m2) * l1, m2 * l2 * xp.cos(d)], [l1 * xp.cos(d), l2]])
+    b = -xp.array(
         [
-            m2 * l2 * dth[1] ** 2 * np.sin(d) + (m1 + m2) * g * np.sin(th[0]),
-            -l1 * dth[0] ** 2 * np.sin(d) + g * np.sin(th[1]),
+            m2 * l2 * dth[1] ** 2 * xp.sin(d) + (m1 + m2) * g * xp.sin(th[0]),
+            -l1 * dth[0] ** 2 * xp.sin(d) + g * xp.sin(th[1]),
         ]
     )
-    return np.linalg.solve(A, b)
+    return xp.linalg.solve(A, b)
 
 
 def planar(th, dth, ddth=None):
@@ -89,7 +90,7 @@ def test_planar_double_pendulum_trajectory():
 
     def angle_rates(t, y, args):
         th, dth = y
-        ddth = jnp.asarray(double_pendulum_angles_jnp(th, dth, *m, *ell, G))
+        ddth = jnp.asarray(double_pendulum_angles(th, dth, *m, *ell, G, xp=jnp))
         return dth, ddth
 
     ref = diffrax.diffeqsolve(
@@ -107,18 +108,6 @@ def test_planar_double_pendulum_trajectory():
     q = sol.ys[0]
     assert float(jnp.max(jnp.abs(q[..., 1]))) < 1e-14  # stays in the x-z plane
     assert float(jnp.max(jnp.abs(q - q_ref))) < 1e-7
-
-
-def double_pendulum_angles_jnp(th, dth, m1, m2, l1, l2, g):
-    d = th[0] - th[1]
-    A = jnp.array([[(m1 + m2) * l1, m2 * l2 * jnp.cos(d)], [l1 * jnp.cos(d), l2]])
-    b = -jnp.array(
-        [
-            m2 * l2 * dth[1] ** 2 * jnp.sin(d) + (m1 + m2) * g * jnp.sin(th[0]),
-            -l1 * dth[0] ** 2 * jnp.sin(d) + g * jnp.sin(th[1]),
-        ]
-    )
-    return jnp.linalg.solve(A, b)
 
 
 # ----------------------------------------------------------------------------------------

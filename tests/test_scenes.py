@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import jaxpr_equations
+from helpers import CART_SCENE, jaxpr_equations
 
 import sphere_mech as sm
 
@@ -483,26 +483,6 @@ t1 = 1.0
 """
 
 
-CART = """
-[[effects]]
-type = "base"
-mass = 1.0
-axes = [[1.0, 0.0, 0.0]]
-[[effects]]
-type = "chain"
-masses = 0.5
-lengths = 0.8
-{extra}
-[initial]
-polar_deg = 140.0
-azimuth_deg = 90.0
-base = [0.0]
-[simulate]
-t1 = 1.0
-{simulate}
-"""
-
-
 def _file(tmp_path, extra="", simulate="", replace=None, template=TWO_LINKS):
     text = template.format(extra=extra, simulate=simulate)
     for old, new in (replace or {}).items():
@@ -560,13 +540,13 @@ CASES = {  # name: (Python, what the file changes, the field the file error name
     ),
     "negative base mass": (
         lambda: sm.Base(mass=-1.0),
-        dict(template=CART, replace={"mass = 1.0": "mass = -1.0"}),
+        dict(template=CART_SCENE, replace={"mass = 1.0": "mass = -1.0"}),
         "effects[0].mass",
     ),
     "non-orthonormal axes": (
         lambda: sm.Base(1.0, axes=[[1.0, 0.0, 0.0], [0.6, 0.7, 0.0]]),
         dict(
-            template=CART,
+            template=CART_SCENE,
             replace={"axes = [[1.0, 0.0, 0.0]]": "axes = [[1.0, 0.0, 0.0], [0.6, 0.7, 0.0]]"},
         ),
         "effects[0].axes",
@@ -578,17 +558,20 @@ CASES = {  # name: (Python, what the file changes, the field the file error name
     ),
     "base with two chains": (
         lambda: sm.Scene(CART_BASE(), CART_CHAIN, CART_CHAIN),
-        dict(template=CART, extra=TAU_TOML.format("chain", "masses = 0.5\nlengths = 0.8")),
+        dict(template=CART_SCENE, extra=TAU_TOML.format("chain", "masses = 0.5\nlengths = 0.8")),
         "effects[0]",
     ),
     "two bases": (
         lambda: sm.Scene(CART_BASE(), CART_BASE(), CART_CHAIN),
-        dict(template=CART, extra=TAU_TOML.format("base", "mass = 1.0\naxes = [[1.0, 0.0, 0.0]]")),
+        dict(
+            template=CART_SCENE,
+            extra=TAU_TOML.format("base", "mass = 1.0\naxes = [[1.0, 0.0, 0.0]]"),
+        ),
         "effects",
     ),
     "base force of the wrong size": (
         lambda: sm.Scene(CART_BASE(), CART_CHAIN, sm.BaseForce([1.0, 0.0])),
-        dict(template=CART, extra=TAU_TOML.format("base_force", "force = [1.0, 0.0]")),
+        dict(template=CART_SCENE, extra=TAU_TOML.format("base_force", "force = [1.0, 0.0]")),
         "effects[2].force",
     ),
     "pd target of the wrong size": (
@@ -596,7 +579,7 @@ CASES = {  # name: (Python, what the file changes, the field the file error name
             CART_BASE(), CART_CHAIN, sm.BaseForce(sm.PDPosition(1.0, target=[0.0, 0.0]))
         ),
         dict(
-            template=CART,
+            template=CART_SCENE,
             extra=TAU_TOML.format(
                 "base_force", 'force = { type = "pd_position", kp = 1.0, target = [0.0, 0.0] }'
             ),
@@ -606,7 +589,7 @@ CASES = {  # name: (Python, what the file changes, the field the file error name
     "harmonic force of the wrong size": (
         lambda: sm.Scene(CART_BASE(), CART_CHAIN, sm.BaseForce(sm.Harmonic([1.0, 0.0], 2.0))),
         dict(
-            template=CART,
+            template=CART_SCENE,
             extra=TAU_TOML.format(
                 "base_force",
                 'force = { type = "harmonic", amplitude = [1.0, 0.0], angular_frequency = 2.0 }',
@@ -617,7 +600,7 @@ CASES = {  # name: (Python, what the file changes, the field the file error name
     "negative pd gain": (
         lambda: sm.PDPosition(-1.0),
         dict(
-            template=CART,
+            template=CART_SCENE,
             extra=TAU_TOML.format("base_force", 'force = { type = "pd_position", kp = -1.0 }'),
         ),
         "effects[2].force.kp",
@@ -638,14 +621,14 @@ def test_python_and_files_reject_with_the_same_words(case, tmp_path):
 
 BASE_INITIAL = {  # name: (template, replacements, field, what the error says)
     "too many base coordinates": (
-        CART,
+        CART_SCENE,
         {"base = [0.0]": "base = [0.0, 1.0]"},
         "initial.base",
         "the base's coordinates (m), one per axis of the Base: "
         "1 number (at most 1e+100 in magnitude), got [0.0, 1.0]",
     ),
     "base velocity not an array": (
-        CART,
+        CART_SCENE,
         {"base = [0.0]": "base_velocity = 1.0"},
         "initial.base_velocity",
         "the base's velocity (m/s), one "
@@ -699,7 +682,7 @@ def test_file_pd_torque_builds_the_python_controller(tmp_path):
     assert bool(eqx.tree_equal(spec.scene.force_effects[0], expected))
 
 
-SOLVERS = {
+SPELLINGS = {
     "Projected(Tsit5)": sm.Projected(diffrax.Tsit5()),
     "Projected(Kvaerno5)": sm.Projected(diffrax.Kvaerno5()),
     "Projected(RK4)": sm.Projected(sm.RK4()),
@@ -716,13 +699,13 @@ SOLVERS = {
 }
 
 
-@pytest.mark.parametrize("spelling", list(SOLVERS))
+@pytest.mark.parametrize("spelling", list(SPELLINGS))
 def test_solver_spellings_build_the_python_solver(spelling, tmp_path):
-    fixed = not isinstance(SOLVERS[spelling], diffrax.AbstractAdaptiveSolver)
+    fixed = not isinstance(SPELLINGS[spelling], diffrax.AbstractAdaptiveSolver)
     extra = "dt0 = 0.01" if fixed else "rtol = 1e-6"
     spec = sm.load_scene(_file(tmp_path, simulate=f'solver = "{spelling}"\n{extra}'))
-    assert type(spec.solver) is type(SOLVERS[spelling])
-    assert bool(eqx.tree_equal(spec.solver, SOLVERS[spelling]))
+    assert type(spec.solver) is type(SPELLINGS[spelling])
+    assert bool(eqx.tree_equal(spec.solver, SPELLINGS[spelling]))
 
 
 @pytest.mark.parametrize(
