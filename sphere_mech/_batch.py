@@ -154,7 +154,7 @@ def simulate_batch(
     `sol.ys = (q, v)` of shape `(batch, times, n, 3)`, `sol.result` and
     `sol.stats["num_steps"]` per trajectory. The output is sharded over the devices.
     """
-    run = prepare(system, y0, args, batched=True, t1=t1, **options)
+    run = prepare(system, y0, args, batched=True, batch_system=batch_system, t1=t1, **options)
     one_state = jax.tree.map(lambda x: x[0], run.y0)
     size = len(run.valid)
     if batch_args and args is not None:

@@ -36,11 +36,13 @@ from ._spaces import AbstractSpace, Spheres, chain_parts, chain_state
 from ._system import AbstractLagrangianSystem, as_time
 
 
-class AbstractConstantInertiaLagrangian(AbstractLagrangianSystem):
+class AbstractFastPath(AbstractLagrangianSystem):
     """Base of systems whose kinetic energy is `1/2 sum_jk M_jk qdot_j . qdot_k` with a
-    constant symmetric positive-definite `M` (n x n); state `(q, qdot)`. Subclasses give
-    `inertia`, `inverse_inertia_bands` (O(n) solves when `M^-1` is tridiagonal),
-    `kinetic_energy`, `potential`, `forces`, `base_axes` and their `space`.
+    constant symmetric positive-definite `M` (n x n); state `(q, qdot)`: the machinery of
+    the fast path. Subclasses give `inertia`, `inverse_inertia_bands` (O(n) solves when
+    `M^-1` is tridiagonal), `kinetic_energy`, `potential`, `forces`, `base_axes` and
+    their `space` (`Scene`, `ConstantInertiaLagrangian`; a user's system subclasses
+    `AbstractConstantInertiaLagrangian`).
 
     With a base (`base_axes` not `None`) the space is `chain_space(m, n)`: states,
     velocities and forces hold the base's coordinates along the axes and the unit
@@ -321,7 +323,32 @@ class _BaseRow(eqx.Module):
         return w - column[:, None] * (P @ w[0]) / column[0]
 
 
-class ConstantInertiaLagrangian(AbstractConstantInertiaLagrangian):
+def _dense_kinetic_energy(M, qdot) -> Scalar:
+    return 0.5 * jnp.sum(M * (qdot @ qdot.T))
+
+
+class AbstractConstantInertiaLagrangian(AbstractFastPath):
+    """Base of a user's system `L = 1/2 sum_jk M_jk qdot_j . qdot_k - U(t, q, args)` on
+    the fast path, hanging from a fixed support: subclasses give `inertia(args)`,
+    `potential(t, q, args)` and `forces`; the space is `Spheres()` (any `n`), `M` is
+    dense."""
+
+    @property
+    def space(self) -> AbstractSpace:
+        return Spheres()
+
+    @property
+    def base_axes(self) -> None:
+        return None
+
+    def inverse_inertia_bands(self, args):
+        return None
+
+    def kinetic_energy(self, q, qdot, args):
+        return _dense_kinetic_energy(self.inertia(args), qdot)
+
+
+class ConstantInertiaLagrangian(AbstractFastPath):
     """`L = 1/2 sum_jk M_jk qdot_j . qdot_k - U(t, q, args)` on the fast path.
 
     **Arguments:**
@@ -373,7 +400,7 @@ class ConstantInertiaLagrangian(AbstractConstantInertiaLagrangian):
         return None
 
     def kinetic_energy(self, q, qdot, args):
-        return 0.5 * jnp.sum(self.inertia(args) * (qdot @ qdot.T))
+        return _dense_kinetic_energy(self.inertia(args), qdot)
 
     def inertia(self, args):
         M = self.inertia_matrix

@@ -182,12 +182,13 @@ class Run(eqx.Module):
         return self.system, self.y0, self.t0, self.t1, self.dt0, self.args
 
 
-def prepare(system, y0, args=None, *, batched: bool = False, throw: bool = True, **options_):
+def prepare(system, y0, args=None, *, batched=False, batch_system=False, throw=True, **options_):
     """The one prologue of `simulate`, `simulate_batch`, the command line's program and
     (through `simulate`) `fit`: the state pair `y0` checked against `system.space`
     (shapes statically; values per state by `initial_states`, raising unless `batched`
     with `throw=False`), the options checked and completed (`options`, keyword-only: the
-    names of `simulate`'s), Python floats among the system and `args` as arrays
+    names of `simulate`'s; with `batch_system` the system's arrays have a leading batch
+    axis and the space is its members'), Python floats among the system and `args` as arrays
     (`as_arrays`) and times in the state's dtype (`times`).
 
     **Returns:** a `Run`."""
@@ -205,13 +206,15 @@ def prepare(system, y0, args=None, *, batched: bool = False, throw: bool = True,
             )
     else:
         q0, v0 = jax.tree.map(lambda x: x[None], (q0, v0))
-    system.space.check_shapes(*jax.tree.map(lambda x: x[0], (q0, v0)), system.state_name)
+    member = lambda: jax.tree.map(lambda x: x[0] if eqx.is_array(x) else x, system)
+    space = (member() if batch_system else system).space
+    space.check_shapes(*jax.tree.map(lambda x: x[0], (q0, v0)), system.state_name)
     dtype = tree_dtype((q0, v0))  # one floating dtype for the whole state
     opts = options(dtype=dtype, batched=batched, **options_)
     system, args = as_arrays((system, args))
     t0, t1, dt0 = times(dtype, options_.get("t0", 0.0), options_["t1"], options_.get("dt0"))
     y0 = jax.tree.map(lambda x: x.astype(dtype), (q0, v0))
-    y0, valid = initial_states(system.space, system.state_name, y0, what, throw or not batched)
+    y0, valid = initial_states(space, system.state_name, y0, what, throw or not batched)
     if not batched:
         y0 = jax.tree.map(lambda x: x[0], y0)
     return Run(system, y0, args, t0, t1, dt0, opts, valid, throw)

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 import numpy as np
 
-from .._inertia import AbstractConstantInertiaLagrangian
+from .._inertia import AbstractFastPath
 from .._misc import tree_dtype, tree_zeros_like
 from .._spaces import AbstractSpace, chain_parts, chain_space, chain_state
 from .base import AbstractEffect, AbstractForce, AbstractKinetic, AbstractPotential, ParameterError
@@ -16,7 +16,7 @@ from .kinetic import Base, Chain, chain_inertia, chain_inverse_bands
 from .potentials import Gravity
 
 
-class Scene(AbstractConstantInertiaLagrangian):
+class Scene(AbstractFastPath):
     """The system `L = sum kinetic - sum potentials`, `f = sum forces` of the listed
     effects, on the Corollary-1 fast path (O(n)); state `(q, qdot)`.
 

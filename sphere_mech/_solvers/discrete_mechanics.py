@@ -26,7 +26,7 @@ from diffrax import RESULTS
 from jax import lax
 
 from .._anderson import Anderson
-from .._inertia import AbstractConstantInertiaLagrangian
+from .._inertia import AbstractFastPath
 from .._misc import tree_add, tree_scale
 from .._momentum import newton, residual_scale
 from .._system import AbstractLagrangianSystem
@@ -82,7 +82,7 @@ def solve_position(system, t0, h, q0, mu0, scale, guess, args, tol, max_steps, f
 
     General systems: Newton's method on the `2n` equations `T0^T [...] / scale` (its
     Jacobian is dense: `2n` Jacobian-vector products and a `2n x 2n` LU per iteration).
-    Constant-inertia systems (`AbstractConstantInertiaLagrangian`, unless `fast_path`
+    Constant-inertia systems (`AbstractFastPath`, unless `fast_path`
     is false): `D1 L_d` is
     `-(P0 M P0) c` up to terms of relative size `h |qdot|` (`c` the chord velocity), so
     the Newton step is taken with the Jacobian `-T0^T (M kron I) T0`, whose inverse is
@@ -112,7 +112,7 @@ def solve_position(system, t0, h, q0, mu0, scale, guess, args, tol, max_steps, f
         r = tree_add(mu0, d1)
         return r if forces is None else tree_add(r, forces[0])
 
-    if fast_path and isinstance(system, AbstractConstantInertiaLagrangian):
+    if fast_path and isinstance(system, AbstractFastPath):
         solve = system.multiplier_solver(q0, args)
         chord = lambda a, _: a + to_tangent(T0, solve(momentum_residual(a)))
         sol = optx.fixed_point(
