@@ -112,10 +112,10 @@ def simulate_batch(
     """Integrate a batch of trajectories: `simulate` over a leading batch axis.
 
     **Arguments:**
-    - `system`, `t1`, and the keyword options of `sphere_mech.simulate` (`t0`, `solver`,
-      `dt0`, `rtol`, `atol`, `stepsize_controller`, `saveat`, `max_steps`, `progress`,
-      `adjoint`, `event`, `throw`; `inspect.signature(simulate_batch)` lists them):
-      as there, shared by every trajectory (`system` too unless `batch_system=True`). The
+    - `system`, `t1`, `t0`, `solver`, `dt0`, `rtol`, `atol`, `stepsize_controller`,
+      `saveat`, `max_steps`, `adjoint`, `event`: as in `sphere_mech.simulate` (the same
+      keyword options, one list of them), shared by every trajectory (`system` too
+      unless `batch_system=True`). The
       default adjoint (`None`) uses forward mode for at most 2 differentiated scalars
       here (8 in `simulate`): under `vmap` forward mode's cost grows with every column
       and reverse mode's does not.

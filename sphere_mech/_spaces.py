@@ -456,7 +456,16 @@ def chain_space(base: int | None, n: int | None) -> AbstractSpace:
     `Spheres(n)`, or with a point-mass base moving in `R^base` the product
     `{"base": Euclidean(base), "spheres": Spheres(n)}`. Its states, velocities and
     forces are taken apart by `chain_parts` and put together by `chain_state`: no other
-    module spells its keys."""
+    module spells its keys.
+
+    **Arguments:**
+    - `base`: the dimension `m` of the space the base moves in (1: a line, 2: a plane,
+      3: space), or `None` for a fixed support.
+    - `n`: the number of spheres, or `None` for any number.
+
+    **Returns:** `Spheres(n)`, or the `Product` of the base's `Euclidean(m)` and
+    `Spheres(n)`.
+    """
     spheres = Spheres(n)
     return spheres if base is None else Product({_BASE: Euclidean(base), _SPHERES: spheres})
 
