@@ -147,9 +147,6 @@ class AbstractFastPath(AbstractLagrangianSystem):
     def lagrangian(self, t, q, qdot, args):
         return self.kinetic_energy(q, qdot, args) - self.potential(t, q, args)
 
-    def energy(self, t, q, qdot, args=None):
-        return self.kinetic_energy(q, qdot, args) + self.potential(t, q, args)
-
     def multiplier_solver(self, q, args: Args) -> Callable:
         """The linear solve of the constrained inertia at the configuration `q`: the map
         `(rhs, target) -> x` with `sum_j M_ij x_j = rhs_i + lam_i q_i` and

@@ -10,7 +10,8 @@ import jax.numpy as jnp
 
 from ._checks import check_function, check_scalar
 from ._custom_types import Args, ForceFn, Points, Tangents
-from ._misc import tree_add, tree_scale, tree_sub
+from ._misc import tree_add, tree_dtype, tree_scale, tree_sub, tree_zeros_like
+from ._momentum import invert_momentum, newton_tolerance
 from ._spaces import AbstractSpace, Spheres, as_space
 from ._system import SINGULAR_MESSAGE, AbstractLagrangianSystem, as_time, check_rates
 
@@ -43,7 +44,57 @@ def _space_field():
     return eqx.field(default_factory=Spheres, converter=as_space)
 
 
-class Lagrangian(AbstractLagrangianSystem):
+class _AbstractAutodiffLagrangian(AbstractLagrangianSystem):
+    """A Lagrangian system given by the user's function `L` (forms 1 and 2)."""
+
+    L: eqx.AbstractVar[Callable]
+
+    def lagrangian(self, t, q, v, args):
+        return self.L(t, q, v, args)
+
+    def velocity_from_momentum(
+        self,
+        t,
+        q: Points,
+        p: Tangents,
+        args: Args = None,
+        *,
+        guess=None,
+        quadratic: bool | None = None,
+        tol=None,
+        max_steps: int = 32,
+    ):
+        """The inverse Legendre map: the tangent velocity `v` with `P dL/dv = p`.
+
+        One linear solve around `guess` when `L` is quadratic, otherwise refined by Newton's
+        method (globalized by a line search when needed).
+
+        **Arguments:**
+        - `t`, `q`, `args`: as in `acceleration`.
+        - `p`: the momentum (`mu` or `pi`), `(n, 3)`.
+        - `guess`: the starting velocity (default zero).
+        - `quadratic`: whether `L` is quadratic in `v` (default `quadratic_in_velocity`).
+        - `tol`: Newton's tolerance (default `eps ** 0.75` of the dtype).
+        - `max_steps`: Newton's iteration limit.
+
+        **Returns:** `(v, result)`: the velocity, `(n, 3)`, and a `RESULTS` code (never raised
+        here).
+        """
+        return invert_momentum(
+            self.lagrangian,
+            self.space,
+            t,
+            q,
+            p,
+            args,
+            guess=tree_zeros_like(q) if guess is None else guess,
+            quadratic=self.quadratic_in_velocity if quadratic is None else quadratic,
+            tol=newton_tolerance(tree_dtype(q)) if tol is None else tol,
+            max_steps=max_steps,
+        )
+
+
+class Lagrangian(_AbstractAutodiffLagrangian):
     """A system given by any Lagrangian `L(t, q, qdot, args) -> scalar` on (S^2)^n
     (form 1); state `(q, qdot)`.
 
@@ -73,9 +124,6 @@ class Lagrangian(AbstractLagrangianSystem):
     def __check_init__(self):
         check_function(self.L, "L", "L(t, q, qdot, args)", 4)
 
-    def lagrangian(self, t, q, qdot, args):
-        return self.L(t, q, qdot, args)
-
     def _vdot(self, t, q, qdot, args):
         _, dL_dq, mixed, hvp = _lagrangian_terms(self.L, t, q, qdot, args, qdot)
         c = self.space.normal_acceleration(q, qdot)  # keeps q_i . qddot_i = -|qdot_i|^2
@@ -84,7 +132,7 @@ class Lagrangian(AbstractLagrangianSystem):
         return tree_sub(_tangent_solve(self.space, hvp, q, tree_add(b, hvp(c))), c)
 
 
-class AngularLagrangian(AbstractLagrangianSystem):
+class AngularLagrangian(_AbstractAutodiffLagrangian):
     """A system given by a Lagrangian `L(t, q, omega, args) -> scalar` in the angular
     velocities `omega_i = q_i x qdot_i` (form 2, Proposition 2); state `(q, omega)`.
 
@@ -110,9 +158,6 @@ class AngularLagrangian(AbstractLagrangianSystem):
 
     def __check_init__(self):
         check_function(self.L, "L", "L(t, q, omega, args)", 4)
-
-    def lagrangian(self, t, q, omega, args):
-        return self.L(t, q, omega, args)
 
     def _vdot(self, t, q, omega, args):
         space = self.space

@@ -10,8 +10,7 @@ import jax.numpy as jnp
 
 from ._checks import check_scalar
 from ._custom_types import Args, ForceFn, Points, Scalar, State, Tangents
-from ._misc import all_finite, tree_dtype, tree_vdot, tree_zeros_like
-from ._momentum import invert_momentum, newton_tolerance
+from ._misc import all_finite, tree_dtype, tree_vdot
 from ._spaces import AbstractSpace
 
 SINGULAR_MESSAGE = (
@@ -175,9 +174,9 @@ class AbstractLagrangianSystem(AbstractSystem):
     (`qdot`, form 1, or `omega`, form 2).
 
     `quadratic_in_velocity` declares `L` (at most) quadratic in `v`: the inverse
-    Legendre map is then one linear solve instead of Newton's method. Systems whose
-    inverse is cheaper override `velocity_from_momentum` (the constant-inertia fast
-    path)."""
+    Legendre map (`velocity_from_momentum`) is then one linear solve instead of Newton's
+    method (`Lagrangian`, `AngularLagrangian`); the constant-inertia fast path has its
+    own, exact one."""
 
     quadratic_in_velocity: eqx.AbstractVar[bool]
 
@@ -257,6 +256,7 @@ class AbstractLagrangianSystem(AbstractSystem):
         """
         return tree_vdot(v, self._dL_dv(t, q, v, args)) - self.lagrangian(t, q, v, args)
 
+    @abc.abstractmethod
     def velocity_from_momentum(
         self,
         t,
@@ -265,39 +265,21 @@ class AbstractLagrangianSystem(AbstractSystem):
         args: Args = None,
         *,
         guess=None,
-        quadratic: bool | None = None,
+        quadratic=None,
         tol=None,
         max_steps: int = 32,
     ):
         """The inverse Legendre map: the tangent velocity `v` with `P dL/dv = p`.
 
-        One linear solve around `guess` when `L` is quadratic, otherwise refined by Newton's
-        method (globalized by a line search when needed). Systems with a cheaper inverse
-        (constant inertia) override it.
-
         **Arguments:**
         - `t`, `q`, `args`: as in `acceleration`.
         - `p`: the momentum (`mu` or `pi`), `(n, 3)`.
-        - `guess`: the starting velocity (default zero).
-        - `quadratic`: whether `L` is quadratic in `v` (default `quadratic_in_velocity`).
-        - `tol`: Newton's tolerance (default `eps ** 0.75` of the dtype).
-        - `max_steps`: Newton's iteration limit.
+        - `guess`, `quadratic`, `tol`, `max_steps`: options of the general method (Newton
+          from `guess`; one linear solve when `quadratic`).
 
         **Returns:** `(v, result)`: the velocity, `(n, 3)`, and a `RESULTS` code (never raised
         here).
         """
-        return invert_momentum(
-            self.lagrangian,
-            self.space,
-            t,
-            q,
-            p,
-            args,
-            guess=tree_zeros_like(q) if guess is None else guess,
-            quadratic=self.quadratic_in_velocity if quadratic is None else quadratic,
-            tol=newton_tolerance(tree_dtype(q)) if tol is None else tol,
-            max_steps=max_steps,
-        )
 
 
 class AbstractHamiltonianSystem(AbstractSystem):

@@ -152,6 +152,7 @@ class AbstractEffect(eqx.Module):
     def __check_init__(self):
         check_fields(self)
 
+    @abc.abstractmethod
     def check(self, scene) -> None:
         """Raise `ValueError` if this effect does not fit `scene` (indices, counts)."""
 
@@ -288,5 +289,6 @@ class AbstractDrive(eqx.Module):
     def __call__(self, t, q, qdot, args) -> jax.Array:
         """The `(3,)` torque or force."""
 
+    @abc.abstractmethod
     def check(self, scene) -> None:
         """Raise `ValueError` if this drive does not fit `scene`."""
