@@ -172,7 +172,7 @@ class AbstractFastPath(AbstractLagrangianSystem):
         else:
             inverse = _Banded(*(b.astype(s.dtype) for b in bands), s)
         if self.base_axes is not None:
-            inverse = _BaseRow(inverse, self.base_axes.astype(s.dtype), s)
+            inverse = _BaseRow(inverse, self.base_axes.astype(s.dtype))
 
         def multiplier_solve(rhs, target=None):
             return self.drop(inverse.solve(self.lift(rhs), target))
@@ -213,8 +213,8 @@ class AbstractFastPath(AbstractLagrangianSystem):
 
 class _AbstractInverse(eqx.Module):
     """`M^-1` and the Schur matrix `S_ij = (M^-1)_ij q_i . q_j` of the multipliers at a
-    configuration (its unit vectors `s`), over the rows of `lift`: the spheres' rows
-    start at `first` (1 with a base)."""
+    configuration (its unit vectors `s`), over the rows of `lift` (the spheres' rows
+    last), built once per configuration."""
 
     s: eqx.AbstractVar[jax.Array]
 
@@ -223,14 +223,15 @@ class _AbstractInverse(eqx.Module):
         """`M^-1 x` for 3-D rows `x`."""
 
     @abc.abstractmethod
-    def column(self) -> jax.Array:
-        """`M^-1 e_0`, the first column (used with a base)."""
+    def schur_solve(self, r: jax.Array) -> jax.Array:
+        """`S^-1 r`."""
 
     @abc.abstractmethod
-    def schur_solve(self, r: jax.Array, base=None) -> jax.Array:
-        """`S^-1 r`; with a base's row (`base = (c, Minv_00, sP)`, `sP = s P`), of
-        `S - Minv_00 c c^T (s P s^T)` (only its first diagonal entry changes when `M^-1`
-        is tridiagonal)."""
+    def with_base_row(self, A: jax.Array) -> tuple["_AbstractInverse", jax.Array]:
+        """For a base moving along the rows of `A` (its row first): this inverse with
+        `S` changed by the elimination of the base's normal force, `Minv_00 c c^T
+        (q_i . P q_j)` with `c = Minv[1:, 0] / Minv_00`, `P = I - A^T A` (its first
+        diagonal entry only when `M^-1` is tridiagonal), and `M^-1 e_0`."""
 
     def solve(self, z: jax.Array, target=None) -> jax.Array:
         """`w = M^-1 (z + lam q)` with `q_i . w_i = target_i` (no base)."""
@@ -245,78 +246,79 @@ class _AbstractInverse(eqx.Module):
         return y + self.apply(jnp.concatenate([padding, lam[:, None] * self.s]))
 
 
+def _normal_projector(A):
+    return jnp.eye(3, dtype=A.dtype) - A.T @ A
+
+
 class _Dense(_AbstractInverse):
     Minv: jax.Array
     s: jax.Array
-    first: int = eqx.field(static=True)
+    S: jax.Array
 
     def __init__(self, M, s):
+        k = M.shape[0] - s.shape[0]  # the first sphere's row
         self.Minv, self.s = spd_solve(M, jnp.eye(M.shape[0], dtype=s.dtype)), s
-        self.first = M.shape[0] - s.shape[0]
+        self.S = self.Minv[k:, k:] * jnp.sum(s[:, None] * s[None], axis=-1)
 
     def apply(self, x):
         return jnp.sum(self.Minv[:, :, None] * x[None], axis=1)
 
-    def column(self):
-        return self.Minv[:, 0]
+    def schur_solve(self, r):
+        return spd_solve(self.S, r)
 
-    def schur_solve(self, r, base=None):
-        k = self.first
-        S = self.Minv[k:, k:] * jnp.sum(self.s[:, None] * self.s[None], axis=-1)
-        if base is not None:
-            c, Minv00, sP = base
-            S = S - Minv00 * jnp.outer(c, c) * (sP @ self.s.T)
-        return spd_solve(S, r)
+    def with_base_row(self, A):
+        column = self.Minv[:, 0]
+        c, sP = column[1:] / column[0], self.s @ _normal_projector(A)
+        S = self.S - column[0] * jnp.outer(c, c) * (sP @ self.s.T)
+        return eqx.tree_at(lambda x: x.S, self, S), column
 
 
 class _Banded(_AbstractInverse):
     d: jax.Array
     e: jax.Array
     s: jax.Array
-    first: int = eqx.field(static=True)
+    S_diagonal: jax.Array
+    S_off: jax.Array
 
     def __init__(self, d, e, s):
-        self.d, self.e, self.s, self.first = d, e, s, d.shape[0] - s.shape[0]
+        k = d.shape[0] - s.shape[0]  # the first sphere's row
+        self.d, self.e, self.s = d, e, s
+        self.S_diagonal, self.S_off = d[k:], e[k:] * jnp.sum(s[:-1] * s[1:], axis=-1)
 
     def apply(self, x):
         return tridiagonal_matvec(self.d, self.e, x)
 
-    def column(self):
-        k = self.first
-        return jnp.zeros_like(self.d).at[: 1 + k].set(jnp.concatenate([self.d[:1], self.e[:k]]))
+    def schur_solve(self, r):
+        return tridiagonal_spd_solve(self.S_diagonal, self.S_off, r)
 
-    def schur_solve(self, r, base=None):
-        k = self.first
-        diagonal = self.d[k:]
-        off = self.e[k:] * jnp.sum(self.s[:-1] * self.s[1:], axis=-1)
-        if base is not None:
-            c, Minv00, sP = base
-            diagonal = diagonal.at[0].add(-Minv00 * c[0] ** 2 * (sP[0] @ self.s[0]))
-        return tridiagonal_spd_solve(diagonal, off, r)
+    def with_base_row(self, A):
+        column = jnp.zeros_like(self.d).at[:2].set(jnp.stack([self.d[0], self.e[0]]))
+        c0, s0 = column[1] / column[0], self.s[0]
+        first = -column[0] * c0**2 * (s0 @ _normal_projector(A) @ s0)
+        return eqx.tree_at(lambda x: x.S_diagonal, self, self.S_diagonal.at[0].add(first)), column
 
 
 class _BaseRow(eqx.Module):
     """A base's row added to `inverse`: the force normal to the base's subspace
     (`P = I - A^T A`) that keeps it there, `-P w_0 / Minv_00` with `w = Minv (rhs + lam q)`,
-    is eliminated exactly: `x = w - Minv e_0 (P w_0) / Minv_00`, and `S` changes by the
-    rank-one term `Minv_00 c c^T (q_i . P q_j)`, `c = Minv[1:, 0] / Minv_00` (its first
-    diagonal entry only when `M^-1` is tridiagonal): still O(n)."""
+    is eliminated exactly: `x = w - Minv e_0 (P w_0) / Minv_00`, and `S` changes by a
+    rank-one term (`with_base_row`): still O(n)."""
 
     inverse: _AbstractInverse
     P: jax.Array
+    column: jax.Array
 
-    def __init__(self, inverse, A, s):
-        self.inverse, self.P = inverse, jnp.eye(3, dtype=s.dtype) - A.T @ A
+    def __init__(self, inverse, A):
+        self.inverse, self.column = inverse.with_base_row(A)
+        self.P = _normal_projector(A)
 
     def solve(self, z, target=None):
-        inverse, P, s = self.inverse, self.P, self.inverse.s
-        column = inverse.column()
+        inverse, P, s, column = self.inverse, self.P, self.inverse.s, self.column
         c = column[1:] / column[0]
         y = inverse.apply(z)
         r = -jnp.sum(s * y[1:], axis=-1)
         r = (r if target is None else r + target) + c * (s @ (P @ y[0]))
-        lam = inverse.schur_solve(r, (c, column[0], s @ P))
-        w = inverse.add_multipliers(y, lam)
+        w = inverse.add_multipliers(y, inverse.schur_solve(r))
         return w - column[:, None] * (P @ w[0]) / column[0]
 
 
