@@ -127,6 +127,9 @@ def raise_on_failure(sol: diffrax.Solution, max_steps, what: str) -> diffrax.Sol
     terminating event is no failure):
     a `RuntimeError` naming how many, which and why when called eagerly, an
     `eqx.branched_error_if` check with the same message when traced."""
+    ok = (sol.result == RESULTS.successful) | (sol.result == RESULTS.event_occurred)
+    if not isinstance(ok, jax.core.Tracer) and bool(np.all(ok)):
+        return sol  # the usual case, decided without numbering the codes (`code`)
     values = jnp.ravel(code(sol.result))
     if isinstance(values, jax.core.Tracer):
         first = values[jnp.argmax(failed(values))]
