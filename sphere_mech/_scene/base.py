@@ -152,9 +152,10 @@ class AbstractEffect(eqx.Module):
     def __check_init__(self):
         check_fields(self)
 
-    @abc.abstractmethod
     def check(self, scene) -> None:
-        """Raise `ValueError` if this effect does not fit `scene` (indices, counts)."""
+        """Raise `ValueError` if this effect does not fit `scene` (indices, counts). The
+        one optional hook of an effect (a user's own effect need not check anything): by
+        default it checks nothing."""
 
 
 class Drawing(NamedTuple):
@@ -289,6 +290,6 @@ class AbstractDrive(eqx.Module):
     def __call__(self, t, q, qdot, args) -> jax.Array:
         """The `(3,)` torque or force."""
 
-    @abc.abstractmethod
     def check(self, scene) -> None:
-        """Raise `ValueError` if this drive does not fit `scene`."""
+        """Raise `ValueError` if this drive does not fit `scene`; optional, as an
+        effect's: by default it checks nothing."""

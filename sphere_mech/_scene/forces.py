@@ -225,9 +225,6 @@ class VibratingSupport(AbstractForce):
         m = scene.point_masses()
         return jax.grad(lambda q_: -jnp.sum(m * (scene.points(q_) @ a)))(q)
 
-    def check(self, scene):
-        del scene  # fits any scene: nothing to check against it
-
 
 def _base_vector(owner, name: str, x, scene) -> None:
     """`x` is a scalar or one value per axis of the scene's `Base`."""
@@ -353,6 +350,3 @@ class Harmonic(AbstractDrive):
     def __call__(self, t, q, qdot, args):
         phase = self.angular_frequency * t + self.phase
         return self.offset + self.amplitude * jnp.cos(phase)
-
-    def check(self, scene):
-        del scene  # fits any scene: nothing to check against it

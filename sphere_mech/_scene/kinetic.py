@@ -99,9 +99,6 @@ class Chain(AbstractKinetic):
     def drawing(self):
         return Drawing(links=((np.asarray(self.base, float), tuple(range(self.n))),))
 
-    def check(self, scene):
-        del scene  # fits any scene: nothing to check against it
-
 
 class Base(AbstractEffect):
     """A point-mass base that moves and carries the scene's chain: a cart on a line, a
@@ -197,9 +194,6 @@ class AbstractSphereMasses(AbstractKinetic):
 
     def bends(self):
         return ()
-
-    def check(self, scene):
-        del scene  # fits any scene: nothing to check against it
 
 
 class Particles(AbstractSphereMasses):

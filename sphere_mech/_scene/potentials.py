@@ -38,9 +38,6 @@ class Gravity(AbstractPotential):
         x = scene.points(q)
         return -self.g * jnp.sum(scene.point_masses() * (x @ self.direction))
 
-    def check(self, scene):
-        del scene  # fits any scene: nothing to check against it
-
 
 class Spring(AbstractPotential):
     """A linear spring between two points of the scene.
