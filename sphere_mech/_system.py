@@ -257,25 +257,14 @@ class AbstractLagrangianSystem(AbstractSystem):
         return tree_vdot(v, self._dL_dv(t, q, v, args)) - self.lagrangian(t, q, v, args)
 
     @abc.abstractmethod
-    def velocity_from_momentum(
-        self,
-        t,
-        q: Points,
-        p: Tangents,
-        args: Args = None,
-        *,
-        guess=None,
-        quadratic=None,
-        tol=None,
-        max_steps: int = 32,
-    ):
+    def velocity_from_momentum(self, t, q: Points, p: Tangents, args: Args = None, **options):
         """The inverse Legendre map: the tangent velocity `v` with `P dL/dv = p`.
 
         **Arguments:**
         - `t`, `q`, `args`: as in `acceleration`.
         - `p`: the momentum (`mu` or `pi`), `(n, 3)`.
-        - `guess`, `quadratic`, `tol`, `max_steps`: options of the general method (Newton
-          from `guess`; one linear solve when `quadratic`).
+        - `options`: `guess`, `quadratic`, `tol`, `max_steps` of the general method
+          (Newton from `guess`; one linear solve when `quadratic`).
 
         **Returns:** `(v, result)`: the velocity, `(n, 3)`, and a `RESULTS` code (never raised
         here).

@@ -6,6 +6,11 @@ import abc
 from diffrax import AbstractSolver, AbstractWrappedSolver
 
 
+def _forwarded(name: str) -> property:
+    """The wrapped solver's attribute `name`, read through the wrapper."""
+    return property(lambda self: getattr(self.solver, name), doc=f"The wrapped solver's `{name}`.")
+
+
 class AbstractTransparentSolver(AbstractWrappedSolver):
     """Wraps `solver` (a field or property of the concrete class) and forwards its order,
     term structure, interpolation, root finder and scan kind, as diffrax's `HalfSolver`
@@ -25,34 +30,16 @@ class AbstractTransparentSolver(AbstractWrappedSolver):
                 f"instance, e.g. diffrax.Tsit5() (got {what})"
             )
 
-    @property
-    def term_structure(self):
-        return self.solver.term_structure
-
-    @property
-    def interpolation_cls(self):
-        return self.solver.interpolation_cls
-
-    @property
-    def term_compatible_contr_kwargs(self):
-        return self.solver.term_compatible_contr_kwargs
-
-    @property
-    def root_finder(self):
-        """The wrapped implicit solver's root finder: `diffrax.diffeqsolve` reads (and
-        fills in) its tolerances on any solver that is an `AbstractImplicitSolver`, which
-        a wrapper of `Kvaerno5()` is by forwarding."""
-        return self.solver.root_finder
-
-    @property
-    def root_find_max_steps(self):
-        return self.solver.root_find_max_steps
-
-    @property
-    def scan_kind(self):
-        """The wrapped Runge-Kutta method's `scan_kind`: `diffrax.ForwardMode` reads it
-        (and sets it to "lax" through this property) so that forward mode works."""
-        return self.solver.scan_kind
+    # Read from the wrapped solver. `root_finder`, `root_find_max_steps`: diffrax reads
+    # (and fills in) the tolerances of any solver that is an `AbstractImplicitSolver`,
+    # which a wrapper of `Kvaerno5()` is by forwarding. `scan_kind`: `diffrax.ForwardMode`
+    # reads it (and sets it to "lax" through it) so that forward mode works.
+    term_structure = _forwarded("term_structure")
+    interpolation_cls = _forwarded("interpolation_cls")
+    term_compatible_contr_kwargs = _forwarded("term_compatible_contr_kwargs")
+    root_finder = _forwarded("root_finder")
+    root_find_max_steps = _forwarded("root_find_max_steps")
+    scan_kind = _forwarded("scan_kind")
 
     def order(self, terms):
         return self.solver.order(terms)
