@@ -322,19 +322,9 @@ class _BaseRow(eqx.Module):
         return w - column[:, None] * (P @ w[0]) / column[0]
 
 
-def _dense_kinetic_energy(M, qdot) -> Scalar:
-    return 0.5 * jnp.sum(M * (qdot @ qdot.T))
-
-
-class AbstractConstantInertiaLagrangian(AbstractFastPath):
-    """Base of a user's system `L = 1/2 sum_jk M_jk qdot_j . qdot_k - U(t, q, args)` on
-    the fast path, hanging from a fixed support: subclasses give `inertia(args)`,
-    `potential(t, q, args)` and `forces`; the space is `Spheres()` (any `n`), `M` is
-    dense."""
-
-    @property
-    def space(self) -> AbstractSpace:
-        return Spheres()
+class _AbstractFixedDense(AbstractFastPath):
+    """The fast path of a chain on a fixed support with a dense `M`: no base, no bands,
+    `T = 1/2 sum_jk M_jk qdot_j . qdot_k`."""
 
     @property
     def base_axes(self) -> None:
@@ -344,10 +334,21 @@ class AbstractConstantInertiaLagrangian(AbstractFastPath):
         return None
 
     def kinetic_energy(self, q, qdot, args):
-        return _dense_kinetic_energy(self.inertia(args), qdot)
+        return 0.5 * jnp.sum(self.inertia(args) * (qdot @ qdot.T))
 
 
-class ConstantInertiaLagrangian(AbstractFastPath):
+class AbstractConstantInertiaLagrangian(_AbstractFixedDense):
+    """Base of a user's system `L = 1/2 sum_jk M_jk qdot_j . qdot_k - U(t, q, args)` on
+    the fast path, hanging from a fixed support: subclasses give `inertia(args)`,
+    `potential(t, q, args)` and `forces`; the space is `Spheres()` (any `n`), `M` is
+    dense."""
+
+    @property
+    def space(self) -> AbstractSpace:
+        return Spheres()
+
+
+class ConstantInertiaLagrangian(_AbstractFixedDense):
     """`L = 1/2 sum_jk M_jk qdot_j . qdot_k - U(t, q, args)` on the fast path.
 
     **Arguments:**
@@ -390,16 +391,6 @@ class ConstantInertiaLagrangian(AbstractFastPath):
         """`Spheres(n)` with the inertia matrix's `n` (`Spheres()`, any `n`, for an
         inertia function)."""
         return Spheres(None if callable(self.inertia_matrix) else self.inertia_matrix.shape[0])
-
-    @property
-    def base_axes(self) -> None:
-        return None
-
-    def inverse_inertia_bands(self, args):
-        return None
-
-    def kinetic_energy(self, q, qdot, args):
-        return _dense_kinetic_energy(self.inertia(args), qdot)
 
     def inertia(self, args):
         M = self.inertia_matrix
