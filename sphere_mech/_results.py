@@ -34,28 +34,12 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
 ITEMS = tuple(
     getattr(RESULTS, name)
     for name in (
-        # lineax's
-        "successful",
-        "max_steps_reached",
-        "singular",
-        "breakdown",
-        "stagnation",
-        "conlim",
-        "nonfinite_input",
-        # optimistix's
-        "nonlinear_max_steps_reached",
-        "nonlinear_divergence",
-        # diffrax's
-        "nonfinite",
-        "dt_min_reached",
-        "event_occurred",
-        "max_steps_rejected",
-        "internal_error",
-        # ours
-        "nonfinite_initial",
-        "event_root_failed",
-        "invalid_initial",
-    )
+        # lineax's, optimistix's, diffrax's and ours:
+        "successful max_steps_reached singular breakdown stagnation conlim nonfinite_input "
+        "nonlinear_max_steps_reached nonlinear_divergence "
+        "nonfinite dt_min_reached event_occurred max_steps_rejected internal_error "
+        "nonfinite_initial event_root_failed invalid_initial"
+    ).split()
 )
 """Every item of `RESULTS`; `code` numbers an item by its place here. A code that a new
 diffrax, optimistix or lineax adds fails the check below at import (add its name)."""

@@ -220,20 +220,9 @@ def prepare(system, y0, args=None, *, batched=False, batch_system=False, throw=T
     return Run(system, y0, args, t0, t1, dt0, opts, valid, throw)
 
 
-OPTION_NAMES = (
-    "t0",
-    "t1",
-    "solver",
-    "dt0",
-    "rtol",
-    "atol",
-    "stepsize_controller",
-    "saveat",
-    "max_steps",
-    "progress",
-    "adjoint",
-    "event",
-    "throw",
+OPTION_NAMES = tuple(
+    "t0 t1 solver dt0 rtol atol stepsize_controller saveat max_steps progress adjoint event "
+    "throw".split()
 )
 """The options `simulate` and `simulate_batch` share, as `prepare` takes them."""
 
