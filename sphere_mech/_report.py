@@ -17,7 +17,7 @@ import numpy as np
 from ._geometry import constraint_error
 from ._program import build
 from ._solvers.work import power_and_rate, work_step
-from ._spaces import chain_parts
+from ._spaces import BASE, chain_parts
 
 
 @eqx.filter_jit
@@ -73,9 +73,9 @@ class SceneResult:
       (not divided where both are zero: then the summary's relative balance is `null`).
     - `constraint`: `max_i | |q_i| - 1 |` over the spheres (`scene.spheres(q)`) at `t`.
     - `summary`: what `summary.json` holds (solver, tolerances or step, steps, wall time,
-      largest constraint and energy or balance error; with a `Base`, `"base"`: its final
-      coordinates), strict JSON: what could not be computed is `None`, with the reason
-      in `"not_computed"`.
+      largest constraint and energy or balance error; with a `Base`, its final
+      coordinates under the name `sm.chain_space` gives its base), strict JSON: what could
+      not be computed is `None`, with the reason in `"not_computed"`.
     - `potential`: `U` at `t` (kinetic energy: `energy - potential`).
     - `work`: with forces, the work `W` done at `error_t`.
     - `step_energy`: with forces, `E` at `error_t`.
@@ -164,7 +164,7 @@ def scene_result(spec, run, t1=None) -> SceneResult:
     q, v = jax.tree.map(np.asarray, (q, v))
     constraint = np.asarray(jax.vmap(constraint_error)(scene.spheres(q)))
     x = np.asarray(jax.vmap(scene.points)(q))
-    base = {} if scene.base is None else {"base": chain_parts(q)[0][-1].tolist()}
+    base = {} if scene.base is None else {BASE: chain_parts(q)[0][-1].tolist()}
     summary = {
         "scene": spec.name,
         "file": str(spec.path),

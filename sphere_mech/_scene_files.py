@@ -43,7 +43,7 @@ from ._solvers.names import (  # noqa: F401 (DIFFRAX_SOLVERS, PLAIN_SOLVERS: the
     PLAIN_SOLVERS,
     parse_solver,
 )
-from ._spaces import chain_state
+from ._spaces import BASE, chain_state
 
 
 class SceneFileError(ValueError):
@@ -211,8 +211,8 @@ INITIAL = {
 }
 """`[initial]` keys -> (shape of one entry (for every sphere), what is expected, range)."""
 BASE_INITIAL = {
-    "base": "the base's coordinates (m), one per axis of the Base",
-    "base_velocity": "the base's velocity (m/s), one per axis of the Base",
+    BASE: "the base's coordinates (m), one per axis of the Base",
+    f"{BASE}_velocity": "the base's velocity (m/s), one per axis of the Base",
 }
 """`[initial]` keys of a scene with a `Base` (default zeros)."""
 
@@ -269,7 +269,7 @@ def _initial(path, table, scene: Scene):
                 f"{expected}: {count} (at most {MAX_MAGNITUDE:g} in magnitude), got {_show(value)}",
             )
         x[key] = jnp.asarray(value, dtype=q.dtype)
-    return chain_state(x["base"], q), chain_state(x["base_velocity"], qdot)
+    return chain_state(x[BASE], q), chain_state(x[f"{BASE}_velocity"], qdot)
 
 
 def _spheres_initial(path, table, n: int):

@@ -448,7 +448,9 @@ def as_space(space) -> AbstractSpace:
     )
 
 
-_BASE, _SPHERES = "base", "spheres"  # the keys of a chain_space with a base
+BASE, _SPHERES = "base", "spheres"  # the keys of a chain_space with a base
+"""The name of a `chain_space`'s base part: its key in states, and the name scene files
+(`[initial]`) and run summaries give it."""
 
 
 def chain_space(base: int | None, n: int | None) -> AbstractSpace:
@@ -467,16 +469,16 @@ def chain_space(base: int | None, n: int | None) -> AbstractSpace:
     `Spheres(n)`.
     """
     spheres = Spheres(n)
-    return spheres if base is None else Product({_BASE: Euclidean(base), _SPHERES: spheres})
+    return spheres if base is None else Product({BASE: Euclidean(base), _SPHERES: spheres})
 
 
 def chain_parts(tree):
     """`(base, spheres)`: the parts of a state, velocity or force of a `chain_space`
     (`base` is `None` without a base)."""
-    return (tree[_BASE], tree[_SPHERES]) if isinstance(tree, Mapping) else (None, tree)
+    return (tree[BASE], tree[_SPHERES]) if isinstance(tree, Mapping) else (None, tree)
 
 
 def chain_state(base, spheres):
     """The state (velocity, force) of a `chain_space` with these parts (`base` `None`:
     the spheres' array itself)."""
-    return spheres if base is None else {_BASE: base, _SPHERES: spheres}
+    return spheres if base is None else {BASE: base, _SPHERES: spheres}

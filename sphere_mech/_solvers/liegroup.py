@@ -184,11 +184,9 @@ class LieRK(AbstractAdaptiveSolver):
 
     def _group(self, terms, y) -> AbstractLieAction:
         """The group action this solver moves states `y` with (for the system of `terms`)."""
-        if self.action == "SO3xR3":
-            return space_of(terms, y, "LieRK").lie_action(self.action, False)
-        system = system_of(terms)
-        space_of(terms, y, "LieRK")
-        return system.space.lie_action(self.action, system.angular)
+        space = space_of(terms, y, "LieRK")  # checks y against it
+        angular = self.action == "SE3" and system_of(terms).angular  # SO3xR3: any term
+        return space.lie_action(self.action, angular)
 
     def _stage_rows(self, dtype):
         """`(i, a_i, c_i)` for the stages `i = 2..s` computed inside a step (0-based `i`;
