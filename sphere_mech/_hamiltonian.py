@@ -1,16 +1,13 @@
 """Hamiltonian systems: form 3 in `(q, mu)` (Proposition 3) and form 4 in `(q, pi)`
 (Proposition 4). They need gradients of `H` only, no linear solve."""
 
-import operator
 from collections.abc import Callable
 from typing import ClassVar
 
 import equinox as eqx
-import jax
 
-from ._checks import check_function
 from ._custom_types import ForceFn
-from ._misc import tree_add, tree_sub
+from ._misc import tree_sub
 from ._spaces import AbstractSpace, Spheres, as_space
 from ._system import AbstractHamiltonianSystem
 
@@ -38,17 +35,10 @@ class Hamiltonian(AbstractHamiltonianSystem):
     state_name: ClassVar[str] = "mu"
     angular: ClassVar[bool] = False
 
-    def __check_init__(self):
-        check_function(self.H, "H", "H(t, q, mu, args)", 4)
-
-    def rates(self, t, y, args):
-        q, mu = y
+    def _hamilton(self, q, mu, dH_dmu, dH_dq_less_f):
         space = self.space
-        dH_dq, dH_dmu = self._gradients(t, q, mu, args)
-        f = self.generalized_force(t, q, mu, args)
-        force = dH_dq if f is None else tree_sub(dH_dq, f)
         transport = space.bracket(dH_dmu, space.to_linear(q, mu))
-        mudot = tree_sub(transport, space.project(q, force))
+        mudot = tree_sub(transport, space.project(q, dH_dq_less_f))
         return space.project(q, dH_dmu), mudot
 
 
@@ -72,14 +62,7 @@ class AngularHamiltonian(AbstractHamiltonianSystem):
     state_name: ClassVar[str] = "pi"
     angular: ClassVar[bool] = True
 
-    def __check_init__(self):
-        check_function(self.H, "H", "H(t, q, pi, args)", 4)
-
-    def rates(self, t, y, args):
-        q, pi = y
+    def _hamilton(self, q, pi, dH_dpi, dH_dq_less_f):
         space = self.space
-        dH_dq, dH_dpi = self._gradients(t, q, pi, args)
-        f = self.generalized_force(t, q, pi, args)
-        torque = jax.tree.map(operator.neg, dH_dq) if f is None else tree_sub(f, dH_dq)
-        pidot = tree_add(space.from_linear(q, torque), space.bracket(dH_dpi, pi))
+        pidot = tree_sub(space.bracket(dH_dpi, pi), space.from_linear(q, dH_dq_less_f))
         return space.to_linear(q, dH_dpi), pidot

@@ -49,6 +49,9 @@ class _AbstractAutodiffLagrangian(AbstractLagrangianSystem):
 
     L: eqx.AbstractVar[Callable]
 
+    def __check_init__(self):
+        check_function(self.L, "L", f"L(t, q, {self.state_name}, args)", 4)
+
     def lagrangian(self, t, q, v, args):
         return self.L(t, q, v, args)
 
@@ -121,9 +124,6 @@ class Lagrangian(_AbstractAutodiffLagrangian):
     state_name: ClassVar[str] = "qdot"
     angular: ClassVar[bool] = False
 
-    def __check_init__(self):
-        check_function(self.L, "L", "L(t, q, qdot, args)", 4)
-
     def _vdot(self, t, q, qdot, args):
         _, dL_dq, mixed, hvp = _lagrangian_terms(self.L, t, q, qdot, args, qdot)
         c = self.space.normal_acceleration(q, qdot)  # keeps q_i . qddot_i = -|qdot_i|^2
@@ -155,9 +155,6 @@ class AngularLagrangian(_AbstractAutodiffLagrangian):
     space: AbstractSpace = _space_field()
     state_name: ClassVar[str] = "omega"
     angular: ClassVar[bool] = True
-
-    def __check_init__(self):
-        check_function(self.L, "L", "L(t, q, omega, args)", 4)
 
     def _vdot(self, t, q, omega, args):
         space = self.space

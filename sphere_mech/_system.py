@@ -8,9 +8,9 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._checks import check_scalar
+from ._checks import check_function, check_scalar
 from ._custom_types import Args, ForceFn, Points, Scalar, State, Tangents
-from ._misc import all_finite, tree_dtype, tree_vdot
+from ._misc import all_finite, tree_dtype, tree_sub, tree_vdot
 from ._spaces import AbstractSpace
 
 SINGULAR_MESSAGE = (
@@ -276,6 +276,19 @@ class AbstractHamiltonianSystem(AbstractSystem):
     form 3, or `pi`, form 4). Hamilton's equations need gradients of `H` only."""
 
     H: eqx.AbstractVar[Callable]
+
+    def __check_init__(self):
+        check_function(self.H, "H", f"H(t, q, {self.state_name}, args)", 4)
+
+    @abc.abstractmethod
+    def _hamilton(self, q, p, dH_dp, dH_dq_less_f) -> State:
+        """`(qdot, pdot)` from the gradients of `H` and `dH/dq - f`."""
+
+    def rates(self, t, y, args):
+        q, p = y
+        dH_dq, dH_dp = self._gradients(t, q, p, args)
+        f = self.generalized_force(t, q, p, args)
+        return self._hamilton(q, p, dH_dp, dH_dq if f is None else tree_sub(dH_dq, f))
 
     def _gradients(self, t, q, p, args):
         def H(q_, p_):

@@ -21,8 +21,25 @@ def _relative_omega(q, qdot, scene):
     return omega - padded[scene.parents() + 1]
 
 
-def _drive_value(x):
-    return x if callable(x) else base.as_float(x)
+def _drive(name: str, on_base: bool = False):
+    """A field holding a drive: a constant vector (`(3,)`; on the `Base`, one component per
+    axis) or a function `(t, q, qdot, args) -> vector`, such as an `AbstractDrive`."""
+
+    def convert(x):
+        if callable(x):
+            return x
+        x = base.as_float(x)
+        if not on_base:
+            base.check_vector(name, x)
+        elif jnp.ndim(x) != 1:
+            raise ParameterError(
+                name,
+                f"{name} must be an (m,) vector (one component "
+                f"per axis of the Base), got shape {jnp.shape(x)}",
+            )
+        return x
+
+    return eqx.field(converter=convert)
 
 
 def _check_drive(field: str, drive, scene, shape=(3,)) -> None:
@@ -99,12 +116,8 @@ class BaseTorque(AbstractForce):
     - `link`: the link's index (static; default 0: the base joint of the first link).
     """
 
-    torque: jax.Array | Callable = eqx.field(converter=_drive_value)
+    torque: jax.Array | Callable = _drive("torque")
     link: int = eqx.field(default=0, static=True)
-
-    def __check_init__(self):
-        if not callable(self.torque):
-            base.check_vector("torque", self.torque)
 
     def check(self, scene):
         base.check_index(self, "link", self.link, scene.n)
@@ -164,12 +177,8 @@ class TipForce(AbstractForce):
     - `point`: the index of the mass it acts on (static; negative counts from the end).
     """
 
-    force: jax.Array | Callable = eqx.field(converter=_drive_value)
+    force: jax.Array | Callable = _drive("force")
     point: int = eqx.field(default=-1, static=True)
-
-    def __check_init__(self):
-        if not callable(self.force):
-            base.check_vector("force", self.force)
 
     def check(self, scene):
         base.check_index(self, "point", self.point, scene.n)
@@ -249,15 +258,7 @@ class BaseForce(AbstractForce):
       `PDPosition`, or `Harmonic`).
     """
 
-    force: jax.Array | Callable = eqx.field(converter=_drive_value)
-
-    def __check_init__(self):
-        if not callable(self.force) and jnp.ndim(self.force) != 1:
-            raise ParameterError(
-                "force",
-                f"force must be an (m,) vector (one component "
-                f"per axis of the Base), got shape {jnp.shape(self.force)}",
-            )
+    force: jax.Array | Callable = _drive("force", on_base=True)
 
     def check(self, scene):
         if scene.base is None:

@@ -153,15 +153,6 @@ class Base(AbstractEffect):
             )
 
 
-def sphere_masses(masses, radii, centers, count) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """`masses`, `radii` (one per sphere) and `centers` (`(n, 3)`: one `(3,)` centre
-    broadcast) of point masses on spheres, `count` of them (optional)."""
-    masses, radii = per_item(count, "count", masses=masses, radii=radii)
-    centers = as_float(centers)
-    centers = jnp.broadcast_to(centers, (masses.shape[0], 3)) if centers.ndim == 1 else centers
-    return masses, radii, centers
-
-
 class AbstractSphereMasses(AbstractKinetic):
     """Point masses `m_i` each on a sphere of radius `r_i` centred at `c_i`:
     `x_i = c_i + r_i q_i`, `M = diag(m_i r_i^2)`; each sphere its own joint, no bending.
@@ -211,14 +202,10 @@ class Particles(AbstractSphereMasses):
     radii: jax.Array
     centers: jax.Array
 
-    def __init__(
-        self,
-        masses: jax.Array,
-        radii: jax.Array,
-        centers: jax.Array = (0.0, 0.0, 0.0),
-        count: int | None = None,
-    ):
-        self.masses, self.radii, self.centers = sphere_masses(masses, radii, centers, count)
+    def __init__(self, masses, radii, centers=(0.0, 0.0, 0.0), count: int | None = None):
+        self.masses, self.radii = per_item(count, "count", masses=masses, radii=radii)
+        centers = as_float(centers)
+        self.centers = jnp.broadcast_to(centers, (self.n, 3)) if centers.ndim == 1 else centers
 
     def drawing(self):  # each particle on a link from its centre
         centers = np.asarray(self.centers, float)
@@ -236,20 +223,23 @@ class SharedSphere(AbstractSphereMasses):
     """
 
     masses: jax.Array
-    radii: jax.Array
-    centers: jax.Array
+    radius: jax.Array
+    center: jax.Array
 
-    def __init__(
-        self,
-        masses: jax.Array,
-        radius: jax.Array = 1.0,
-        center: jax.Array = (0.0, 0.0, 0.0),
-        count: int | None = None,
-    ):
+    def __init__(self, masses, radius=1.0, center=(0.0, 0.0, 0.0), count: int | None = None):
         check_sign("radius", radius, " (m)", scalar=True)
-        check_vector("center", as_float(center))
-        self.masses, self.radii, self.centers = sphere_masses(masses, radius, center, count)
+        self.center, self.radius = as_float(center), as_float(radius)
+        check_vector("center", self.center)
+        (self.masses,) = per_item(count, "count", masses=masses)
+
+    @property
+    def radii(self):
+        return jnp.broadcast_to(self.radius, self.masses.shape)
+
+    @property
+    def centers(self):
+        return jnp.broadcast_to(self.center, (self.n, 3))
 
     def drawing(self):  # the beads free on their sphere, drawn
-        centre, radius = np.asarray(self.centers[0], float), float(self.radii[0])
+        centre, radius = np.asarray(self.center, float), float(self.radius)
         return Drawing(spheres=((centre, radius),), free=tuple(range(self.n)))
