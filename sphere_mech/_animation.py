@@ -1,10 +1,6 @@
-"""The animation: the links moving in 3-D, as a self-contained HTML player (play, pause,
-step, scrub, speed) with its frames embedded, so it needs no network. One
-implementation for `animation.html` of `sphere-mech run` and for `sm.animate`.
-
-The still part (axes, spheres, pivots) is drawn once; each frame draws only the moving
-artists on it (blitting) and keeps the pixels that differ as a transparent PNG laid over
-the still image: 150 frames take well under a second to draw and about 2-4 kB each."""
+"""The animation (`animation.html` of `sphere-mech run`, `sm.animate`): a self-contained HTML
+player whose frames are transparent PNGs of the pixels that differ from the still image
+(blitting): 150 frames take well under a second to draw and about 2-4 kB each."""
 
 import base64
 import html
@@ -43,30 +39,15 @@ def _png(rgba: np.ndarray) -> str:
 
 
 def _artists(ax, skel: Skeleton) -> tuple:
-    many = max([len(link) for link in skel.links] + [0]) > 9
+    line = lambda *style, **kwargs: ax.plot([], [], [], *style, animated=True, **kwargs)[0]
+    marker = "" if max([len(link) for link in skel.links] + [0]) > 9 else "o"
     links = [
-        ax.plot(
-            [],
-            [],
-            [],
-            "-",
-            color="k",
-            lw=1.4,
-            marker="" if many else "o",
-            ms=4,
-            mfc="tab:blue",
-            markevery=slice(1, None),
-            animated=True,
-        )[0]
+        line("-", color="k", lw=1.4, marker=marker, ms=4, mfc="tab:blue", markevery=slice(1, None))
         for _ in skel.links
     ]
-    tips = ax.plot([], [], [], "o", color="tab:red", ms=5, animated=True)[0]
-    bases = ax.plot([], [], [], "ks", ms=7, animated=True)[0]
+    tips, bases = line("o", color="tab:red", ms=5), line("ks", ms=7)
     n_trails = len(skel.tips) if len(skel.tips) <= 8 else 0
-    trails = [
-        ax.plot([], [], [], "-", lw=0.8, alpha=0.7, color=f"C{k}", animated=True)[0]
-        for k in range(n_trails)
-    ]
+    trails = [line("-", lw=0.8, alpha=0.7, color=f"C{k}") for k in range(n_trails)]
     return links, tips, bases, trails
 
 
@@ -119,16 +100,6 @@ _ICONS = {  # 16 x 16 inline SVG shapes
     '<rect x="13" y="2" width="2" height="12"/>',
     "slower": '<rect x="3" y="7" width="10" height="2"/>',
     "faster": '<rect x="3" y="7" width="10" height="2"/><rect x="7" y="3" width="2" height="10"/>',
-}
-_TITLES = {
-    "first": "First frame",
-    "previous": "Previous frame",
-    "play": "Play",
-    "pause": "Pause",
-    "next": "Next frame",
-    "last": "Last frame",
-    "slower": "Slower",
-    "faster": "Faster",
 }
 
 _TEMPLATE = string.Template("""\
@@ -191,9 +162,10 @@ $buttons
 
 
 def _button(action: str) -> str:
+    title = action.capitalize() + " frame" * (action in ("first", "previous", "next", "last"))
     return (
-        f'<button type="button" data-action="{action}" title="{_TITLES[action]}" '
-        f'aria-label="{_TITLES[action]}" style="line-height:0;padding:4px 6px">'
+        f'<button type="button" data-action="{action}" title="{title}" '
+        f'aria-label="{title}" style="line-height:0;padding:4px 6px">'
         '<svg viewBox="0 0 16 16" width="14" height="14" fill="currentColor" '
         f'aria-hidden="true">{_ICONS[action]}</svg></button>'
     )
@@ -212,7 +184,7 @@ def player(
         alt=html.escape(title or "animation"),
         still=still,
         last=len(overlays) - 1,
-        buttons="\n".join(map(_button, _TITLES)),
+        buttons="\n".join(map(_button, _ICONS)),
         frames=json.dumps(overlays),
         times=json.dumps([float(s) for s in times]),
         delay=f"{delay:.0f}",
@@ -259,11 +231,10 @@ def animate(
     system_or_scene: AbstractSystem, sol: diffrax.Solution, *, frames: int = MAX_FRAMES
 ) -> Animation:
     """An animation of a solution: an HTML player with play, pause, step and a time
-    slider, that a notebook displays (no network needed).
-
-    A `Scene` is drawn from its kinetic terms at `scene.points(q)` (chains from their
-    pivot or the moving `Base`, drawn as a square, beads with their shared sphere); any
-    other system as the points `q` on the unit sphere.
+    slider, that a notebook displays (no network needed). A `Scene` is drawn from its
+    kinetic terms at `scene.points(q)` (chains from their pivot or the moving `Base`, drawn
+    as a square, beads with their shared sphere); any other system as the points `q` on
+    the unit sphere.
 
     **Arguments:**
     - `system_or_scene`: the system that was simulated.

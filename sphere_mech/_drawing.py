@@ -1,7 +1,5 @@
-"""What a picture of a system shows: the fixed points (a chain's pivot, a particle's
-centre), a moving base, the links as polylines from a fixed point or the base through the
-masses, and the spheres that several masses share. Shared by `plot.png`,
-`animation.html` and `sm.animate`."""
+"""What a picture of a system shows (for `plot.png`, `animation.html` and `sm.animate`): fixed
+points, a moving base, links through the masses, and the spheres several masses share."""
 
 import dataclasses
 
@@ -13,11 +11,9 @@ from ._scene.scene import Scene
 
 @dataclasses.dataclass(frozen=True)
 class Skeleton:
-    """`anchors`: `(k, 3)` fixed points; `links`: polylines as indices into the `(k + p,
-    3)` array of `points(x)` (anchors first, then the `p` points of `x`: a scene's
-    `points(q)`, its base's point first); `spheres`: `(centre, radius)` of each sphere that
-    several masses share; `free`: masses on no link; `bases`: the indices into
-    `points(x)` of moving bases (drawn as squares)."""
+    """`anchors`: `(k, 3)` fixed points; `links`: polylines as indices into `points(x)`
+    (anchors, then the points of `x`); `spheres`: `(centre, radius)` of shared spheres;
+    `free`: masses on no link; `bases`: indices into `points(x)` of moving bases."""
 
     anchors: np.ndarray
     links: tuple[np.ndarray, ...]
@@ -32,8 +28,7 @@ class Skeleton:
 
     @property
     def tips(self) -> np.ndarray:
-        """Indices into `points` of the masses whose paths tell the motion: the end of
-        each link, and every free mass."""
+        """Indices into `points` of each link's end and every free mass."""
         ends = [link[-1] for link in self.links]
         return np.asarray(ends + list(self.free + len(self.anchors)), dtype=int)
 
@@ -52,12 +47,9 @@ def _anchor(anchors: list, point) -> int:
 
 
 def skeleton(system, n: int) -> Skeleton:
-    """The skeleton of a `Scene`, for `points(q)`, from what each kinetic term draws
-    (`AbstractKinetic.drawing`: chains hang from their pivot, particles from their
-    centres, beads on a `SharedSphere` show the sphere); links start from the scene's
-    moving `Base` where it has one (a `Chain`'s offset from it is drawn as part of its
-    first link). Of any other system, the `n` points on the unit sphere centred at the
-    origin."""
+    """The skeleton of a `Scene`'s `points(q)` from its kinetic terms' `drawing()` (links
+    from the moving `Base` where it has one); of any other system, `n` points on the unit
+    sphere."""
     if not isinstance(system, Scene):
         return Skeleton(np.zeros((1, 3)), (), ((np.zeros(3), 1.0),), np.arange(n))
     anchors, links, spheres, free = [], [], [], []
@@ -73,21 +65,14 @@ def skeleton(system, n: int) -> Skeleton:
         offset += k.n
     anchors = np.asarray(anchors, dtype=float).reshape(-1, 3)
     index = lambda i: i + len(anchors) if i >= 0 else -1 - i
-    return Skeleton(
-        anchors,
-        tuple(np.asarray([index(i) for i in link]) for link in links),
-        tuple(spheres),
-        np.asarray(free, dtype=int),
-        np.asarray(bases, dtype=int) + len(anchors),
-    )
+    links = tuple(np.asarray([index(i) for i in link]) for link in links)
+    bases = np.asarray(bases, dtype=int) + len(anchors)
+    return Skeleton(anchors, links, tuple(spheres), np.asarray(free, dtype=int), bases)
 
 
 def positions(system, q) -> np.ndarray:
-    """The points drawn, `(T, p, 3)`: a scene's `points(q)` (its base's point first), else
-    `q`."""
-    if isinstance(system, Scene):
-        return np.asarray(jax.vmap(system.points)(q))
-    return np.asarray(q)
+    """The points drawn, `(T, p, 3)`: a scene's `points(q)`, else `q`."""
+    return np.asarray(jax.vmap(system.points)(q) if isinstance(system, Scene) else q)
 
 
 def cube(skel: Skeleton, x: np.ndarray) -> tuple[np.ndarray, float]:
@@ -104,28 +89,19 @@ def cube(skel: Skeleton, x: np.ndarray) -> tuple[np.ndarray, float]:
 def equal_axes(ax, skel: Skeleton, x: np.ndarray) -> None:
     """Equal-aspect 3-D axes around the whole motion."""
     centre, half = cube(skel, x)
-    ax.set_xlim(centre[0] - half, centre[0] + half)
-    ax.set_ylim(centre[1] - half, centre[1] + half)
-    ax.set_zlim(centre[2] - half, centre[2] + half)
-    ax.set_box_aspect((1, 1, 1))
-    ax.set_xlabel("x [m]", fontsize=8, labelpad=-2)
-    ax.set_ylabel("y [m]", fontsize=8, labelpad=-2)
-    ax.set_zlabel("z [m]", fontsize=8, labelpad=-2)
+    limits = [(c - half, c + half) for c in centre]
+    ax.set(xlim=limits[0], ylim=limits[1], zlim=limits[2], box_aspect=(1, 1, 1))
+    for set_label, name in zip((ax.set_xlabel, ax.set_ylabel, ax.set_zlabel), "xyz", strict=True):
+        set_label(f"{name} [m]", fontsize=8, labelpad=-2)
     ax.tick_params(labelsize=7, pad=0)
 
 
 def draw_static(ax, skel: Skeleton) -> list:
-    """The spheres (wireframes) and the anchors (black squares; a moving base is drawn
-    with the moving parts); returns legend handles."""
+    """The spheres (wireframes) and the anchors (black squares); returns legend handles."""
     u, v = np.meshgrid(np.linspace(0, 2 * np.pi, 25), np.linspace(0, np.pi, 13))
     for c, r in skel.spheres:
-        ax.plot_wireframe(
-            c[0] + r * np.cos(u) * np.sin(v),
-            c[1] + r * np.sin(u) * np.sin(v),
-            c[2] + r * np.cos(v),
-            color="0.75",
-            lw=0.4,
-        )
+        x, y, z = r * np.cos(u) * np.sin(v), r * np.sin(u) * np.sin(v), r * np.cos(v)
+        ax.plot_wireframe(c[0] + x, c[1] + y, c[2] + z, color="0.75", lw=0.4)
     if not len(skel.anchors):
         return []
     a, label = skel.anchors, "pivot" if skel.links else "centre"

@@ -1,10 +1,6 @@
-"""Running a scene and checking its energy bookkeeping: the energy error `E(t) - E(0)`,
-or with forces the work-energy balance `E(t) - E(0) - W(t)`, `W = int power dt` over the
-solver's own steps by the corrected trapezoidal rule `h/2 (P_k + P_{k+1}) + h^2/12 (P'_k -
-P'_{k+1})` (fourth order; `P' = dP/dt` along the flow by `jax.jvp`): in a run of the
-command line, summed during the integration (`WithWork`) and read at the end of every
-segment. The library's side of `sphere-mech run`: `_cli` writes the files of a
-`SceneResult`."""
+"""A scene run's energy bookkeeping (the library's side of `sphere-mech run`): the energy
+error `E(t) - E(0)`, or with forces the work-energy balance `E(t) - E(0) - W(t)`, `W` summed
+during the integration (`WithWork`) over the solver's own steps."""
 
 import dataclasses
 
@@ -27,12 +23,6 @@ def _energy_and_power(system, ts, q, v, args):
     return energy, P, dP
 
 
-def work_integral(ts, P, dP):
-    """Cumulative `int P dt` at `ts` by the end-corrected trapezoidal rule (order 4)."""
-    pieces = work_step(np.diff(ts), P[:-1], dP[:-1], P[1:], dP[1:])
-    return np.concatenate([[0.0], np.cumsum(pieces)])
-
-
 def work_energy_balance(system, ts, q, v, args=None):
     """The work-energy balance of a forced trajectory: `E(t) - E(0) - W(t)`.
 
@@ -43,15 +33,14 @@ def work_energy_balance(system, ts, q, v, args=None):
 
     **Arguments:**
     - `system`: a Lagrangian system in `(q, qdot)` (a `Scene`, `Lagrangian`, ...).
-    - `ts`: the times, shape `(T,)`, increasing (e.g. the solver's accepted steps).
-    - `q`, `v`: the states at `ts`, shape `(T, n, 3)` each (dicts of such arrays with a
-      leading `T` axis where the system's state is a dict).
-    - `args`: the system's `args`.
+    - `ts`, `args`: the times `(T,)`, increasing, and the system's `args`.
+    - `q`, `v`: the states at `ts`, `(T, n, 3)` each (dicts of such arrays with a leading
+      `T` axis where the system's state is a dict).
 
     **Returns:** `(E, W, E - E(0) - W)`, three numpy arrays of shape `(T,)`.
     """
     energy, P, dP = (np.asarray(a) for a in _energy_and_power(system, jnp.asarray(ts), q, v, args))
-    W = work_integral(np.asarray(ts), P, dP)
+    W = np.concatenate([[0.0], np.cumsum(work_step(np.diff(ts), P[:-1], dP[:-1], P[1:], dP[1:]))])
     return energy, W, energy - energy[0] - W
 
 
@@ -60,25 +49,19 @@ class SceneResult:
     """Arrays of a scene run (numpy) and its summary: what `sphere-mech run` writes.
 
     **Attributes:**
-    - `t`: the saved times, `(T,)`.
-    - `q`, `v`: the saved states, `(T, n, 3)` each; where the scene's state is a dict (a
-      scene with a `Base`: `sm.chain_space`), dicts of arrays with a leading `T` axis.
-    - `x`: the points drawn at `t`, `scene.points(q)`: `(T, n, 3)`, `(T, n + 1, 3)` with a
-      `Base` (its point first).
-    - `energy`: the energy `E` at `t`.
-    - `error_t`: the times of `error` (`t`, or for a scene with forces the start and the
-      end of every segment of the run: steps of the solver, where the work is known).
-    - `error`: the relative energy error `(E - E(0)) / |E(0)|`, or with forces the
-      work-energy balance `E - E(0) - W` divided by the larger of `max |E|`, `max |W|`
-      (not divided where both are zero: then the summary's relative balance is `null`).
-    - `constraint`: `max_i | |q_i| - 1 |` over the spheres (`scene.spheres(q)`) at `t`.
+    - `t`, `energy`, `potential`: the saved times `(T,)`, and `E` and `U` at `t`.
+    - `q`, `v`: the saved states, `(T, n, 3)` each (with a `Base`, dicts of arrays with a
+      leading `T` axis, as `sm.chain_space`).
+    - `x`: the points drawn at `t`, `scene.points(q)` (with a `Base`, its point first).
+    - `error_t`: the times of `error`: `t`, or with forces the start and the end of every
+      segment (steps of the solver, where the work is known).
+    - `error`: `(E - E(0)) / |E(0)|`, or with forces `E - E(0) - W` divided by the larger
+      of `max |E|`, `max |W|` (not divided where both are zero; the summary then says `null`).
+    - `constraint`: `max_i | |q_i| - 1 |` over `scene.spheres(q)` at `t`.
     - `summary`: what `summary.json` holds (solver, tolerances or step, steps, wall time,
-      largest constraint and energy or balance error; with a `Base`, its final
-      coordinates under the name `sm.chain_space` gives its base), strict JSON: what could
-      not be computed is `None`, with the reason in `"not_computed"`.
-    - `potential`: `U` at `t` (kinetic energy: `energy - potential`).
-    - `work`: with forces, the work `W` done at `error_t`.
-    - `step_energy`: with forces, `E` at `error_t`.
+      largest errors; with a `Base`, its final coordinates), strict JSON: what could not be
+      computed is `None`, with the reason in `"not_computed"`.
+    - `work`, `step_energy`: with forces, `W` and `E` at `error_t`.
     """
 
     t: np.ndarray
@@ -90,22 +73,20 @@ class SceneResult:
     error: np.ndarray
     constraint: np.ndarray
     summary: dict
-    potential: np.ndarray | None = None  # U at `t` (kinetic energy: `energy - potential`)
-    work: np.ndarray | None = None  # with forces: W at `error_t`
-    step_energy: np.ndarray | None = None  # with forces: E at `error_t`
+    potential: np.ndarray | None = None
+    work: np.ndarray | None = None
+    step_energy: np.ndarray | None = None
 
 
 def run_scene(spec, *, t1=None, progress=False) -> SceneResult:
-    """Simulate a scene file's scene and report its energy bookkeeping.
-
-    The run is the command line's: segment by segment with one compiled program (see
-    `sphere_mech._program`), each segment `simulate`'s core with the file's solver and
-    tolerances; a failure raises a `RuntimeError` with `simulate`'s message.
+    """Simulate a scene file's scene and report its energy bookkeeping, as the command
+    line does: segment by segment with one compiled program (see `sphere_mech._program`),
+    each segment `simulate`'s core with the file's solver and tolerances; a failure raises
+    a `RuntimeError` with `simulate`'s message.
 
     **Arguments:**
-    - `spec`: a `SceneSpec`, from `load_scene`.
-    - `t1`: another end time (s) instead of the file's.
-    - `progress`: show a progress bar.
+    - `spec`, `t1`, `progress`: a `SceneSpec` (from `load_scene`), another end time (s)
+      instead of the file's, and whether to show a progress bar.
 
     **Returns:** a `SceneResult`.
     """
@@ -113,9 +94,7 @@ def run_scene(spec, *, t1=None, progress=False) -> SceneResult:
 
 
 def strict_json(summary: dict, reasons: dict) -> dict:
-    """`summary` with every number that is not finite (NaN, infinity: not JSON) replaced
-    by `None`, and `"not_computed"`: `{field: reason}` for those and the fields `reasons`
-    names (already `None`)."""
+    """`summary`, non-finite numbers as `None`; `"not_computed"`: those and `reasons`' fields."""
     reasons = dict(reasons)
 
     def finite(key, x):
@@ -131,17 +110,16 @@ def strict_json(summary: dict, reasons: dict) -> dict:
 
 
 def scene_result(spec, run, t1=None) -> SceneResult:
-    """The energy bookkeeping and summary of a run of `spec` up to `t1` (default: the
-    file's), from `Program.integrate` (an `Integrated`: times, states, counts, work)."""
+    """The `SceneResult` of `run` (from `Program.integrate`) of `spec` up to `t1`."""
     scene, args, forced = spec.scene, None, spec.scene.has_forces
-    t1, ts, wall = float(spec.t1 if t1 is None else t1), jnp.asarray(run.t), run.wall_time_s
+    ts = jnp.asarray(run.t)
     q, v = jax.vmap(scene.space.retract)(run.q, run.v) if forced else (run.q, run.v)
     energy = np.asarray(jax.vmap(scene.energy, (0, 0, 0, None))(ts, q, v, args))
     potential = np.asarray(jax.vmap(scene.potential, (0, 0, None))(ts, q, args))
-    e_s = W = None
-    reasons = {}
+    t = np.asarray(ts)
+    e_s, W, reasons = None, None, {}
     if forced:  # at the start and the end of every segment: the solver's own steps
-        e_s, W, error_t = energy[run.work_index], run.work, np.asarray(ts)[run.work_index]
+        e_s, W, error_t = energy[run.work_index], run.work, t[run.work_index]
         balance = e_s - e_s[0] - W
         scale = max(np.max(np.abs(e_s)), np.max(np.abs(W)))
         error = balance / scale if scale > 0 else balance
@@ -156,7 +134,7 @@ def scene_result(spec, run, t1=None) -> SceneResult:
             "work_done_J": float(W[-1]),
         }
     else:
-        error_t, error = np.asarray(ts), (energy - energy[0]) / abs(energy[0] or 1.0)
+        error_t, error = t, (energy - energy[0]) / abs(energy[0] or 1.0)
         report = {
             "energy_report": "energy error (E(t) - E(0)) / |E(0)|",
             "max_relative_energy_error": float(np.max(np.abs(error))),
@@ -165,38 +143,23 @@ def scene_result(spec, run, t1=None) -> SceneResult:
     constraint = np.asarray(jax.vmap(constraint_error)(scene.spheres(q)))
     x = np.asarray(jax.vmap(scene.points)(q))
     base = {} if scene.base is None else {BASE: chain_parts(q)[0][-1].tolist()}
+    adaptive = isinstance(spec.solver, diffrax.AbstractAdaptiveSolver)
     summary = {
         "scene": spec.name,
         "file": str(spec.path),
         "solver": spec.solver_name,
-        **(
-            {"rtol": spec.rtol, "atol": spec.atol}
-            if isinstance(spec.solver, diffrax.AbstractAdaptiveSolver)
-            else {"dt0": spec.dt0}
-        ),
+        **({"rtol": spec.rtol, "atol": spec.atol} if adaptive else {"dt0": spec.dt0}),
         "n_spheres": scene.n,
         "effects": [type(e).__name__ for e in scene.effects],
         "t0": spec.t0,
-        "t1": t1,
+        "t1": float(spec.t1 if t1 is None else t1),
         "steps": run.steps,
         "rejected_steps": run.rejected_steps,
-        "wall_time_s": wall,
+        "wall_time_s": run.wall_time_s,
         "max_constraint_error": float(constraint.max()),
         **report,
         **base,
     }
     summary = strict_json(summary, reasons)
-    return SceneResult(
-        np.asarray(ts),
-        q,
-        v,
-        x,
-        energy,
-        np.asarray(error_t),
-        np.asarray(error),
-        constraint,
-        summary,
-        potential,
-        W,
-        e_s,
-    )
+    error = np.asarray(error)
+    return SceneResult(t, q, v, x, energy, error_t, error, constraint, summary, potential, W, e_s)

@@ -1,9 +1,6 @@
-"""Scene files: TOML data (never code): effects, initial state, arguments of `simulate`.
-
-The schema is the effect Modules': `type` is the class name in snake_case, fields and
-defaults are the constructor's arguments, kinds its annotations, and the Module checks
-the values, so files and Python reject the same input with the same words. Every
-problem raises `SceneFileError(file, field, expected)`."""
+"""Scene files: TOML data (never code). The schema is the effect Modules' (`type`: the class
+name in snake_case; fields, defaults, kinds: the constructor's), and the Modules check the
+values, so files and Python reject the same input with the same words."""
 
 import dataclasses
 import inspect
@@ -21,19 +18,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._checks import unit_tolerance
+from ._scene import forces, kinetic, potentials
 from ._scene.base import MAX_MAGNITUDE, ParameterError
-from ._scene.forces import (
-    BaseForce,
-    BaseTorque,
-    Harmonic,
-    JointDamping,
-    PDPosition,
-    PDTorque,
-    TipForce,
-    VibratingSupport,
-)
-from ._scene.kinetic import Base, Chain, Particles, SharedSphere
-from ._scene.potentials import Bending, Gravity, PairInteraction, Spring
 from ._scene.scene import Scene
 from ._simulate import simulate
 from ._solve import OptionError, options
@@ -51,9 +37,8 @@ class SceneFileError(ValueError):
     (a `ValueError`; the command line prints it and exits with status 2).
 
     **Arguments:**
-    - `path`: the scene file.
-    - `field`: where in the file, e.g. `effects[0].masses` or `simulate.t1`.
-    - `expected`: what was expected there (or the effect's own message).
+    - `path`, `field`, `expected`: the scene file, where in it (e.g. `effects[0].masses` or
+      `simulate.t1`) and what was expected there (or the effect's own message).
     """
 
     def __init__(self, path, field: str, expected: str):
@@ -68,22 +53,13 @@ def _snake(name: str) -> str:
 EFFECTS = {
     _snake(c.__name__): c
     for c in (
-        Chain,
-        Particles,
-        SharedSphere,
-        Base,
-        Gravity,
-        Spring,
-        Bending,
-        PairInteraction,
-        JointDamping,
-        BaseTorque,
-        TipForce,
-        VibratingSupport,
-        BaseForce,
+        *(kinetic.Chain, kinetic.Particles, kinetic.SharedSphere, kinetic.Base),
+        *(potentials.Gravity, potentials.Spring, potentials.Bending, potentials.PairInteraction),
+        *(forces.JointDamping, forces.BaseTorque, forces.TipForce, forces.VibratingSupport),
+        forces.BaseForce,
     )
 }
-DRIVES = {_snake(c.__name__): c for c in (PDTorque, PDPosition, Harmonic)}
+DRIVES = {_snake(c.__name__): c for c in (forces.PDTorque, forces.PDPosition, forces.Harmonic)}
 """Controllers, written as inline tables where Python takes a function."""
 
 
@@ -92,26 +68,23 @@ def _show(x) -> str:
     return text if len(text) <= 40 else text[:37] + "..."
 
 
+def _integer(x) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool)
+
+
 def _numbers(x) -> bool:
     """A finite number or a rectangular, non-empty (nested) array of them."""
-    if isinstance(x, int) and not isinstance(x, bool):
+    if _integer(x):
         return abs(x) <= MAX_MAGNITUDE  # a float: TOML integers may be longer
     if isinstance(x, float):
         return math.isfinite(x)
-    return (
-        isinstance(x, list)
-        and len(x) > 0
-        and all(_numbers(a) for a in x)
-        and len({np.shape(a) for a in x}) == 1
-    )
+    if not (isinstance(x, list) and len(x) > 0):
+        return False
+    return all(_numbers(a) for a in x) and len({np.shape(a) for a in x}) == 1
 
 
 def _number(x) -> bool:
     return _numbers(x) and np.ndim(x) == 0
-
-
-def _integer(x) -> bool:
-    return isinstance(x, int) and not isinstance(x, bool)
 
 
 KINDS = {
@@ -130,8 +103,7 @@ KINDS = {
 
 
 def schema(cls) -> dict[str, tuple[tuple, object]]:
-    """`{field: (kinds, default)}` of a Module, from its constructor's signature and
-    annotations (`inspect.Parameter.empty`: required)."""
+    """`{field: (kinds, default)}` of a Module's constructor (`Parameter.empty`: required)."""
     fields = {f.name: f.type for f in dataclasses.fields(cls)}
     out = {}
     for name, p in inspect.signature(cls).parameters.items():
@@ -151,13 +123,24 @@ def _no_unknown(path, where: str, table: dict, allowed, expected: str = "") -> N
         )
 
 
+def _checked(path, where: str, build, effects=()):
+    """`build()`; its `ValueError` a `SceneFileError` at `where` (or the effect it names)."""
+    try:
+        return build()
+    except (ParameterError, OptionError) as e:
+        if effects:
+            where = f"effects[{next(k for k, effect in enumerate(effects) if effect is e.effect)}]"
+        raise SceneFileError(path, where + (f".{e.field}" if e.field else ""), str(e)) from None
+    except ValueError as e:
+        raise SceneFileError(path, where, str(e)) from None
+
+
 def _module(path, where: str, table, registry: dict, what: str):
     """Build the Module a table describes; its own checks speak for it."""
     kind = table.get("type") if isinstance(table, dict) else table
     if kind not in registry:
-        raise SceneFileError(
-            path, f"{where}.type", f"{what}, one of {', '.join(registry)}; got {_show(kind)}"
-        )
+        expected = f"{what}, one of {', '.join(registry)}; got {_show(kind)}"
+        raise SceneFileError(path, f"{where}.type", expected)
     cls, values = registry[kind], {}
     fields = schema(cls)
     summary = " ".join(cls.__doc__.split()).split(". ")[0]  # the docstring's first sentence
@@ -174,31 +157,17 @@ def _module(path, where: str, table, registry: dict, what: str):
             values[key] = next((v for k in kinds if (v := KINDS[k][1](x)) is not None), None)
             if values[key] is None:
                 raise SceneFileError(path, f"{where}.{key}", f"expected {expected}, got {_show(x)}")
-    try:
-        return cls(**values)
-    except ParameterError as e:
-        raise SceneFileError(path, f"{where}.{e.field}" if e.field else where, str(e)) from None
-    except ValueError as e:
-        raise SceneFileError(path, where, str(e)) from None
+    return _checked(path, where, lambda: cls(**values))
 
 
 def _scene(path, tables) -> Scene:
     if not isinstance(tables, list) or not tables:
-        raise SceneFileError(
-            path, "effects", "an array of effect tables ([[effects]] with a type field)"
-        )
+        expected = "an array of effect tables ([[effects]] with a type field)"
+        raise SceneFileError(path, "effects", expected)
     effects = [
         _module(path, f"effects[{k}]", t, EFFECTS, "an effect type") for k, t in enumerate(tables)
     ]
-    try:
-        return Scene(*effects)
-    except ParameterError as e:
-        k = next(k for k, effect in enumerate(effects) if effect is e.effect)
-        raise SceneFileError(
-            path, f"effects[{k}]" + (f".{e.field}" if e.field else ""), str(e)
-        ) from None
-    except ValueError as e:
-        raise SceneFileError(path, "effects", str(e)) from None
+    return _checked(path, "effects", lambda: Scene(*effects), effects)
 
 
 INITIAL = {
@@ -217,59 +186,42 @@ BASE_INITIAL = {
 """`[initial]` keys of a scene with a `Base` (default zeros)."""
 
 
+def _array(path, field: str, x, shapes, expected: str, bounds=None) -> np.ndarray:
+    """`x` as floats: numbers of one of `shapes` within `bounds` (default: `MAX_MAGNITUDE`)."""
+    low, high = bounds or (-MAX_MAGNITUDE, MAX_MAGNITUDE)
+    if not (_numbers(x) and np.shape(x) in shapes and low <= np.min(x) <= np.max(x) <= high):
+        raise SceneFileError(path, field, f"{expected}, got {_show(x)}")
+    return np.asarray(x, dtype=float)
+
+
 def _per_sphere(path, table, key: str, n: int) -> np.ndarray:
     item, expected, bounds = INITIAL[key]
-    x = table[key]
-    ok = _numbers(x) and np.shape(x) in (item, (n, *item))
-    if bounds is None:
-        bounds, expected = (
-            (-MAX_MAGNITUDE, MAX_MAGNITUDE),
-            f"{expected} (at most {MAX_MAGNITUDE:g} in magnitude)",
-        )
-    if not (ok and bounds[0] <= np.min(x) <= np.max(x) <= bounds[1]):
-        raise SceneFileError(
-            path,
-            f"initial.{key}",
-            f"{expected}: one for all spheres or an array of {n} (one per sphere), got {_show(x)}",
-        )
-    return np.broadcast_to(np.asarray(x, dtype=float), (n, *item))
+    at_most = "" if bounds else f" (at most {MAX_MAGNITUDE:g} in magnitude)"
+    expected += f"{at_most}: one for all spheres or an array of {n} (one per sphere)"
+    x = _array(path, f"initial.{key}", table[key], (item, (n, *item)), expected, bounds)
+    return np.broadcast_to(x, (n, *item))
 
 
 def _initial(path, table, scene: Scene):
     """The initial state `[initial]` gives: `(q0, qdot0)`, dicts with a `Base`."""
     if not isinstance(table, dict):
-        raise SceneFileError(
-            path, "initial", f"a table with q or polar_deg and azimuth_deg, got {_show(table)}"
-        )
+        expected = f"a table with q or polar_deg and azimuth_deg, got {_show(table)}"
+        raise SceneFileError(path, "initial", expected)
     base = {} if scene.base is None else BASE_INITIAL
-    _no_unknown(
-        path,
-        "initial",
-        table,
-        [*INITIAL, *base],
-        "q and qdot, or polar_deg and "
-        "azimuth_deg with optional rates"
-        + (", and base and base_velocity" if base else " (base: the scene has no Base)"),
+    expected = "q and qdot, or polar_deg and azimuth_deg with optional rates" + (
+        ", and base and base_velocity" if base else " (base: the scene has no Base)"
     )
+    _no_unknown(path, "initial", table, [*INITIAL, *base], expected)
     q, qdot = _spheres_initial(path, table, scene.n)
     if scene.base is None:
         return q, qdot
-    x = {}
-    for key, expected in BASE_INITIAL.items():
-        value = table.get(key, [0.0] * scene.base.m)
-        if not (
-            _numbers(value)
-            and np.shape(value) == (scene.base.m,)
-            and np.max(np.abs(value)) <= MAX_MAGNITUDE
-        ):
-            count = f"{scene.base.m} number" + "s" * (scene.base.m > 1)
-            raise SceneFileError(
-                path,
-                f"initial.{key}",
-                f"{expected}: {count} (at most {MAX_MAGNITUDE:g} in magnitude), got {_show(value)}",
-            )
-        x[key] = jnp.asarray(value, dtype=q.dtype)
-    return chain_state(x[BASE], q), chain_state(x[f"{BASE}_velocity"], qdot)
+    m = scene.base.m
+    count = f"{m} number" + "s" * (m > 1) + f" (at most {MAX_MAGNITUDE:g} in magnitude)"
+    x, v = (
+        _array(path, f"initial.{key}", table.get(key, [0.0] * m), [(m,)], f"{what}: {count}")
+        for key, what in BASE_INITIAL.items()
+    )
+    return chain_state(jnp.asarray(x, q.dtype), q), chain_state(jnp.asarray(v, q.dtype), qdot)
 
 
 def _spheres_initial(path, table, n: int):
@@ -283,39 +235,32 @@ def _spheres_initial(path, table, n: int):
         norms = np.linalg.norm(q, axis=-1)
         bad = int(np.argmax(np.abs(norms - 1.0)))
         if abs(norms[bad] - 1.0) > unit_tolerance(q.dtype):
+            expected = f"unit vectors (length 1 within {unit_tolerance(q.dtype):g})"
             raise SceneFileError(
-                path,
-                "initial.q",
-                f"unit vectors (length 1 within "
-                f"{unit_tolerance(q.dtype):g}), got length {norms[bad]:.6g} for "
-                f"q[{bad}]",
+                path, "initial.q", f"{expected}, got length {norms[bad]:.6g} for q[{bad}]"
             )
     else:
-        for key in ("polar_deg", "azimuth_deg"):
-            if key not in table:
-                raise SceneFileError(
-                    path,
-                    f"initial.{key}",
-                    "missing; expected q (unit vectors) or polar_deg and azimuth_deg",
-                )
+        missing = [key for key in ("polar_deg", "azimuth_deg") if key not in table]
+        if missing:
+            expected = "missing; expected q (unit vectors) or polar_deg and azimuth_deg"
+            raise SceneFileError(path, f"initial.{missing[0]}", expected)
         th, ph, rate_th, rate_ph = (
             np.radians(_per_sphere(path, table, k, n)) if k in table else np.zeros(n)
             for k in list(INITIAL)[2:]
         )
         st, ct, sp, cp = np.sin(th), np.cos(th), np.sin(ph), np.cos(ph)
         q = np.stack([st * cp, st * sp, ct], axis=-1)
-        qdot = rate_th[:, None] * np.stack([ct * cp, ct * sp, -st], axis=-1) + rate_ph[
-            :, None
-        ] * np.stack([-st * sp, st * cp, np.zeros(n)], axis=-1)
+        e_th = np.stack([ct * cp, ct * sp, -st], axis=-1)
+        e_ph = np.stack([-st * sp, st * cp, np.zeros(n)], axis=-1)
+        qdot = rate_th[:, None] * e_th + rate_ph[:, None] * e_ph
     if "qdot" in table:
         qdot = _per_sphere(path, table, "qdot", n)
     if np.any(
         np.abs(np.sum(q * qdot, axis=-1))
         > unit_tolerance(q.dtype) * (1.0 + np.linalg.norm(qdot, axis=-1))
     ):
-        raise SceneFileError(
-            path, "initial.qdot", "velocities tangent to the spheres (q_i . qdot_i = 0)"
-        )
+        expected = "velocities tangent to the spheres (q_i . qdot_i = 0)"
+        raise SceneFileError(path, "initial.qdot", expected)
     return jnp.asarray(q / np.linalg.norm(q, axis=-1, keepdims=True)), jnp.asarray(qdot)
 
 
@@ -334,6 +279,8 @@ SIMULATE = {
     "max_steps": "an integer >= 1",
 }
 """The keys of `[simulate]`: keyword arguments of `sm.simulate` (defaults as there)."""
+_UNITS = {"t0": " s", "t1": " s", "dt0": " s", "rtol": "", "atol": ""}
+"""The `[simulate]` numbers bounded by `MAX_MAGNITUDE`, and their units."""
 
 
 @dataclasses.dataclass
@@ -342,15 +289,13 @@ class SceneSpec:
     the scene, its initial state and the arguments of `sm.simulate`.
 
     **Attributes:**
-    - `path`: the file.
-    - `name`: the scene's `name` (default: the file's stem).
+    - `path`, `name`: the file, and the scene's `name` (default: the file's stem).
     - `scene`: the `Scene` built from `[[effects]]`.
     - `y0`: the initial state `(q0, qdot0)` from `[initial]`: `(n, 3)` arrays (with a
       `Base`, states of `sm.chain_space(m, n)`).
-    - `solver`: the solver named in `[simulate]` (default `Projected(diffrax.Tsit5())`).
-    - `solver_name`: the solver as the file spells it.
-    - `t0`, `t1`: start and end times (s).
-    - `dt0`: the (initial) step (s), or `None`.
+    - `solver`, `solver_name`: the solver named in `[simulate]` (default
+      `Projected(diffrax.Tsit5())`), and as the file spells it.
+    - `t0`, `t1`, `dt0`: start and end times (s), and the (initial) step (s) or `None`.
     - `rtol`, `atol`: tolerances of adaptive solvers, or `None` (`simulate`'s defaults).
     - `max_steps`: the most steps the run may take.
     - `save_dt`: the spacing of the saved trajectory (s), from `[output]`.
@@ -387,82 +332,48 @@ def _simulate_args(path, data, t1=None) -> dict:
     out = {k: table.get(k, defaults[k].default) for k in SIMULATE if k != "t1"}
     out |= {"t1": table["t1"], "solver_name": table.get("solver", "Projected(Tsit5)")}
     number = lambda x: x is None or _number(x)
-    checks = {
-        "t0": _number,
-        "t1": lambda x: _number(x) and x > out["t0"],
-        "dt0": number,
-        "rtol": number,
-        "atol": number,
-        "max_steps": _integer,
-        "solver_name": lambda x: isinstance(x, str),
-    }
+    checks = dict(t0=_number, t1=lambda x: _number(x) and x > out["t0"], dt0=number, rtol=number)
+    checks |= dict(atol=number, max_steps=_integer, solver_name=lambda x: isinstance(x, str))
     for key, ok in checks.items():
         if not ok(out[key]):
             field = key.removesuffix("_name")
             raise SceneFileError(
                 path, f"simulate.{field}", f"expected {SIMULATE[field]}, got {_show(out[key])}"
             )
-    try:
-        out["solver"] = parse_solver(out["solver_name"])
-    except ValueError as e:
-        raise SceneFileError(path, "simulate.solver", str(e)) from None
-    try:  # the options simulate would refuse, with its words
-        opts = options(dtype=np.float64, **{k: out[k] for k in SIMULATE})
-    except OptionError as e:
-        raise SceneFileError(path, f"simulate.{e.field}", str(e)) from None
-    except ValueError as e:
-        raise SceneFileError(path, "simulate", str(e)) from None
-    for key, unit in (("t0", " s"), ("t1", " s"), ("dt0", " s"), ("rtol", ""), ("atol", "")):
+    out["solver"] = _checked(path, "simulate.solver", lambda: parse_solver(out["solver_name"]))
+    opts = _checked(  # the options simulate would refuse, with its words
+        path, "simulate", lambda: options(dtype=np.float64, **{k: out[k] for k in SIMULATE})
+    )
+    for key, unit in _UNITS.items():
         if out[key] is not None and not abs(out[key]) <= MAX_MAGNITUDE:
-            raise SceneFileError(
-                path,
-                f"simulate.{key}",
-                f"{key} must be at most "
-                f"{MAX_MAGNITUDE:g}{unit} in magnitude (got {_show(out[key])})",
-            )
+            expected = f"{key} must be at most {MAX_MAGNITUDE:g}{unit} in magnitude"
+            raise SceneFileError(path, f"simulate.{key}", f"{expected} (got {_show(out[key])})")
     out["file_t1"] = out["t1"]
-    if t1 is not None:
-        out["t1"] = _end_time(path, t1, out["t0"])
+    if t1 is not None:  # the command line's --t1, checked as t1
+        if not (isinstance(t1, int | float) and out["t0"] < t1 <= MAX_MAGNITUDE):
+            expected = f"a time in s after t0 = {out['t0']:g} and at most {MAX_MAGNITUDE:g}"
+            raise SceneFileError(path, "--t1", f"--t1 must be {expected} (got {t1})")
+        out["t1"] = float(t1)
     steps = (out["t1"] - out["t0"]) / out["dt0"] if out["dt0"] else 0.0
     if isinstance(opts.controller, diffrax.ConstantStepSize) and steps > out["max_steps"]:
-        raise SceneFileError(
-            path,
-            "simulate.dt0",
-            f"dt0 must give at most max_steps = "
-            f"{out['max_steps']} fixed steps from t0 to t1 (got "
-            f"{out['dt0']:g}: {steps:.3g} steps)",
-        )
+        expected = f"at most max_steps = {out['max_steps']} fixed steps from t0 to t1"
+        got = f"{out['dt0']:g}: {steps:.3g} steps"
+        raise SceneFileError(path, "simulate.dt0", f"dt0 must give {expected} (got {got})")
     return out
 
 
-def _end_time(path, t1, t0: float) -> float:
-    """The command line's `--t1`, checked as `[simulate] t1` (errors name `--t1`)."""
-    if not (isinstance(t1, int | float) and t0 < t1 <= MAX_MAGNITUDE):
-        raise SceneFileError(
-            path,
-            "--t1",
-            f"--t1 must be a time in s after t0 = {t0:g} and at most {MAX_MAGNITUDE:g} (got {t1})",
-        )
-    return float(t1)
-
-
 def _save_dt(path, table: dict, args: dict, numbers: int) -> float:
-    """`[output] save_dt` (default: 1/1000 of the file's run), checked; at most
-    `MAX_SAVED` numbers saved from `t0` to `t1` (`numbers` per state)."""
+    """`[output] save_dt` (default: the file's run / 1000); at most `MAX_SAVED` numbers saved."""
     save_dt = table.get("save_dt", (args["file_t1"] - args["t0"]) / 1000)
     if not (_number(save_dt) and save_dt > 0):
-        raise SceneFileError(
-            path, "output.save_dt", f"expected a step > 0 (s), got {_show(save_dt)}"
-        )
+        expected = f"expected a step > 0 (s), got {_show(save_dt)}"
+        raise SceneFileError(path, "output.save_dt", expected)
     intervals = (args["t1"] - args["t0"]) / save_dt
     if not (intervals + 1) * numbers <= MAX_SAVED:
+        expected = f"at most {MAX_SAVED:.0e} saved numbers from t0 to t1 ((t1 - t0) / save_dt"
+        expected += f" = {intervals:.3g} intervals, {numbers} numbers a state)"
         raise SceneFileError(
-            path,
-            "output.save_dt",
-            f"save_dt must give at most "
-            f"{MAX_SAVED:.0e} saved numbers from t0 to t1 ((t1 - t0) / "
-            f"save_dt = {intervals:.3g} intervals, {numbers} numbers a "
-            f"state) (got {save_dt:g})",
+            path, "output.save_dt", f"save_dt must give {expected} (got {save_dt:g})"
         )
     return save_dt
 
@@ -474,9 +385,8 @@ def _read(path: Path) -> dict:
     except tomllib.TOMLDecodeError as e:
         raise SceneFileError(path, "(syntax)", f"valid TOML ({e})") from None
     except (OSError, UnicodeDecodeError) as e:
-        raise SceneFileError(
-            path, "(file)", f"an existing, readable UTF-8 text file ({e})"
-        ) from None
+        expected = f"an existing, readable UTF-8 text file ({e})"
+        raise SceneFileError(path, "(file)", expected) from None
 
 
 def load_scene(path, t1=None) -> SceneSpec:

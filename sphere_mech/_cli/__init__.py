@@ -1,29 +1,9 @@
 """The command line: `sphere-mech run [SCENE.toml] [--out DIR]`.
 
-Runs a scene file (default: a double spherical pendulum, 20 s) and writes
-`trajectory.npz`, `summary.json`, `plot.png` and `animation.html` (a self-contained
-player; `--no-animation` skips it), under temporary names, then renamed, so a failing run
-loses nothing. `trajectory.npz` holds `t`, the states `q`, `v` (a scene with a `Base`:
-`q.base`, `q.spheres`, `v.base`, `v.spheres`), the drawn points `x` (`scene.points(q)`),
-`energy`, and the energy error or balance `error` at `error_t`. A problem in the scene
-file gives one line `sphere-mech: error: <file>: <field>: <expected>` and exit status 2;
-a failed run, 1. The output folder is created and written to before integrating (an
-`--out` that cannot be written: exit status 2); `summary.json` is strict JSON: a number
-that could not be computed is `null`, with the reason under `"not_computed"`.
-
-Compiled programs are kept in the user's cache directory (`$XDG_CACHE_HOME/sphere_mech/jax`,
-default `~/.cache/sphere_mech/jax`; macOS `~/Library/Caches/sphere_mech/jax`; Windows
-`%LOCALAPPDATA%\\sphere_mech\\jax`): JAX's persistent compilation cache, the integration
-program (see `program`) included. A second run of the same file traces again but
-compiles nothing: on the default scene 1.4 s from process start to the first step,
-against 2.7 s on the first run (2-core machine, load average about 1;
-`benchmarks/cli_startup.py`). `--no-cache` or the environment
-variable `SPHERE_MECH_CACHE_DIR=off` turns it off; `SPHERE_MECH_CACHE_DIR=<dir>` puts it
-elsewhere. Deleting the folder is always safe. In a fresh process the command sets
-`EQX_ON_ERROR=nan` (unless set) before equinox is imported, so that its programs hold no
-run-time check that calls back to Python: the scene file's values are checked when it
-is loaded. SIGINT (Ctrl-C) and SIGTERM print one line and exit 130 and 143, removing the
-run's temporary folder; a later run removes those of killed runs."""
+Runs a scene file (default: a double spherical pendulum, 20 s) and writes `trajectory.npz`,
+`summary.json`, `plot.png` and `animation.html`; exit status 2 for a problem in the file or
+`--out`, 1 for a failed run, 130/143 on SIGINT/SIGTERM. Compiled programs are kept in JAX's
+persistent compilation cache (`cache_dir`). See docs/getting-started.md."""
 
 import argparse
 import json
@@ -44,17 +24,13 @@ DEFAULT_SCENE = Path(__file__).resolve().parents[1] / "scenes" / "default.toml"
 
 
 CACHE_ENV = "SPHERE_MECH_CACHE_DIR"
-TEMP_PREFIX = ".sphere-mech-"
-"""The prefix of the hidden folders in which a run completes its files:
-`.sphere-mech-<pid>-<random>`."""
-STALE_AFTER_S = 24 * 3600
-"""A temporary folder whose process is gone, or older than this, is removed by a later run."""
+TEMP_PREFIX = ".sphere-mech-"  # a run completes its files in `.sphere-mech-<pid>-<random>`
+STALE_AFTER_S = 24 * 3600  # such a folder, its process gone or older than this: removed
 _WRITING: set[Path] = set()  # this process's temporary folders, removed on a signal
 
 
 def cache_dir() -> Path | None:
-    """The folder of the command line's compilation cache: `$SPHERE_MECH_CACHE_DIR` if set
-    (`None` if it is `off`), else `sphere_mech/jax` in the platform's user cache folder."""
+    """The compilation cache's folder: `$SPHERE_MECH_CACHE_DIR` (`off`: `None`), else the user's."""
     env = os.environ.get(CACHE_ENV)
     if env is not None:
         return None if env.strip().lower() in ("", "off", "0", "no") else Path(env)
@@ -68,16 +44,14 @@ def cache_dir() -> Path | None:
 
 
 def enable_compilation_cache(folder: Path) -> None:
-    """Keep every compiled program (however quick its compilation) in JAX's persistent
-    compilation cache under `folder`; call before the first compilation."""
+    """Keep every compiled program in JAX's persistent cache under `folder` (call first)."""
     jax.config.update("jax_compilation_cache_dir", str(folder))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 
 class CommandError(Exception):
-    """A problem with the command line's arguments or outputs: one line naming the
-    option, and the exit status (2: refused before integrating)."""
+    """A problem with an argument or output: one line naming the option, and the exit status."""
 
     def __init__(self, message: str, status: int = 2):
         super().__init__(message)
@@ -85,8 +59,7 @@ class CommandError(Exception):
 
 
 def check_out(out: Path) -> None:
-    """Create the output folder `out` and write (then remove) a file in it, before
-    integrating; raises `CommandError` naming `--out` if it cannot be done."""
+    """Create `out` and write a file in it before integrating, else raise `CommandError`."""
     try:
         out.mkdir(parents=True, exist_ok=True)
         remove_stale(out)
@@ -99,9 +72,7 @@ def check_out(out: Path) -> None:
 
 
 def remove_stale(out: Path) -> None:
-    """Remove the temporary folders a killed run left in `out` (SIGKILL, a power cut):
-    those whose process (the pid in the name) no longer runs, and any older than
-    `STALE_AFTER_S`; a concurrent live run's folder stays."""
+    """Remove the temporary folders of killed runs in `out` (process gone, or stale)."""
     now = time.time()
     for folder in out.glob(f"{TEMP_PREFIX}*"):
         pid = folder.name.removeprefix(TEMP_PREFIX).split("-")[0]
@@ -115,14 +86,13 @@ def remove_stale(out: Path) -> None:
 
 def _alive(pid: int) -> bool:
     """Whether a process `pid` exists (on this machine)."""
-    if pid == os.getpid():
-        return True
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except (PermissionError, OSError):  # another user's, or no way to tell: keep it
-        return True
+    if pid != os.getpid():
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return False
+        except OSError:  # another user's, or no way to tell: keep it
+            pass
     return True
 
 
@@ -144,19 +114,11 @@ def write_outputs(out: Path, result, scene, *, animation: bool = True) -> None:
     tmp = Path(tempfile.mkdtemp(dir=out, prefix=f"{TEMP_PREFIX}{os.getpid()}-"))
     _WRITING.add(tmp)
     try:
-        np.savez(
-            tmp / "trajectory.npz",
-            t=result.t,
-            **flat("q", result.q),
-            **flat("v", result.v),
-            x=result.x,
-            energy=result.energy,
-            error_t=result.error_t,
-            error=result.error,
-        )
-        (tmp / "summary.json").write_text(
-            json.dumps(result.summary, indent=2, allow_nan=False) + "\n"
-        )
+        states = {**flat("q", result.q), **flat("v", result.v)}
+        arrays = dict(x=result.x, energy=result.energy, error_t=result.error_t, error=result.error)
+        np.savez(tmp / "trajectory.npz", t=result.t, **states, **arrays)
+        summary = json.dumps(result.summary, indent=2, allow_nan=False)
+        (tmp / "summary.json").write_text(summary + "\n")
         plot(tmp / "plot.png", result, scene)
         if animation:
             name = result.summary["scene"]
@@ -173,34 +135,28 @@ def write_outputs(out: Path, result, scene, *, animation: bool = True) -> None:
 
 def _print_summary(s: dict, out: Path, animation: bool) -> None:
     e = lambda x: "null" if x is None else f"{x:.1e}"
-    energy = (
-        f"max relative energy error {e(s['max_relative_energy_error'])}"
-        if "max_relative_energy_error" in s
-        else f"max work-energy balance {e(s['max_relative_work_energy_balance'])} (relative)"
-    )
+    if "max_relative_energy_error" in s:
+        energy = f"max relative energy error {e(s['max_relative_energy_error'])}"
+    else:
+        energy = f"max work-energy balance {e(s['max_relative_work_energy_balance'])} (relative)"
+    if "not_computed" in s:
+        energy += f" (not computed: {', '.join(s['not_computed'])})"
     print(
         f"{s['scene']}: {s['t1']:g} s, {s['solver']}, {s['steps']} steps in "
-        f"{s['wall_time_s']:.2f} s; max constraint error {e(s['max_constraint_error'])}; "
-        f"{energy}"
-        + (f" (not computed: {', '.join(s['not_computed'])})" if "not_computed" in s else "")
+        f"{s['wall_time_s']:.2f} s; max constraint error {e(s['max_constraint_error'])}; {energy}"
     )
     print(f"wrote {out}/" + ", ".join(output_names(animation)))
 
 
 def run(scene=None, out=Path("sphere_mech_out"), *, t1=None, progress=True, animation=True):
-    """Run a scene file (default: the packaged default scene), optionally up to another
-    end time `t1`; returns the summary. Compiled programs are served from JAX's persistent
-    compilation cache where `enable_compilation_cache` turned it on."""
-    from .._program import build
-    from .._report import scene_result
+    """Run a scene file (default: the packaged one), optionally up to `t1`; returns the summary."""
+    from .._report import run_scene
     from .._scene_files import load_scene
 
     jax.config.update("jax_enable_x64", True)
-    path = DEFAULT_SCENE if scene is None else Path(scene)
-    spec = load_scene(path, t1)
+    spec = load_scene(DEFAULT_SCENE if scene is None else Path(scene), t1)
     check_out(Path(out))
-    integrated = build(spec, t1)[0].integrate(progress)
-    result = scene_result(spec, integrated, t1)
+    result = run_scene(spec, t1=t1, progress=progress)
     try:
         write_outputs(Path(out), result, spec.scene, animation=animation)
     except OSError as e:
@@ -217,19 +173,16 @@ _SIGNALS = {signal.SIGINT: "interrupted", signal.SIGTERM: "terminated"}
 
 
 def _stop(signum: int) -> None:
-    """Remove this run's temporary folders, print one line and exit `128 + signum` at
-    once (no traceback, no interpreter shutdown amid a compilation or a write)."""
+    """Remove this run's temporary folders, print one line and exit `128 + signum` at once."""
     for folder in list(_WRITING):
         shutil.rmtree(folder, ignore_errors=True)
-    what = _SIGNALS.get(signum, f"signal {signum}")
-    os.write(2, f"\n{PROG}: {what}; earlier outputs kept\n".encode())
+    os.write(2, f"\n{PROG}: {_SIGNALS[signum]}; earlier outputs kept\n".encode())
     os._exit(128 + signum)
 
 
 def _on_signals():
-    """Catch SIGINT (Ctrl-C) and SIGTERM for `_stop`, in a thread woken by the signal
-    itself (`signal.set_wakeup_fd`), so that it acts even while the main thread is in a
-    compilation; returns a function that restores the previous handlers."""
+    """Call `_stop` on SIGINT or SIGTERM from a thread woken by `signal.set_wakeup_fd` (so even
+    amid a compilation); returns a function that restores the previous handlers."""
     if threading.current_thread() is not threading.main_thread():
         return lambda: None
     read, write = os.pipe()
@@ -256,8 +209,7 @@ def _on_signals():
 
 
 def main(argv=None) -> int:
-    """The command line (see the module's docstring); returns the exit status. SIGINT
-    (Ctrl-C) and SIGTERM print one line and exit 130 and 143."""
+    """The command line (see the module's docstring); returns the exit status."""
     restore = _on_signals()
     try:
         return _main(argv)
@@ -280,26 +232,21 @@ def _main(argv=None) -> int:
         default=Path("sphere_mech_out"),
         help="output folder (default ./sphere_mech_out)",
     )
-    p_run.add_argument(
-        "--t1", type=float, default=None, help="override the end time of [simulate] (s)"
-    )
-    p_run.add_argument("--no-progress", action="store_true", help="hide the progress bar")
-    p_run.add_argument(
-        "--no-animation",
-        action="store_true",
-        help="skip animation.html (saves the time to draw its frames)",
-    )
-    p_run.add_argument(
-        "--no-cache",
-        action="store_true",
-        help="do not read or write the compilation cache (default folder "
-        f"{cache_dir() or 'off'}; set by ${CACHE_ENV}, 'off' disables it)",
-    )
+    p_run.add_argument("--t1", type=float, help="override the end time of [simulate] (s)")
+    for flag, text in (
+        ("--no-progress", "hide the progress bar"),
+        ("--no-animation", "skip animation.html (saves the time to draw its frames)"),
+        (
+            "--no-cache",
+            "do not read or write the compilation cache (default folder "
+            f"{cache_dir() or 'off'}; set by ${CACHE_ENV}, 'off' disables it)",
+        ),
+    ):
+        p_run.add_argument(flag, action="store_true", help=text)
     ns = parser.parse_args(argv)
     if "equinox" not in sys.modules:  # a fresh process: its programs check nothing at run
         os.environ.setdefault("EQX_ON_ERROR", "nan")  # time, so they can be stored
-    folder = None if ns.no_cache else cache_dir()
-    if folder is not None:
+    if not ns.no_cache and (folder := cache_dir()) is not None:
         enable_compilation_cache(folder)
     if ns.t1 is not None and not math.isfinite(ns.t1):  # after t0: checked with the file
         return _fail(f"--t1 must be a finite time in s (got {ns.t1})", 2)
@@ -314,7 +261,6 @@ def _main(argv=None) -> int:
 
         if isinstance(e, SceneFileError):
             return _fail(str(e), 2)
-        # the solver failed: one line, keep earlier outputs
         first = (str(e).strip().splitlines() or [type(e).__name__])[0]
         return _fail(f"{ns.scene or 'default scene'}: simulation failed: {first}", 1)
     _print_summary(summary, ns.out, not ns.no_animation)

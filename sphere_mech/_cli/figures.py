@@ -1,8 +1,5 @@
-"""`plot.png` of a scene run: the motion in an equal-aspect 3-D view (pivot or moving base,
-links at the start and the end, paths of the masses or snapshots of a long chain, the
-base's path, shared spheres), the
-energy against time (with forces, also energy minus the work done), its relative error,
-and the constraint error (a panel only when it is above rounding level)."""
+"""`plot.png` of a scene run: the motion in 3-D, the energy (with forces, minus the work
+done), its relative error, and the constraint error (a panel only above rounding level)."""
 
 import numpy as np
 
@@ -16,21 +13,17 @@ def _configuration(ax, skel, pts, style, label):
     handles = []
     for link in skel.links:
         many = len(link) > LONG_CHAIN + 1
+        marker = "" if many else "o"  # none on the pivot
         handles += ax.plot(
-            *pts[link].T,
-            lw=1.6,
-            marker="" if many else "o",
-            ms=4,
-            markevery=slice(1, None),
-            **style,
-        )  # no marker on the pivot
+            *pts[link].T, lw=1.6, marker=marker, ms=4, markevery=slice(1, None), **style
+        )
         if many:  # the tip only
             ax.plot(*pts[link[-1:]].T, "o", ms=4, **style)
+    dots = {**style, "ls": ""}
     if len(skel.free):
-        dots = {**style, "ls": ""}
         handles += ax.plot(*pts[skel.free + len(skel.anchors)].T, marker="o", ms=6, **dots)
     if len(skel.bases):
-        ax.plot(*pts[skel.bases].T, marker="s", ms=7, **{**style, "ls": ""})
+        ax.plot(*pts[skel.bases].T, marker="s", ms=7, **dots)
     handles[0].set_label(label)
     return handles[:1]
 
@@ -51,11 +44,11 @@ def draw_motion(ax, skel: Skeleton, t: np.ndarray, x: np.ndarray) -> list:
         label = f"path of mass {skel.mass(i)}" if len(paths) <= 6 else None
         color = "tab:red" if long else f"C{k % 10}"  # long: not a colour of the snapshots
         handles += ax.plot(*pts[:, i].T, lw=0.6, alpha=0.8, color=color, label=label)
-    cmap = colormaps["viridis"]
-    for s in np.linspace(0, len(t) - 1, SNAPSHOTS + 2)[1:-1].round().astype(int) if long else []:
-        for link in long:
-            ax.plot(*pts[s, link].T, lw=0.8, color=cmap(t[s] / t[-1] if t[-1] else 0))
     if long:
+        cmap = colormaps["viridis"]
+        for s in np.linspace(0, len(t) - 1, SNAPSHOTS + 2)[1:-1].round().astype(int):
+            for link in long:
+                ax.plot(*pts[s, link].T, lw=0.8, color=cmap(t[s] / t[-1] if t[-1] else 0))
         handles += ax.plot(
             [], [], color=cmap(0.5), lw=0.8, label=f"snapshots (colour: t, {t[0]:g} to {t[-1]:g} s)"
         )
@@ -73,14 +66,9 @@ def _energy(ax, result) -> None:
         ax.plot(t, E - result.potential, lw=0.7, color="tab:red", label="kinetic T")
         ax.plot(t, result.potential, lw=0.7, color="tab:blue", label="potential U")
     if result.work is not None:
-        ax.plot(
-            result.error_t,
-            result.step_energy - result.work,
-            lw=1.4,
-            ls="--",
-            color="tab:green",
-            label="E - W (W: work of the forces)",
-        )
+        balance = result.step_energy - result.work
+        label = "E - W (W: work of the forces)"
+        ax.plot(result.error_t, balance, lw=1.4, ls="--", color="tab:green", label=label)
     ax.set_ylabel("energy [J]", fontsize=8)
     ax.legend(fontsize=7, ncol=4, loc="lower center", bbox_to_anchor=(0.5, 1.0), frameon=False)
 
@@ -102,52 +90,26 @@ def figure(result, scene):
     drift = worst > 1000 * eps  # the constraint error says something: a panel
     fig = Figure(figsize=(13, 6.2), dpi=100)
     FigureCanvasAgg(fig)
-    grid = fig.add_gridspec(
-        3 if drift else 2,
-        2,
-        width_ratios=[1, 1.2],
-        left=0.02,
-        right=0.98,
-        top=0.9,
-        bottom=0.12,
-        hspace=0.45,
-        wspace=0.12,
-    )
+    layout = dict(left=0.02, right=0.98, top=0.9, bottom=0.12, hspace=0.45, wspace=0.12)
+    grid = fig.add_gridspec(3 if drift else 2, 2, width_ratios=[1, 1.2], **layout)
     ax = fig.add_subplot(grid[:, 0], projection="3d")
     ax.legend(handles=draw_motion(ax, skel, result.t, result.x), fontsize=7, loc="upper left")
     _energy(fig.add_subplot(grid[0, 1]), result)
-    forced = result.work is not None
-    _semilogy(
-        fig.add_subplot(grid[1, 1]),
-        result.error_t,
-        result.error,
-        "work-energy balance |E - E(0) - W| / scale"
-        if forced
-        else "relative energy error |E - E(0)| / |E(0)|",
-    )
+    if result.work is not None:
+        title = "work-energy balance |E - E(0) - W| / scale"
+    else:
+        title = "relative energy error |E - E(0)| / |E(0)|"
+    _semilogy(fig.add_subplot(grid[1, 1]), result.error_t, result.error, title)
     if drift:
-        _semilogy(
-            fig.add_subplot(grid[2, 1]),
-            result.t,
-            result.constraint,
-            "constraint error max_i | |q_i| - 1 |",
-        )
+        title = "constraint error max_i | |q_i| - 1 |"
+        _semilogy(fig.add_subplot(grid[2, 1]), result.t, result.constraint, title)
     for a in fig.axes[1:]:
         a.set_xlabel("t [s]", fontsize=8)
         a.tick_params(labelsize=7)
-    fig.suptitle(
-        f"{s['scene']}: {s['t1']:g} s, {s['solver']}, {s['steps']} steps",
-        fontsize=11,
-        parse_math=False,
-    )  # the name is plain text
-    fig.text(
-        0.5,
-        0.02,
-        f"constraint error max_i,t | |q_i| - 1 | = {worst:.1e} "
-        f"({worst / eps:.1f} x machine epsilon)",
-        ha="center",
-        fontsize=9,
-    )
+    title = f"{s['scene']}: {s['t1']:g} s, {s['solver']}, {s['steps']} steps"
+    fig.suptitle(title, fontsize=11, parse_math=False)  # the name is plain text
+    worst_text = f"max_i,t | |q_i| - 1 | = {worst:.1e} ({worst / eps:.1f} x machine epsilon)"
+    fig.text(0.5, 0.02, f"constraint error {worst_text}", ha="center", fontsize=9)
     return fig
 
 
