@@ -1,10 +1,5 @@
-"""The two group actions on the tangent bundle T(S^2)^n that `LieRK` integrates with.
-
-A state `y = (q, v)` is moved by `exp(u) . y` for `u` in the Lie algebra; an action
-knows the algebra element whose infinitesimal action at `y` is a given velocity `dy`
-(`algebra`), the action of its exponential (`act`), the closed-form inverse of the
-derivative of the exponential (`dexpinv`) and how a step's end point is finished
-(`finish`). Algebra elements are pairs of `(n, 3)` arrays, like states.
+"""The group actions on the tangent bundle that `LieRK` integrates with: a state `y = (q, v)`
+moves by `exp(u) . y`, `u` in the Lie algebra (pairs of arrays, like states).
 """
 
 import abc

@@ -1,14 +1,8 @@
-"""Configuration spaces: the factors `Spheres(n)` ((S^2)^n, `(n, 3)` arrays of unit
-vectors) and `Euclidean(m)` (R^m, `(m,)` arrays), and `Product`, a dict of factors whose
-states are dicts of arrays with the same keys (DESIGN.md section 7).
-
-Every form, check and solver asks the space, never `_geometry` directly: each factor
-owns its projection, retraction, tangent basis, angular variables and group action. The
-plain (S^2)^n case is the factor `Spheres()` (any `n`), which calls exactly the
-operations the library always used, so it costs nothing extra.
-
-Tangent coordinates of a product are the factors' coordinates concatenated in the
-space's key order: `T = blockdiag(I_m, T_S)`.
+"""Configuration spaces: the factors `Spheres(n)` ((S^2)^n, `(n, 3)` unit vectors) and
+`Euclidean(m)` (`(m,)` arrays), and `Product`, a dict of factors whose states are dicts with
+its keys (DESIGN.md section 7). Every form, check and solver asks the space: each factor owns
+its projection, retraction, tangent basis, angular variables and group action. A product's
+tangent coordinates are its factors' concatenated in key order: `T = blockdiag(I_m, T_S)`.
 """
 
 import abc
@@ -27,8 +21,6 @@ from ._lie import (
     SpecialEuclidean,
     Translate,
 )
-
-# --- spaces -------------------------------------------------------------------------
 
 
 class AbstractSpace(eqx.Module):
