@@ -15,6 +15,7 @@ if TYPE_CHECKING:  # the public names; imported on first use (see `__getattr__`)
     from ._geometry import (
         constraint_error as constraint_error,
         hat as hat,
+        nearest_rotation as nearest_rotation,
         normalize as normalize,
         project as project,
         random_points as random_points,
@@ -24,6 +25,7 @@ if TYPE_CHECKING:  # the public names; imported on first use (see `__getattr__`)
         rotation_matrix as rotation_matrix,
         sphere_exp as sphere_exp,
         tangent_basis as tangent_basis,
+        vee as vee,
     )
     from ._hamiltonian import AngularHamiltonian as AngularHamiltonian, Hamiltonian as Hamiltonian
     from ._inertia import (
@@ -92,6 +94,7 @@ if TYPE_CHECKING:  # the public names; imported on first use (see `__getattr__`)
     from ._solvers.variational import Variational as Variational
     from ._spaces import (
         Euclidean as Euclidean,
+        Rotations as Rotations,
         Spheres as Spheres,
         chain_space as chain_space,
     )

@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._geometry import constraint_error
+from ._geometry import constraint_error, rotation_error
 
 UNIT_TOLERANCE = {np.dtype("float64"): 1e-6, np.dtype("float32"): 1e-4}
 
@@ -104,3 +104,25 @@ def check_function(fn, name: str, spelled: str, arity: int) -> None:
             f"{name} must be a function {spelled} ({arity} arguments), got "
             f"one with signature {signature}."
         ) from None
+
+
+def off_rotation(R, q_name: str = "q") -> tuple[jax.Array, str]:
+    """`(problem, message)`: whether some `R_j` is not a rotation: `R_j^T R_j` differs
+    from `I` by more than `unit_tolerance` in some entry, or `det R_j < 0`."""
+    tol = unit_tolerance(jnp.result_type(R))
+    off = (rotation_error(R) > tol) | jnp.any(jnp.linalg.det(R) < 0)
+    return off, (
+        f"{q_name} is not a rotation: some R^T R differs from I by more than {tol:g} or has "
+        "det R < 0 (orthonormalize it, e.g. with sphere_mech.nearest_rotation)."
+    )
+
+
+def off_rotation_tangent(R, V, v_name: str = "v") -> tuple[jax.Array, str]:
+    """`(problem, message)`: whether some `R_j^T V_j` is not skew within `unit_tolerance`
+    (relative to `1 + max |V|`)."""
+    tol = unit_tolerance(jnp.result_type(R))
+    M = jnp.swapaxes(R, -1, -2) @ V
+    return jnp.max(jnp.abs(M + jnp.swapaxes(M, -1, -2))) > tol * (1.0 + jnp.max(jnp.abs(V))), (
+        f"{v_name} is not tangent to the rotations: some R^T {v_name} is not skew within "
+        f"{tol:g} (relative); write it as R @ hat(Omega), or project it."
+    )

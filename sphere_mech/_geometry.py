@@ -217,3 +217,40 @@ def random_state(
     q = random_points(kq, n, dtype=dtype)
     v = project(q, speed * jr.normal(kv, (n, 3), dtype=dtype))
     return q, v
+
+
+def vee(M: jax.Array) -> jax.Array:
+    """The inverse of `hat` on the skew part: `vee(M) = w` with `hat(w) = (M - M^T)/2`.
+
+    **Arguments:**
+    - `M`: matrices, `(..., 3, 3)`.
+
+    **Returns:** vectors, `(..., 3)`.
+    """
+    return 0.5 * jnp.stack(
+        [M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0], M[..., 1, 0] - M[..., 0, 1]],
+        axis=-1,
+    )
+
+
+def nearest_rotation(R: jax.Array, iterations: int = 8) -> jax.Array:
+    """The rotation nearest to each `R_j` in the Frobenius norm (the orthogonal factor of
+    its polar decomposition), by Newton's iteration `X <- (X + X^-T) / 2`: quadratic
+    convergence, differentiable (unlike an SVD at a rotation's repeated singular values).
+
+    **Arguments:**
+    - `R`: matrices with positive determinant, `(..., 3, 3)`.
+    - `iterations`: Newton steps (8 reach rounding from `|R^T R - I|` up to about 1).
+
+    **Returns:** rotation matrices, `(..., 3, 3)`.
+    """
+    X = R
+    for _ in range(iterations):
+        X = 0.5 * (X + jnp.swapaxes(jnp.linalg.inv(X), -1, -2))
+    return X
+
+
+def rotation_error(R: jax.Array) -> Scalar:
+    """The distance of matrices from SO(3): `max |R^T R - I|` over every entry of every
+    matrix (`(..., 3, 3)`, any leading axes)."""
+    return jnp.max(jnp.abs(jnp.swapaxes(R, -1, -2) @ R - jnp.eye(3, dtype=R.dtype)))

@@ -37,7 +37,7 @@ class Hamiltonian(AbstractHamiltonianSystem):
 
     def _hamilton(self, q, mu, dH_dmu, dH_dq_less_f):
         space = self.space
-        transport = space.bracket(dH_dmu, space.to_linear(q, mu))
+        transport = space.momentum_transport(q, mu, dH_dmu)
         mudot = tree_sub(transport, space.project(q, dH_dq_less_f))
         return space.project(q, dH_dmu), mudot
 
@@ -64,5 +64,5 @@ class AngularHamiltonian(AbstractHamiltonianSystem):
 
     def _hamilton(self, q, pi, dH_dpi, dH_dq_less_f):
         space = self.space
-        pidot = tree_sub(space.bracket(dH_dpi, pi), space.from_linear(q, dH_dq_less_f))
+        pidot = tree_sub(space.bracket(dH_dpi, pi), space.from_covector(q, dH_dq_less_f))
         return space.to_linear(q, dH_dpi), pidot

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 
 from ._checks import check_function, check_scalar
 from ._custom_types import Args, ForceFn, Points, Tangents
-from ._misc import tree_add, tree_dtype, tree_scale, tree_sub, tree_zeros_like
+from ._misc import tree_add, tree_dtype, tree_sub, tree_zeros_like
 from ._momentum import invert_momentum, newton_tolerance
 from ._spaces import AbstractSpace, Spheres, as_space
 from ._system import SINGULAR_MESSAGE, AbstractLagrangianSystem, as_time, check_rates
@@ -85,12 +85,12 @@ class _AbstractAutodiffLagrangian(AbstractLagrangianSystem):
         """
         return invert_momentum(
             self.lagrangian,
-            self.space,
+            self.state_space,
             t,
             q,
             p,
             args,
-            guess=tree_zeros_like(q) if guess is None else guess,
+            guess=tree_zeros_like(p) if guess is None else guess,
             quadratic=self.quadratic_in_velocity if quadratic is None else quadratic,
             tol=newton_tolerance(tree_dtype(q)) if tol is None else tol,
             max_steps=max_steps,
@@ -162,9 +162,8 @@ class AngularLagrangian(_AbstractAutodiffLagrangian):
         p, dL_dq, mixed, hvp = _lagrangian_terms(self.L, t, q, omega, args, qdot)
         f = self.generalized_force(t, q, omega, args)
         force = dL_dq if f is None else tree_add(dL_dq, f)
-        turning = tree_sub(mixed, tree_scale(2.0, space.bracket(omega, p)))
-        rhs = tree_sub(space.from_linear(q, force), space.project(q, turning))
-        return _tangent_solve(space, hvp, q, rhs)
+        rhs = tree_sub(space.from_covector(q, force), space.angular_terms(q, omega, p, mixed))
+        return _tangent_solve(self.state_space, hvp, q, rhs)
 
     def angular_acceleration(self, t, q: Points, omega: Tangents, args: Args = None):
         """`omegadot` from the Euler-Lagrange equations in `(q, omega)` (Proposition 2),

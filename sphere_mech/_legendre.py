@@ -67,15 +67,17 @@ def mu_from_pi(q, pi):
 
 
 class _Reparametrized(eqx.Module):
-    """`fn(t, q, w x q, args)`: a function of `qdot` (or `mu`) read as a function of
-    `omega` (or `pi`) (on the sphere factors of `space`; Euclidean factors keep their
-    variable). A Module, so the wrapped system's arrays stay pytree leaves."""
+    """`fn(t, q, w x q, args)`: a function of `qdot` (or, `momentum`, of `mu`) read as a
+    function of `omega` (or `pi`) (Euclidean factors keep their variable). A Module, so
+    the wrapped system's arrays stay pytree leaves."""
 
     fn: Callable
     space: AbstractSpace
+    momentum: bool = eqx.field(static=True)
 
     def __call__(self, t, q, w, args):
-        return self.fn(t, q, self.space.to_linear(q, w), args)
+        space = self.space
+        return self.fn(t, q, (space.to_covector if self.momentum else space.to_linear)(q, w), args)
 
 
 def angular(system: AbstractSystem) -> AbstractSystem:
@@ -98,13 +100,13 @@ def angular(system: AbstractSystem) -> AbstractSystem:
             "is in angular variables already."
         )
     space = system.space
-    forces = _Reparametrized(system.generalized_force, space) if system.has_forces else None
+    hamiltonian = isinstance(system, AbstractHamiltonianSystem)
+    forces = _Reparametrized(system.forces, space, hamiltonian) if system.has_forces else None
     if isinstance(system, AbstractLagrangianSystem):
-        return AngularLagrangian(
-            _Reparametrized(system.lagrangian, space), forces, system.quadratic_in_velocity, space
-        )
-    if isinstance(system, AbstractHamiltonianSystem):
-        return AngularHamiltonian(_Reparametrized(system.H, space), forces, space)
+        L = _Reparametrized(system.lagrangian, space, False)
+        return AngularLagrangian(L, forces, system.quadratic_in_velocity, space)
+    if hamiltonian:
+        return AngularHamiltonian(_Reparametrized(system.H, space, True), forces, space)
     raise TypeError(f"angular() takes a Lagrangian or Hamiltonian system, got {type(system)}.")
 
 
@@ -141,13 +143,11 @@ def _legendre_jvp(primals, tangents, *, quadratic):
 
     L, dL = eqx.filter_jvp(L_fixed_v, (system, t, q, args), (t_system, t_t, t_q, t_args))
     r = tree_sub(p, jax.grad(lambda v_: system.lagrangian(t, q, v_, args))(v))
-    rho = system.space.normal_multiplier(q, r)  # r = rho q on the spheres, 0 elsewhere
-    dH = -dL
+    dH = -fill_zeros(dL, L)  # a symbolic zero when L depends on no differentiated input
     if t_p is not None:
         dH = dH + tree_vdot(v, t_p)
     if t_q is not None:
-        rho_v = jax.tree.map(jnp.multiply, rho, v)
-        dH = dH - tree_vdot(rho_v, t_q)
+        dH = dH + tree_vdot(system.state_space.tangency_covector(q, r, v), t_q)
     return tree_vdot(p, v) - L, dH
 
 
@@ -172,7 +172,7 @@ class _LegendreForces(eqx.Module):
 
     def __call__(self, t, q, p, args):
         system = self.H.system
-        return system.generalized_force(t, q, self.H.velocity(t, q, p, args), args)
+        return system.forces(t, q, self.H.velocity(t, q, p, args), args)
 
 
 def legendre(system: AbstractSystem, *, quadratic: bool | None = None) -> AbstractSystem:

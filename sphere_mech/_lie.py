@@ -8,7 +8,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._geometry import dexpinv_so3, left_jacobian, project, rotate
+from ._geometry import dexpinv_so3, hat, left_jacobian, project, rotate, rotation_matrix, vee
 
 
 class AbstractLieAction(eqx.Module):
@@ -117,6 +117,33 @@ class Translate(AbstractLieAction):
 
     def finish(self, y):
         return y
+
+
+class RotateRight(AbstractLieAction):
+    """`SO(3)^k x R^d` acting on the states of `Rotations(k)` by body-frame rotation and
+    translation: `exp(w, a) . (R, v) = (R_j expm(hat(w_j)), v + a)`. `R` stays a rotation
+    to rounding; a body `Omega` (`body=True`) needs nothing more, a linear `Rdot` is made
+    tangent by `finish`. The algebra element of `(dR, dv)` is `(vee(R^T dR), dv)`; as the
+    group acts on the right, `dexpinv` is so(3)'s at `-w`."""
+
+    body: bool = eqx.field(static=True)
+
+    def algebra(self, y, dy):
+        R, _ = y
+        dR, dv = dy
+        return vee(jnp.swapaxes(R, -1, -2) @ dR), dv
+
+    def act(self, u, y):
+        w, a = u
+        R, v = y
+        return R @ rotation_matrix(w), v + a
+
+    def dexpinv(self, u, k):
+        return dexpinv_so3(-u[0], k[0]), k[1]
+
+    def finish(self, y):
+        R, v = y
+        return y if self.body else (R, R @ hat(vee(jnp.swapaxes(R, -1, -2) @ v)))
 
 
 def _split(pair, keys):

@@ -207,7 +207,7 @@ def prepare(system, y0, args=None, *, batched=False, batch_system=False, throw=T
     else:
         q0, v0 = jax.tree.map(lambda x: x[None], (q0, v0))
     member = lambda: jax.tree.map(lambda x: x[0] if eqx.is_array(x) else x, system)
-    space = (member() if batch_system else system).space
+    space = (member() if batch_system else system).state_space
     space.check_shapes(*jax.tree.map(lambda x: x[0], (q0, v0)), system.state_name)
     dtype = tree_dtype((q0, v0))  # one floating dtype for the whole state
     opts = options(dtype=dtype, batched=batched, **options_)
@@ -361,7 +361,7 @@ def solve_with(adjoint, system, y0, t0, t1, dt0, args, opts: Options) -> diffrax
     result = RESULTS.where(ok, result, RESULTS.nonfinite_initial)
     ts, ys = jax.tree.map(
         lambda x: jnp.where(ok, x, jnp.inf),
-        (sol.ts, _retract_saved(system.space, opts.saveat, sol.ys)),
+        (sol.ts, _retract_saved(system.state_space, opts.saveat, sol.ys)),
     )
     return eqx.tree_at(
         lambda s: (s.result, s.ts, s.ys), sol, (result, ts, ys), is_leaf=lambda x: x is None
@@ -395,6 +395,11 @@ def _retract_if_state(space, sub, ys):
         return ys
     q, v = ys
     q_r, v_r = space.retract(q, v)
-    finite = jax.tree.map(lambda x: jnp.all(jnp.isfinite(x), axis=-1, keepdims=True), q)
-    keep = lambda new, old, ok: jnp.where(ok, new, old)
-    return jax.tree.map(keep, q_r, q, finite), jax.tree.map(keep, v_r, v, finite)
+    per_time = [
+        jnp.all(jnp.isfinite(x).reshape(x.shape[0], -1), axis=1) for x in jax.tree.leaves(q)
+    ]
+    finite = functools.reduce(jnp.logical_and, per_time)
+    keep = lambda new, old: jnp.where(
+        finite.reshape(finite.shape + (1,) * (new.ndim - 1)), new, old
+    )
+    return jax.tree.map(keep, q_r, q), jax.tree.map(keep, v_r, v)

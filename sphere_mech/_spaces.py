@@ -12,11 +12,29 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._checks import check_shapes, nonfinite, off_tangent, off_unit
-from ._geometry import dot, normalize, project, sphere_exp, tangent_basis
+from ._checks import (
+    check_shapes,
+    nonfinite,
+    off_rotation,
+    off_rotation_tangent,
+    off_tangent,
+    off_unit,
+)
+from ._geometry import (
+    dot,
+    hat,
+    nearest_rotation,
+    normalize,
+    project,
+    rotation_matrix,
+    sphere_exp,
+    tangent_basis,
+    vee,
+)
 from ._lie import (
     AbstractLieAction,
     ProductAction,
+    RotateRight,
     RotateTranslate,
     SpecialEuclidean,
     Translate,
@@ -68,9 +86,37 @@ class AbstractSpace(eqx.Module):
         """The angular variable (`omega`, `pi`) of a linear one (`qdot`, `mu`)."""
 
     @abc.abstractmethod
+    def from_covector(self, q, x):
+        """The angular covector (`pi`, a torque) of a linear one (`mu`, a force)."""
+
+    @abc.abstractmethod
+    def to_covector(self, q, p):
+        """The linear covector (`mu`) of an angular one (`pi`)."""
+
+    @abc.abstractmethod
+    def force_covector(self, q, f):
+        """A generalized force as users give it (a body torque on rotations) as the linear
+        covector that pairs with `qdot`."""
+
+    @abc.abstractmethod
     def bracket(self, a, b):
-        """`a x b` on the spheres (the Lie bracket of so(3)), zero on Euclidean factors:
-        the term the angular and Hamiltonian forms add for the curvature of the sphere."""
+        """Form 4's `pidot = bracket(dH/dpi, pi) - torque`: `a x b` on the spheres,
+        `b x a` on rotations (body frame), zero on Euclidean factors."""
+
+    @abc.abstractmethod
+    def angular_terms(self, q, w, p, mixed):
+        """Form 2 reads `H_ww wdot = from_covector(q, dL/dq + f) - angular_terms(...)`, with
+        `p = dL/dw` and `mixed` the derivative of `dL/dw` along `(1, qdot)` in `(t, q)`."""
+
+    @abc.abstractmethod
+    def momentum_transport(self, q, mu, dH_dmu):
+        """Form 3's `mudot = momentum_transport(q, mu, dH/dmu) - P(dH/dq - f)`: the term
+        that keeps `mu` tangent as `q` moves."""
+
+    @abc.abstractmethod
+    def angular(self) -> "AbstractSpace":
+        """This space with angular velocities (`omega`, `pi`) as its states' second part:
+        itself, except on rotations (`(k, 3)` body vectors instead of `(k, 3, 3)`)."""
 
     @abc.abstractmethod
     def normal_acceleration(self, q, qdot):
@@ -78,9 +124,10 @@ class AbstractSpace(eqx.Module):
         `|qdot_i|^2 q_i` on the spheres, zero on Euclidean factors."""
 
     @abc.abstractmethod
-    def normal_multiplier(self, q, r):
-        """`rho` with `r = rho q` for the normal part `r` of a covector (the constraint
-        force; broadcasts against `q`); zero on Euclidean factors."""
+    def tangency_covector(self, q, r, v):
+        """The covector `c` with `r . dv = c . dq` for every variation `(dq, dv)` that keeps
+        the tangent `v` tangent, `r` normal at `q` (the constraint force): `-(q . r) v` on
+        the spheres, zero on Euclidean factors."""
 
     @abc.abstractmethod
     def exp(self, q, v):
@@ -134,7 +181,31 @@ class AbstractFactor(AbstractSpace):
         """The dimension of the tangent space with basis `T` (static)."""
 
 
-class Spheres(AbstractFactor):
+class _AbstractBlockFactor(AbstractFactor):
+    """A factor of `n` blocks (spheres, rotations), each with its own tangent basis: `T`
+    is `(n, *block shape, d)`, `d` directions per block, `n d` coordinates."""
+
+    def to_tangent(self, T, v):
+        return jnp.einsum("i...a,i...->ia", T, v).reshape(-1)
+
+    def from_tangent(self, T, a):
+        return jnp.einsum("i...a,ia->i...", T, a.reshape(T.shape[0], T.shape[-1]))
+
+    def reduced_matrix(self, hvp, T):
+        HT = jax.vmap(hvp)(self.directions(T))  # H applied to each basis vector
+        return jax.vmap(lambda col: self.to_tangent(T, col), out_axes=1)(HT)
+
+    def directions(self, T):
+        # (n d, n, *block), each nonzero on one block: [(j, b), i, ...] = delta_ij T[j, ..., b]
+        n, d = T.shape[0], T.shape[-1]
+        eye = jnp.eye(n, dtype=T.dtype)
+        return jnp.einsum("ij,j...b->jbi...", eye, T).reshape(n * d, n, *T.shape[1:-1])
+
+    def dim(self, T):
+        return T.shape[0] * T.shape[-1]
+
+
+class Spheres(_AbstractBlockFactor):
     """The factor `(S^2)^n`: its values are `(n, 3)` arrays of unit vectors, its
     velocities `(n, 3)` arrays tangent to them (`q_i . v_i = 0`).
 
@@ -189,38 +260,38 @@ class Spheres(AbstractFactor):
     def from_linear(self, q, x):
         return jnp.cross(q, x)
 
+    def from_covector(self, q, x):
+        return jnp.cross(q, x)
+
+    def to_covector(self, q, p):
+        return jnp.cross(p, q)
+
+    def force_covector(self, q, f):
+        return f
+
     def bracket(self, a, b):
         return jnp.cross(a, b)
+
+    def angular_terms(self, q, w, p, mixed):
+        return project(q, mixed - 2.0 * jnp.cross(w, p))
+
+    def momentum_transport(self, q, mu, dH_dmu):
+        return jnp.cross(dH_dmu, jnp.cross(mu, q))
+
+    def angular(self):
+        return self
 
     def normal_acceleration(self, q, qdot):
         return dot(qdot, qdot) * q
 
-    def normal_multiplier(self, q, r):
-        return dot(q, r) / dot(q, q)
+    def tangency_covector(self, q, r, v):
+        return -(dot(q, r) / dot(q, q) * v)
 
     def exp(self, q, v):
         return sphere_exp(q, v)
 
     def tangent_basis(self, q):
         return tangent_basis(q)
-
-    def to_tangent(self, T, v):
-        return jnp.einsum("ica,ic->ia", T, v).reshape(-1)  # T: (n, 3, 2), 2n coordinates
-
-    def from_tangent(self, T, a):
-        return jnp.einsum("ica,ia->ic", T, a.reshape(T.shape[0], 2))
-
-    def reduced_matrix(self, hvp, T):
-        HT = jax.vmap(hvp)(self.directions(T))  # H applied to each basis vector
-        return jax.vmap(lambda col: self.to_tangent(T, col), out_axes=1)(HT)
-
-    def directions(self, T):
-        # (2n, n, 3), each nonzero on one sphere: directions[(j, b), i, c] = delta_ij T[j, c, b]
-        n = T.shape[0]
-        return jnp.einsum("ij,jcb->jbic", jnp.eye(n, dtype=T.dtype), T).reshape(2 * n, n, 3)
-
-    def dim(self, T):
-        return 2 * T.shape[0]
 
     def lie_action(self, kind, angular):
         return RotateTranslate() if kind == "SO3xR3" else SpecialEuclidean(angular)
@@ -283,14 +354,32 @@ class Euclidean(AbstractFactor):
     def from_linear(self, q, x):
         return x
 
+    def from_covector(self, q, x):
+        return x
+
+    def to_covector(self, q, p):
+        return p
+
+    def force_covector(self, q, f):
+        return f
+
     def bracket(self, a, b):
         return jnp.zeros_like(b)
+
+    def angular_terms(self, q, w, p, mixed):
+        return mixed
+
+    def momentum_transport(self, q, mu, dH_dmu):
+        return jnp.zeros_like(mu)
+
+    def angular(self):
+        return self
 
     def normal_acceleration(self, q, qdot):
         return jnp.zeros_like(qdot)
 
-    def normal_multiplier(self, q, r):
-        return jnp.zeros((), dtype=jnp.result_type(r))
+    def tangency_covector(self, q, r, v):
+        return jnp.zeros_like(v)
 
     def exp(self, q, v):
         return q + v
@@ -321,6 +410,117 @@ class Euclidean(AbstractFactor):
 
     def batch_shape(self, q):
         return jnp.shape(q)[:-1]
+
+
+def _transpose(M):
+    return jnp.swapaxes(M, -1, -2)
+
+
+class Rotations(_AbstractBlockFactor):
+    """The factor `SO(3)^k` (rigid bodies' attitudes): its values are `(k, 3, 3)` rotation
+    matrices `R_j` (body to world, `x_world = R x_body`). Linear forms (1, 3) carry `Rdot`
+    (`(k, 3, 3)`, `R^T Rdot` skew) and `mu = P_R(dL/dRdot)`, `P_R(A) = R skew(R^T A)`;
+    angular forms (2, 4) the body angular velocity `Omega` (`(k, 3)`, `Rdot = R
+    hat(Omega)`) and `Pi = dL/dOmega`. Its generalized force is a body torque `(k, 3)`
+    (virtual work `tau . eta` for `delta R = R hat(eta)`), in every form. `Projected`
+    retracts to the nearest rotation, `LieRK` multiplies by `expm` on the right.
+
+    **Arguments:**
+    - `k`: the number of rotations (a positive int), or `None` (default) for any number.
+    """
+
+    k: int | None = eqx.field(default=None, static=True)
+    body: bool = eqx.field(default=False, static=True)
+
+    def __check_init__(self):
+        if self.k is not None and (not isinstance(self.k, int) or self.k < 1):
+            raise ValueError(f"Rotations(k): k must be a positive int, got {self.k!r}.")
+
+    def check_shapes(self, q, v, v_name="v", q_name="q"):
+        k = jnp.shape(q)[0] if self.k is None and jnp.ndim(q) == 3 else self.k
+        shapes = {q_name: (q, (k, 3, 3)), v_name: (v, (k, 3) if self.body else (k, 3, 3))}
+        for name, (x, shape) in shapes.items():
+            if jnp.shape(x) != shape:
+                what = f"({self.k if self.k else 'k'}, 3{', 3' * (len(shape) - 2)})"
+                raise ValueError(
+                    f"{name} must have shape {what} (Rotations({self.k or ''})), "
+                    f"got {jnp.shape(x)}."
+                )
+            if not jnp.issubdtype(jnp.result_type(x), jnp.floating):
+                raise ValueError(
+                    f"{name} must be a floating-point array, got {jnp.result_type(x)}."
+                )
+
+    def problems(self, q, v, v_name="v", q_name="q"):
+        found = [nonfinite(q, q_name), off_rotation(q, q_name), nonfinite(v, v_name)]
+        return found if self.body else [*found, off_rotation_tangent(q, v, v_name)]
+
+    def check_forces(self, f, q, q_name="q"):
+        if jnp.shape(f) != jnp.shape(q)[:-1]:
+            raise ValueError(
+                f"forces(t, q, v, args) must return for {q_name} an array of shape "
+                f"{jnp.shape(q)[:-1]} (one body torque per rotation), got {jnp.shape(f)}."
+            )
+
+    def normalize(self, q):
+        return nearest_rotation(q)
+
+    def project(self, q, v):
+        return v if self.body else q @ hat(vee(_transpose(q) @ v))
+
+    def to_linear(self, q, w):
+        return q @ hat(w)
+
+    def from_linear(self, q, x):
+        return vee(_transpose(q) @ x)
+
+    def from_covector(self, q, x):
+        return 2.0 * vee(_transpose(q) @ x)
+
+    def to_covector(self, q, p):
+        return 0.5 * q @ hat(p)
+
+    def force_covector(self, q, f):
+        return self.to_covector(q, f)
+
+    def bracket(self, a, b):
+        return jnp.cross(b, a)
+
+    def angular_terms(self, q, w, p, mixed):
+        return mixed + jnp.cross(w, p)
+
+    def momentum_transport(self, q, mu, dH_dmu):
+        omega = vee(_transpose(q) @ dH_dmu)
+        return mu @ hat(omega) + self.project(q, dH_dmu @ _transpose(q) @ mu)
+
+    def angular(self):
+        return Rotations(self.k, body=True)
+
+    def normal_acceleration(self, q, qdot):
+        return -qdot @ _transpose(q) @ qdot
+
+    def tangency_covector(self, q, r, v):
+        if self.body:
+            return jnp.zeros_like(q)
+        M = _transpose(q) @ r
+        return -v @ (0.5 * (M + _transpose(M)))
+
+    def exp(self, q, v):
+        return q @ rotation_matrix(vee(_transpose(q) @ v))
+
+    def tangent_basis(self, q):
+        if self.body:
+            return jnp.broadcast_to(jnp.eye(3, dtype=q.dtype), q.shape)
+        return jnp.einsum("kij,ajl->kila", q, hat(jnp.eye(3, dtype=q.dtype)))
+
+    def lie_action(self, kind, angular):
+        return RotateRight(self.body)
+
+    def rows(self, q):
+        return jnp.shape(q)[-3]
+
+    def batch_shape(self, q):
+        return jnp.shape(q)[:-3]
 
 
 def _check_keys(tree, keys, name):
@@ -377,9 +577,14 @@ class Product(AbstractSpace):
     project = _factorwise("project")
     to_linear = _factorwise("to_linear")
     from_linear = _factorwise("from_linear")
+    from_covector = _factorwise("from_covector")
+    to_covector = _factorwise("to_covector")
+    force_covector = _factorwise("force_covector")
     bracket = _factorwise("bracket")
+    angular_terms = _factorwise("angular_terms")
+    momentum_transport = _factorwise("momentum_transport")
     normal_acceleration = _factorwise("normal_acceleration")
-    normal_multiplier = _factorwise("normal_multiplier")
+    tangency_covector = _factorwise("tangency_covector")
     exp = _factorwise("exp")
     tangent_basis = _factorwise("tangent_basis")
 
@@ -404,6 +609,9 @@ class Product(AbstractSpace):
             }
             columns.append(jax.vmap(lambda d: self.to_tangent(T, hvp(d)))(dirs))
         return jnp.concatenate(columns, axis=0).T
+
+    def angular(self):
+        return Product({k: f.angular() for k, f in self.factors.items()})
 
     def lie_action(self, kind, angular):
         return ProductAction({k: f.lie_action(kind, angular) for k, f in self.factors.items()})

@@ -101,6 +101,12 @@ class AbstractSystem(eqx.Module):
         """
 
     @property
+    def state_space(self) -> AbstractSpace:
+        """The space of the states `(q, v)`: `space`, in angular variables when the system's
+        are angular (only rotations differ: body `(k, 3)` vectors)."""
+        return self.space.angular() if self.angular else self.space
+
+    @property
     def has_forces(self) -> bool:
         """Whether non-conservative forces act (static)."""
         return self.forces is not None
@@ -118,7 +124,7 @@ class AbstractSystem(eqx.Module):
             return None
         f = self.forces(t, q, v, args)
         self.space.check_forces(f, q)
-        return f
+        return self.space.force_covector(q, f)
 
     def power(self, t, q: Points, v: Tangents, args: Args = None) -> Scalar:
         """Power of the generalized forces, `sum_i f_i . qdot_i`.
@@ -143,8 +149,8 @@ class AbstractSystem(eqx.Module):
 
         **Returns:** the unchanged state `(q, v)`.
         """
-        self.space.check_shapes(q, v, self.state_name)
-        return self.space.check_values(q, v, self.state_name)
+        self.state_space.check_shapes(q, v, self.state_name)
+        return self.state_space.check_values(q, v, self.state_name)
 
     def to_linear(self, q: Points, v: Tangents) -> Tangents:
         """The linear variable (`qdot` or `mu`) of the state variable `v`.
@@ -244,7 +250,7 @@ class AbstractLagrangianSystem(AbstractSystem):
 
         **Returns:** the momentum, `(n, 3)`, tangent at `q`.
         """
-        return self.space.project(q, self._dL_dv(t, q, v, args))
+        return self.state_space.project(q, self._dL_dv(t, q, v, args))
 
     def energy(self, t, q, v, args=None):
         """The energy `E = sum_i v_i . dL/dv_i - L`.

@@ -71,7 +71,7 @@ def space_of(terms, y, solver: str) -> AbstractSpace:
         )
     found = [x for x in jax.tree.leaves(terms, is_leaf=_is_mechanics) if _is_mechanics(x)]
     if found:
-        space = found[0].system.space
+        space = found[0].system.state_space
     elif all(isinstance(x, jax.Array | np.ndarray) for x in y):
         space = Spheres()
     else:

@@ -1,0 +1,231 @@
+"""The factor SO(3) (`sm.Rotations`): rigid bodies in the four forms, against closed forms
+and scipy references written here (Euler's equations, a quaternion ODE), conservation
+laws, the Lie-group solver's orthogonality, convergence orders, gradients and bad input."""
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+from scipy.special import ellipj
+
+import sphere_mech as sm
+from helpers import central_differences, fitted_order
+
+J = jnp.array([1.0, 2.0, 3.0])  # J1 < J2 < J3
+RHO = jnp.array([0.1, -0.2, 1.0])  # the centre of mass in the body frame (m)
+M_G = 10.0 * 9.8  # m g (N)
+R0 = sm.rotation_matrix(jnp.array([[0.3, -0.2, 0.5]]))
+W0 = jnp.array([[1.0, 0.0, 0.8]])  # body angular velocity: Omega_2(0) = 0
+TS = jnp.linspace(0.0, 3.0, 7)
+TIGHT = dict(rtol=1e-12, atol=1e-12, saveat=diffrax.SaveAt(ts=TS))
+SPACE = sm.Rotations(1)
+FIXED = diffrax.ConstantStepSize()
+
+
+def body(R, Rdot):
+    return sm.vee(jnp.swapaxes(R, -1, -2) @ Rdot)
+
+
+def pendulum_L2(t, R, W, args):
+    """The 3-D pendulum in body angular velocity (form 2): a body on a fixed pivot."""
+    return 0.5 * jnp.sum(J * W**2) - M_G * (R[0] @ RHO)[2]
+
+
+def pendulum_L1(t, R, Rdot, args):
+    """The same Lagrangian in `Rdot` (form 1)."""
+    return pendulum_L2(t, R, body(R, Rdot), args)
+
+
+def free_L2(t, R, W, args):
+    return 0.5 * jnp.sum(J * W**2)
+
+
+@pytest.fixture(scope="module")
+def pendulum_reference():
+    """`R(t)` of the 3-D pendulum from a unit-quaternion ODE solved by scipy:
+    `qdot = q (0, Omega) / 2`, `J Omegadot = J Omega x Omega + m g (R^T e3) x rho`."""
+
+    def matrix(q):
+        w, x, y, z = q / np.linalg.norm(q)
+        return np.array(
+            [
+                [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+            ]
+        )
+
+    def rhs(t, y):
+        q, w = y[:4], y[4:]
+        qw = np.array(
+            [
+                -q[1] * w[0] - q[2] * w[1] - q[3] * w[2],
+                q[0] * w[0] + q[2] * w[2] - q[3] * w[1],
+                q[0] * w[1] - q[1] * w[2] + q[3] * w[0],
+                q[0] * w[2] + q[1] * w[1] - q[2] * w[0],
+            ]
+        )
+        e3_body = matrix(q).T @ np.array([0.0, 0.0, 1.0])
+        Jn, rho = np.asarray(J), np.asarray(RHO)
+        wdot = (np.cross(Jn * w, w) + M_G * np.cross(e3_body, rho)) / Jn
+        return np.concatenate([0.5 * qw, wdot])
+
+    angle = np.array([0.3, -0.2, 0.5])
+    theta = np.linalg.norm(angle)
+    q0 = np.concatenate([[np.cos(theta / 2)], np.sin(theta / 2) * angle / theta])
+    sol = solve_ivp(
+        rhs,
+        (0, 3),
+        np.concatenate([q0, np.asarray(W0[0])]),
+        method="DOP853",
+        rtol=1e-13,
+        atol=1e-13,
+        t_eval=np.asarray(TS),
+    )
+    return np.stack([matrix(q) for q in sol.y[:4].T]), sol.y[4:].T
+
+
+def test_torque_free_body_against_jacobi_elliptic_closed_form():
+    """Landau's solution (J1 < J2 < J3, |L|^2 > 2 E J2): `Omega_1 = a cn`, `Omega_2 = b
+    sn`, `Omega_3 = c dn`; energy and the spatial angular momentum `R J Omega` constant."""
+    system = sm.AngularLagrangian(free_L2, space=SPACE)
+    sol = sm.simulate(system, (R0, W0), 3.0, solver=sm.LieRK(diffrax.Dopri8()), **TIGHT)
+    R, W = sol.ys
+    J1, J2, J3 = (float(j) for j in J)
+    E = 0.5 * float(jnp.sum(J * W0**2))
+    L2 = float(jnp.sum((J * W0) ** 2))
+    assert L2 > 2 * E * J2
+    tau = np.asarray(TS) * np.sqrt((J3 - J2) * (L2 - 2 * E * J1) / (J1 * J2 * J3))
+    m = (J2 - J1) * (2 * E * J3 - L2) / ((J3 - J2) * (L2 - 2 * E * J1))
+    sn, cn, dn, _ = ellipj(tau, m)
+    closed = np.stack(
+        [
+            np.sqrt((2 * E * J3 - L2) / (J1 * (J3 - J1))) * cn,
+            np.sqrt((2 * E * J3 - L2) / (J2 * (J3 - J2))) * sn,
+            np.sqrt((L2 - 2 * E * J1) / (J3 * (J3 - J1))) * dn,
+        ],
+        axis=-1,
+    )
+    assert np.max(np.abs(np.asarray(W[:, 0]) - closed)) < 1e-9
+    energy = 0.5 * jnp.sum(J * W**2, axis=(-2, -1))
+    spatial = jnp.einsum("tkij,tkj->tki", R, J * W)
+    assert float(jnp.max(jnp.abs(energy - E))) < 1e-10
+    assert float(jnp.max(jnp.abs(spatial - spatial[0]))) < 1e-9
+    orthogonality = jnp.swapaxes(R, -1, -2) @ R - jnp.eye(3)
+    assert float(jnp.max(jnp.abs(orthogonality))) < 1e-14  # LieRK: a rotation to rounding
+
+
+@pytest.mark.parametrize("form", [1, 2, 3, 4])
+def test_four_forms_of_the_3d_pendulum_against_a_quaternion_ode(form, pendulum_reference):
+    R_ref, W_ref = pendulum_reference
+    lagrangian = (
+        sm.Lagrangian(pendulum_L1, space=SPACE)
+        if form in (1, 3)
+        else sm.AngularLagrangian(pendulum_L2, space=SPACE)
+    )
+    v0 = R0 @ sm.hat(W0) if form in (1, 3) else W0
+    system, y0 = lagrangian, (R0, v0)
+    if form in (3, 4):
+        system = sm.legendre(lagrangian)
+        y0 = (R0, lagrangian.momentum(0.0, R0, v0))
+    sol = sm.simulate(system, y0, 3.0, solver=sm.Projected(diffrax.Dopri8()), **TIGHT)
+    R = sol.ys[0][:, 0]
+    assert np.max(np.abs(np.asarray(R) - R_ref)) < 1e-8
+    velocity = jax.vmap(lambda R, v: system.velocity(0.0, R, v))(sol.ys[0], sol.ys[1])
+    assert np.max(np.abs(np.asarray(body(sol.ys[0], velocity)[:, 0]) - W_ref)) < 1e-8
+    energy = jax.vmap(lambda R, v: system.energy(0.0, R, v))(*sol.ys)
+    assert float(jnp.max(jnp.abs(energy - energy[0]))) < 1e-10 * float(jnp.abs(energy[0]))
+
+
+def test_body_torque_is_the_generalized_force_of_a_rotation():
+    """A constant body torque `tau` on a free body: `J Omegadot = J Omega x Omega + tau`
+    (scipy), in form 2 and (as `R hat(tau) / 2` against `Rdot`) in form 1."""
+    tau = jnp.array([0.3, -0.5, 0.2])
+    forces = lambda t, R, v, args: tau[None]
+    Jn = np.asarray(J)
+    ref = solve_ivp(
+        lambda t, w: (np.cross(Jn * w, w) + np.asarray(tau)) / Jn,
+        (0, 3),
+        np.asarray(W0[0]),
+        rtol=1e-13,
+        atol=1e-13,
+        t_eval=np.asarray(TS),
+    ).y.T
+    two = sm.AngularLagrangian(free_L2, forces, space=SPACE)
+    one = sm.Lagrangian(lambda t, R, Rd, a: free_L2(t, R, body(R, Rd), a), forces, space=SPACE)
+    for system, v0 in ((two, W0), (one, R0 @ sm.hat(W0))):
+        sol = sm.simulate(system, (R0, v0), 3.0, solver=sm.Projected(diffrax.Dopri8()), **TIGHT)
+        W = jax.vmap(lambda R, v: body(R, system.velocity(0.0, R, v)))(*sol.ys)[:, 0]
+        assert np.max(np.abs(np.asarray(W) - ref)) < 1e-9
+        # the power of the torque is tau . Omega
+        power = system.power(0.0, R0, v0)
+        assert abs(float(power) - float(tau @ W0[0])) < 1e-14
+
+
+@pytest.mark.parametrize(
+    "solver, order",
+    [(sm.Projected(sm.RK4()), 4), (sm.LieRK(diffrax.Bosh3()), 3), (sm.LieRK4(), 4)],
+    ids=["Projected(RK4)", "LieRK(Bosh3)", "LieRK4"],
+)
+def test_convergence_orders_on_rotations(solver, order, pendulum_reference):
+    R_ref = pendulum_reference[0][-1]
+    system = sm.AngularLagrangian(pendulum_L2, space=SPACE)
+    dts = [0.02, 0.01, 0.005]
+    errors = []
+    for dt in dts:
+        sol = sm.simulate(system, (R0, W0), 3.0, solver=solver, dt0=dt, stepsize_controller=FIXED)
+        R = sol.ys[0][-1, 0]
+        errors.append(float(jnp.max(jnp.abs(R - R_ref))))
+        if isinstance(solver, sm.LieRK):
+            assert float(jnp.max(jnp.abs(R.T @ R - jnp.eye(3)))) < 1e-14
+    assert abs(fitted_order(dts, errors) - order) < 0.35
+
+
+def test_gradient_through_a_rigid_body_matches_central_differences():
+    system = sm.AngularLagrangian(
+        lambda t, R, W, J_: 0.5 * jnp.sum(J_ * W**2) - M_G * (R[0] @ RHO)[2], space=SPACE
+    )
+
+    def final_spin(J_):
+        options = dict(solver=sm.LieRK4(), dt0=0.01, stepsize_controller=FIXED)
+        return sm.simulate(system, (R0, W0), 0.5, args=J_, **options).ys[1][-1, 0]
+
+    grad = jax.jacrev(final_spin)(J)
+    assert jnp.allclose(grad, central_differences(final_spin, J, 1e-6), rtol=1e-6, atol=1e-8)
+
+
+def test_float32_rigid_body():
+    system = sm.AngularLagrangian(pendulum_L2, space=SPACE)
+    y0 = (R0.astype(jnp.float32), W0.astype(jnp.float32))
+    sol = sm.simulate(system, y0, 1.0, solver=sm.LieRK4(), dt0=0.01, stepsize_controller=FIXED)
+    R = sol.ys[0][-1, 0]
+    assert R.dtype == jnp.float32
+    assert float(jnp.max(jnp.abs(R.T @ R - jnp.eye(3)))) < 1e-5
+
+
+def test_nearest_rotation_is_the_polar_factor():
+    A = np.asarray(R0[0]) + 0.05 * np.random.default_rng(0).standard_normal((3, 3))
+    U, _, Vt = np.linalg.svd(A)
+    assert np.max(np.abs(np.asarray(sm.nearest_rotation(jnp.asarray(A))) - U @ Vt)) < 1e-14
+
+
+def test_bad_rotation_input_is_named():
+    system = sm.AngularLagrangian(pendulum_L2, space=SPACE)
+    with pytest.raises(ValueError, match=r"q must have shape \(1, 3, 3\)"):
+        sm.simulate(system, (R0[0], W0), 1.0)
+    with pytest.raises(ValueError, match=r"omega must have shape \(1, 3\)"):
+        sm.simulate(system, (R0, R0 @ sm.hat(W0)), 1.0)
+    with pytest.raises(Exception, match="q is not a rotation"):
+        sm.simulate(system, (R0 * 1.01, W0), 1.0)
+    with pytest.raises(Exception, match="q is not a rotation"):
+        sm.simulate(system, (-R0, W0), 1.0)  # det -1
+    linear = sm.Lagrangian(pendulum_L1, space=SPACE)
+    with pytest.raises(Exception, match="qdot is not tangent to the rotations"):
+        sm.simulate(linear, (R0, R0 + 0.1), 1.0)
+    torque = sm.AngularLagrangian(pendulum_L2, lambda t, R, W, a: jnp.zeros((1, 3, 3)), space=SPACE)
+    with pytest.raises(ValueError, match=r"one body torque per rotation"):
+        sm.simulate(torque, (R0, W0), 1.0)
+    with pytest.raises(ValueError, match="Rotations\\(k\\): k must be a positive int"):
+        sm.Rotations(0)
