@@ -32,10 +32,10 @@ class FitResult(eqx.Module):
 
     **Attributes:**
     - `params`: the fitted parameters, same structure as `params0`.
-    - `loss`: the loss `1/2 sum r^2` (observation and continuity residuals) at the
-      solution; `initial_loss`: at `params0` and the initial segment states.
-    - `num_steps`: iterations of the least-squares solver; `result`: its
-      `optimistix.RESULTS` code; `converged`: `result == optimistix.RESULTS.successful`.
+    - `loss`, `initial_loss`: the loss `1/2 sum r^2` (observation and continuity
+      residuals) at the solution and at `params0` with the initial segment states.
+    - `num_steps`, `result`, `converged`: the least-squares solver's iterations, its
+      `optimistix.RESULTS` code, and `result == optimistix.RESULTS.successful`.
     - `segment_states`: the fitted initial states `(q, v)` of the segments, leading axes
       `([B,] K)` (segment 0 is `y0` unless `fit_initial_state=True`).
 
