@@ -66,7 +66,8 @@ def _solve_batch(static, chunk, mesh, shared, batched, y0, valid, size, padded):
     sol = jax.tree.map(lambda x: x[:size], solve(shared, batched, y0))
     # Invalid initial states ran a stand-in (`initial_states`): their own code, no steps,
     # nothing saved (`inf`).
-    result = RESULTS.where(valid, sol.result, RESULTS.invalid_initial)
+    invalid = lambda ok, r: RESULTS.where(ok, r, RESULTS.invalid_initial)
+    result = jax.vmap(invalid)(valid, sol.result)
     discard = lambda fill: lambda x: jnp.where(rows(valid, x), x, fill)
     ts, ys = jax.tree.map(discard(jnp.inf), (sol.ts, sol.ys))
     stats = jax.tree.map(discard(0), sol.stats)
