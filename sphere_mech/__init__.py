@@ -107,9 +107,8 @@ if TYPE_CHECKING:  # the public names; imported on first use (see `__getattr__`)
 
 
 def _public_names() -> dict[str, str]:
-    """Each public name and the module it comes from, read from the imports above (not
-    run: `import sphere_mech` stays cheap, and `sphere-mech run` can start a stored
-    program before diffrax is imported)."""
+    """Each public name and its module, read (not run) from the imports above: `import
+    sphere_mech` stays cheap (`sphere-mech run` starts before diffrax is imported)."""
     tree = ast.parse(Path(__file__).read_text(encoding="utf-8"))
     block = next(node for node in tree.body if isinstance(node, ast.If))
     return {alias.asname: node.module for node in block.body for alias in node.names}
@@ -132,6 +131,5 @@ def __dir__() -> list[str]:
 
 __version__ = importlib.metadata.version("sphere_mech")
 
-# Every public name: what `from sphere_mech import *` gives and what docs/api.md must
-# document (tests/test_docs.py checks both ways).
+# What `from sphere_mech import *` gives and docs/api.md documents (tests/test_docs.py).
 __all__ = sorted(_PUBLIC)

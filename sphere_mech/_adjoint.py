@@ -1,6 +1,4 @@
-"""The default adjoint of `simulate` and `simulate_batch` (`adjoint=None`): forward or
-reverse mode chosen per derivative from the number of differentiated scalars, as
-diffrax keeps its adjoints beside its solve."""
+"""The default adjoint: forward or reverse mode chosen by the number of differentiated scalars."""
 
 import contextlib
 
@@ -12,25 +10,19 @@ from jax.flatten_util import ravel_pytree
 from ._misc import fill_zeros
 
 FORWARD_COLUMNS = 8
-"""The default adjoint differentiates one trajectory (`simulate`) in forward mode when at
-most this many scalars are differentiated (e.g. the lengths of a chain of up to 8 links),
-else in reverse mode. On a 2-core CPU, forward mode measured 1.9x (float64) to 2.7x
-(float32) faster than reverse mode at 8 columns (`benchmarks/gradients.py`) and about
-even at 16 (1.4x faster in float64, 1.3x slower in float32): one trajectory's arrays
-are small, its cost is per operation, and forward mode widens the operations instead
-of adding more."""
+"""Forward mode for one trajectory (`simulate`) with at most this many differentiated
+scalars, else reverse mode. On a 2-core CPU forward mode measured 1.9x (float64) to 2.7x
+(float32) faster at 8 columns and about even at 16 (`benchmarks/gradients.py`): small
+arrays cost per operation, and forward mode widens the operations instead of adding more."""
 BATCH_FORWARD_COLUMNS = 2
-"""The same threshold for a trajectory of `simulate_batch`: under `vmap` the arrays are
-wide already, forward mode's cost grows with every column and reverse mode's does not
-(at 8 columns reverse mode measured 3.5x faster; at 2 forward mode 1.1x to 1.6x
-faster)."""
+"""The same for a trajectory of `simulate_batch`: under `vmap` forward mode's cost grows with
+every column (at 8, reverse mode measured 3.5x faster; at 2, forward mode 1.1x to 1.6x)."""
 
 
 @contextlib.contextmanager
 def forward_mode_hint():
-    """Around a run: JAX's refusal of forward mode through the default adjoint (a
-    `jax.custom_vjp`, as is `diffrax.RecursiveCheckpointAdjoint`) becomes an error that
-    says what to pass instead."""
+    """JAX's refusal of forward mode through the default adjoint (a `jax.custom_vjp`)
+    becomes an error that says what to pass instead."""
     try:
         yield
     except TypeError as error:
@@ -44,29 +36,14 @@ def forward_mode_hint():
 
 @eqx.filter_custom_vjp
 def default_adjoint_run(inputs, *, opts, solve_with) -> diffrax.Solution:
-    r"""`solve_with` differentiated in reverse mode by the default adjoint
-    (`adjoint=None`), chosen at trace time by `default_adjoint` from the number $P$ of
-    differentiated scalars (the parameters, states and times being differentiated) and
-    whether the run is one trajectory of `simulate_batch`:
-
-    - $P \le$ `FORWARD_COLUMNS` (8; `BATCH_FORWARD_COLUMNS`, 2, in a batch): the
-      Jacobian of the run's outputs with respect to those $P$ scalars is computed
-      during the run in forward mode
-      (`diffrax.ForwardMode`, $P$ tangents carried along the steps) and the backward
-      pass multiplies the cotangent by it. Memory: $P + 1$ copies of the solver's state
-      during the run, and the $P \times$ (saved outputs) Jacobian kept for the backward
-      pass, independent of the number of steps and of `max_steps`.
-    - more: `diffrax.RecursiveCheckpointAdjoint()`, reverse mode with online
-      checkpointing. Memory: $\lfloor\sqrt{2 \cdot \text{max\_steps}}\rfloor$
-      checkpoints (447 for the default `max_steps = 100_000`), each a copy of the
-      solver's loop state (the state $(q, v)$, times, the stages a solver keeps between
-      steps), independent of how many steps the run takes.
-
-    Like `RecursiveCheckpointAdjoint`, it does not support forward mode (`jax.jvp`,
-    `jax.jacfwd`): pass `adjoint=diffrax.ForwardMode()` for that.
-
-    `solve_with(adjoint, *inputs, opts)` runs the solve; `opts.batched` says whether it
-    is one trajectory of `simulate_batch`."""
+    r"""`solve_with(adjoint, *inputs, opts)` in reverse mode, the adjoint chosen at trace time
+    by `default_adjoint` from the number $P$ of differentiated scalars: for
+    $P \le$ `FORWARD_COLUMNS` (`BATCH_FORWARD_COLUMNS` if `opts.batched`) the Jacobian in
+    them, computed in forward mode during the run (memory: $P + 1$ solver states and the
+    $P \times$ outputs Jacobian), times the cotangent; else
+    `diffrax.RecursiveCheckpointAdjoint()` (memory: $\lfloor\sqrt{2 \cdot
+    \text{max\_steps}}\rfloor$ loop-state checkpoints, 447 by default). Neither depends on
+    the number of steps. No forward mode (`jax.jvp`): pass `adjoint=diffrax.ForwardMode()`."""
     return solve_with(diffrax.RecursiveCheckpointAdjoint(), *inputs, opts)
 
 
@@ -110,10 +87,8 @@ def _bwd(residuals, grad_sol, perturbed, inputs, *, opts, solve_with):
 
 
 def default_adjoint(columns: int, batched: bool = False) -> diffrax.AbstractAdjoint:
-    """The adjoint that `adjoint=None` differentiates a run with when `columns` scalars
-    are differentiated: `diffrax.ForwardMode()` for at most `FORWARD_COLUMNS` (one
-    trajectory) or `BATCH_FORWARD_COLUMNS` (`batched`: one of `simulate_batch`), else
-    `diffrax.RecursiveCheckpointAdjoint()` (see `default_adjoint_run`)."""
+    """`diffrax.ForwardMode()` for at most `FORWARD_COLUMNS` (`BATCH_FORWARD_COLUMNS` if
+    `batched`) differentiated scalars, else `diffrax.RecursiveCheckpointAdjoint()`."""
     if columns <= (BATCH_FORWARD_COLUMNS if batched else FORWARD_COLUMNS):
         return diffrax.ForwardMode()
     return diffrax.RecursiveCheckpointAdjoint()

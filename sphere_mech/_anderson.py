@@ -1,7 +1,6 @@
 """Anderson acceleration of a fixed-point iteration, as an optimistix solver."""
 
 from collections.abc import Callable
-from typing import Any
 
 import equinox as eqx
 import jax
@@ -25,26 +24,18 @@ class _AndersonState(eqx.Module):
 
 
 class Anderson(optx.AbstractFixedPointSolver):
-    """Anderson acceleration ("type II", Walker & Ni 2011) of the iteration
-    `y <- g(y)`: each step evaluates `g` once and moves to the combination of the last
-    `depth + 1` iterates whose residuals `g(y) - y` have the least norm. For a linear
-    contraction it is GMRES in disguise: it converges where the plain iteration
-    converges slowly or diverges along a few directions, for the price of a
-    `depth x depth` least-squares problem per step (O(N depth^2) for `N` unknowns).
-
-    Returns `g(y)` once its error is estimated below `atol + rtol |g(y)|` (in
-    `norm`): the residual `g(y) - y` is, as in `optimistix.FixedPointIteration`, or, for
-    a contraction at a rate `rho < 1/2` (estimated from the first two steps, which are
-    plain iterations), `rho / (1 - rho)` times it is. Works with `optimistix.fixed_point`
-    and its implicit differentiation.
+    """Anderson acceleration ("type II", Walker & Ni 2011) of `y <- g(y)`: one `g` per step,
+    moving to the combination of the last `depth + 1` iterates whose residuals `g(y) - y`
+    have the least norm (GMRES in disguise for a linear contraction). Returns `g(y)` once
+    its estimated error (the residual, or `rho / (1 - rho)` times it for a contraction rate
+    `rho < 1/2` estimated from the first two, plain, steps) is below `atol + rtol |g(y)|`.
 
     **Arguments:**
     - `rtol`, `atol`: relative and absolute tolerance on `g(y) - y`.
     - `depth`: how many previous steps are combined (default 3).
-    - `plain_rate`: below this estimated contraction rate (default 0.1) the plain
-      iteration is fast enough and no acceleration is computed.
-    - `norm`: the norm of the termination test (default `optimistix.max_norm`).
-    """
+    - `plain_rate`: below this estimated contraction rate (default 0.1) no acceleration
+      is computed.
+    - `norm`: the norm of the termination test (default `optimistix.max_norm`)."""
 
     rtol: float
     atol: float
@@ -69,25 +60,21 @@ class Anderson(optx.AbstractFixedPointSolver):
         first = state.count == 0
         rate = jnp.where(state.count == 1, residual / state.first_error, state.rate)
         first_error = jnp.where(first, residual, state.first_error)
-        # The error of g(y) is about rate / (1 - rate) times the residual.
-        error = jnp.where(rate < 0.5, residual * rate / (1 - rate), residual)
-        error = jnp.minimum(error, residual)
-        # The newest differences replace the oldest ones (none before the second step).
+        error = jnp.minimum(jnp.where(rate < 0.5, residual * rate / (1 - rate), residual), residual)
+        # The newest differences replace the oldest (none before the second step).
         dx = jnp.concatenate([state.dx[1:], jnp.where(first, 0.0, flat - state.y_prev)[None]])
         df = jnp.concatenate([state.df[1:], jnp.where(first, 0.0, f - state.f_prev)[None]])
         used = jnp.arange(self.depth) >= self.depth - jnp.minimum(state.count, self.depth)
 
         def accelerated():
-            # min_gamma |f - df^T gamma| by the normal equations; unused slots and a tiny
-            # relative ridge keep them positive definite when differences are degenerate.
+            # min |f - df^T gamma| by the normal equations, kept SPD by a tiny ridge.
             gram = df @ df.T
             ridge = 1e-12 * jnp.max(jnp.diag(gram)) + jnp.finfo(f.dtype).tiny
             gram = gram + jnp.diag(jnp.where(used, ridge, 1.0))
             gamma = jnp.where(used, spd_solve(gram, df @ f), 0.0)
             return g_flat - (dx + df).T @ gamma
 
-        # Converged: return g(y) itself (the extrapolation would only add rounding); a
-        # fast contraction (rate below `plain_rate`) needs no acceleration either.
+        # Converged or contracting fast: g(y) itself.
         plain = (error < 1) | (rate < self.plain_rate)
         new = lax.cond(plain, lambda: g_flat, accelerated)
         new_state = _AndersonState(dx, df, flat, f, state.count + 1, first_error, rate, error)
@@ -96,7 +83,5 @@ class Anderson(optx.AbstractFixedPointSolver):
     def terminate(self, fn, y, args, options, state: _AndersonState, tags):
         return state.relative_error < 1, optx.RESULTS.successful
 
-    def postprocess(
-        self, fn, y, aux, args, options, state, tags, result
-    ) -> tuple[Any, Any, dict[str, Any]]:
+    def postprocess(self, fn, y, aux, args, options, state, tags, result):
         return y, aux, {}

@@ -18,13 +18,12 @@ from ._system import AbstractSystem
 
 BATCH_AXIS = "batch"
 CPU_CHUNK_LINKS = 512
-"""On CPU, trajectories are integrated in chunks of about `CPU_CHUNK_LINKS / n` (a power
-of two): a chunk's working set then stays in cache, which measured 2-3x faster than one
-vmap over thousands of trajectories. Other backends integrate the whole local batch."""
+"""On CPU, chunks of about `CPU_CHUNK_LINKS / n` trajectories (a power of two) stay in cache:
+2-3x faster than one vmap over thousands. Other backends integrate the whole local batch."""
 
 
 def _leading(tree, size, what):
-    """Static check that every array leaf of `tree` has leading axis `size`."""
+    """Check that every array leaf of `tree` has leading axis `size`."""
     for path, leaf in jax.tree_util.tree_leaves_with_path(tree, is_leaf=eqx.is_array):
         if eqx.is_array(leaf) and (leaf.ndim == 0 or leaf.shape[0] != size):
             raise ValueError(
@@ -34,14 +33,8 @@ def _leading(tree, size, what):
 
 
 def _pad(tree, size):
-    """Pad every leaf to `size` along axis 0 with copies of entry 0 (a valid trajectory,
-    so padding never fails); the padding is stripped after the solve."""
-
-    def pad(x):
-        if x.shape[0] == size:
-            return x
-        return jnp.concatenate([x, jnp.broadcast_to(x[:1], (size - x.shape[0],) + x.shape[1:])])
-
+    """Pad every leaf to `size` along axis 0 with copies of entry 0 (a valid trajectory)."""
+    pad = lambda x: jnp.concatenate([x, jnp.repeat(x[:1], size - x.shape[0], axis=0)])
     return jax.tree.map(pad, tree)
 
 
@@ -71,20 +64,15 @@ def _solve_batch(static, chunk, mesh, shared, batched, y0, valid, size, padded):
             check_vma=False,
         )
     sol = jax.tree.map(lambda x: x[:size], solve(shared, batched, y0))
-    # Invalid initial states ran a stand-in (`initial_states`): their own code, nothing
-    # saved (`inf`, as for a run that fails at its initial state) and no steps.
-    result = jax.vmap(lambda ok, r: RESULTS.where(ok, r, RESULTS.invalid_initial))(
-        valid, sol.result
-    )
+    # Invalid initial states ran a stand-in (`initial_states`): their own code, no steps,
+    # nothing saved (`inf`).
+    invalid = lambda ok, r: RESULTS.where(ok, r, RESULTS.invalid_initial)
+    result = jax.vmap(invalid)(valid, sol.result)
     discard = lambda fill: lambda x: jnp.where(rows(valid, x), x, fill)
     ts, ys = jax.tree.map(discard(jnp.inf), (sol.ts, sol.ys))
     stats = jax.tree.map(discard(0), sol.stats)
-    return eqx.tree_at(
-        lambda s: (s.result, s.ts, s.ys, s.stats),
-        sol,
-        (result, ts, ys, stats),
-        is_leaf=lambda x: x is None,
-    )
+    fields = lambda s: (s.result, s.ts, s.ys, s.stats)
+    return eqx.tree_at(fields, sol, (result, ts, ys, stats), is_leaf=lambda x: x is None)
 
 
 def _chunk_size(chunk_size, n, local, platform):
@@ -109,72 +97,54 @@ def simulate_batch(
     devices=None,
     **options,
 ) -> diffrax.Solution:
-    """Integrate a batch of trajectories: `simulate` over a leading batch axis.
+    """Integrate a batch of trajectories: `simulate` over a leading batch axis, compiled
+    once per structure (new values of `y0`, `args` or parameters do not recompile).
 
     **Arguments:**
     - `system`, `t1`, `t0`, `solver`, `dt0`, `rtol`, `atol`, `stepsize_controller`,
-      `saveat`, `max_steps`, `adjoint`, `event`: as in `sphere_mech.simulate` (the same
-      keyword options, one list of them), shared by every trajectory (`system` too
-      unless `batch_system=True`). The
-      default adjoint (`None`) uses forward mode for at most 2 differentiated scalars
-      here (8 in `simulate`): under `vmap` forward mode's cost grows with every column
-      and reverse mode's does not.
-    - `y0`: `(q0, v0)`, arrays of shape `(batch, n, 3)` (on a mixed space, dicts of
-      arrays, each with the leading batch axis).
+      `saveat`, `max_steps`, `adjoint`, `event`, `progress`: as in `sphere_mech.simulate`,
+      shared by every trajectory (`system` too unless `batch_system=True`). The default
+      adjoint uses forward mode for at most 2 differentiated scalars here (8 in
+      `simulate`): under `vmap` forward mode's cost grows with every column.
+    - `y0`: `(q0, v0)`, arrays of shape `(batch, n, 3)` (dicts of them on a mixed space).
     - `args`: passed to the system; its array leaves have a leading batch axis (one value
-      per trajectory: masses, gains, ...) unless `batch_args=False`.
+      per trajectory) unless `batch_args=False`.
     - `batch_args`: `False` shares `args` between all trajectories (no batch axis).
     - `batch_system`: if True, every array leaf of `system` has a leading batch axis, e.g.
       `eqx.filter_vmap(sm.chain_pendulum)(masses, lengths)` for a batch of chains.
-    - `throw`: as in `simulate`: `True` (default) raises after the solve if any
-      trajectory failed, naming how many, which, and the first one's cause (the same
-      message as `simulate`); `False` never raises for a run-time failure: `sol.result`
-      holds each trajectory's own `sm.RESULTS` code (NaN parameters give
-      `RESULTS.nonfinite_initial`, an invalid initial state `RESULTS.invalid_initial`)
-      and a failed trajectory does not affect the others (but see docs/batched.md for
-      differences of 1e-14 to 1e-11 through `Projected`'s first stages). Initial states
-      are checked one by one: with `throw=True` an invalid one (NaN, off the spheres,
-      not tangent) raises a `ValueError` before the solve, naming which.
-      (With an adaptive controller a trajectory whose vector field is NaN keeps
-      rejecting steps until `max_steps`, which the batch waits for; fixed-step solvers
-      stop it at its first step.)
-    - `chunk_size`: trajectories integrated together by one `vmap` on a device (default:
-      about `512 / n` on CPU, which keeps the working set in cache; the whole batch on
-      other backends). Results do not depend on it.
-    - `devices`: devices to shard the batch over (default: all of JAX's default backend).
-      With more than one, the batch is split along a 1-D `Mesh` with `shard_map`; batch
-      sizes that do not divide the device count are padded and the padding stripped; a
-      batch smaller than the device count uses only as many devices as trajectories.
-    - `progress`: diffrax's progress bar over the batch's time.
-
-    Compiles once per structure (shapes, dtypes, solver and options): new values of
-    `y0`, `args` or the system's parameters reuse the compiled program.
+    - `throw`: `True` (default) raises for an invalid initial state (NaN, off the spheres,
+      not tangent) before the solve and for failed trajectories after it, naming how many,
+      which and the first one's cause. `False` never raises for a run-time failure:
+      `sol.result` holds each trajectory's `sm.RESULTS` code (NaN parameters:
+      `nonfinite_initial`; invalid initial state: `invalid_initial`); a failed trajectory
+      moves the others by 1e-14 to 1e-11 at most, through `Projected`'s first stages
+      (docs/batched.md). With an adaptive controller a NaN vector field rejects steps until
+      `max_steps`, which the batch waits for (fixed steps stop it).
+    - `chunk_size`: trajectories per `vmap` on a device (default: about `512 / n` on CPU,
+      which keeps the working set in cache; the whole batch elsewhere); results do not
+      depend on it.
+    - `devices`: devices to shard the batch over with `shard_map` (default: all of JAX's
+      default backend; at most one per trajectory); the batch is padded to a multiple of
+      their count and the padding stripped.
 
     **Returns:** a `diffrax.Solution` whose every array has a leading batch axis:
     `sol.ys = (q, v)` of shape `(batch, times, n, 3)`, `sol.result` and
-    `sol.stats["num_steps"]` per trajectory. The output is sharded over the devices.
+    `sol.stats["num_steps"]` per trajectory, sharded over the devices.
     """
     run = prepare(system, y0, args, batched=True, batch_system=batch_system, t1=t1, **options)
-    one_state = jax.tree.map(lambda x: x[0], run.y0)
     size = len(run.valid)
     if batch_args and args is not None:
         _leading(args, size, "args")
     if batch_system:
         _leading(eqx.filter(system, eqx.is_array), size, "system")
-    dynamic, static = eqx.partition(
-        (run.system, run.args, run.t0, run.t1, run.dt0, run.opts), eqx.is_array
-    )
-    mask = jax.tree.map(lambda _: False, dynamic)
-    mask = (batch_system, batch_args) + mask[2:]  # prefixes: all of system / args or none
+    inputs = (run.system, run.args, run.t0, run.t1, run.dt0, run.opts)
+    dynamic, static = eqx.partition(inputs, eqx.is_array)
+    mask = (batch_system, batch_args) + jax.tree.map(lambda _: False, dynamic[2:])  # prefixes
     batched, shared = eqx.partition(dynamic, mask)
-    # A batch smaller than the device count uses as many devices as trajectories: the
-    # others would only integrate padding.
     devices = (jax.devices() if devices is None else list(devices))[:size]
     mesh = Mesh(np.array(devices), (BATCH_AXIS,)) if len(devices) > 1 else None
-    per_device = -(-size // len(devices))
-    chunk = _chunk_size(
-        chunk_size, system.space.rows(one_state[0]), per_device, devices[0].platform
-    )
+    n_rows = system.space.rows(jax.tree.map(lambda x: x[0], run.y0[0]))
+    chunk = _chunk_size(chunk_size, n_rows, -(-size // len(devices)), devices[0].platform)
     padded = -(-size // (chunk * len(devices))) * chunk * len(devices)
     with forward_mode_hint():
         sol = _solve_batch(static, chunk, mesh, shared, batched, run.y0, run.valid, size, padded)

@@ -1,11 +1,5 @@
 """Validation of user input: static problems raise `ValueError` at trace time, value
-problems go through `equinox.error_if` so they stay inside jit/vmap/grad.
-
-Tolerances (documented in docs/concepts.md, "Tolerances and input checks"): a
-configuration is accepted when `max_i | |q_i| - 1 | <= unit_tolerance(dtype)` and a
-velocity or momentum when
-`max_i |q_i . v_i| <= unit_tolerance(dtype) * (1 + max_i |v_i|)`.
-"""
+problems go through `equinox.error_if` (inside jit/vmap/grad)."""
 
 import inspect
 
@@ -19,16 +13,13 @@ UNIT_TOLERANCE = {np.dtype("float64"): 1e-6, np.dtype("float32"): 1e-4}
 
 
 def unit_tolerance(dtype) -> float:
-    """How far from unit length (and from tangency) an input state may be.
-
-    The checked entry points accept a state when `max_i ||q_i| - 1| <= tol` and
-    `max_i |q_i . v_i| <= tol (1 + max_i |v_i|)`.
+    """How far from unit length (and from tangency) an input state may be: the checked
+    entry points accept `max_i ||q_i| - 1| <= tol`, `max_i |q_i . v_i| <= tol (1 + max_i |v_i|)`.
 
     **Arguments:**
     - `dtype`: the floating dtype of the state.
 
-    **Returns:** `tol`: `1e-6` for float64, `1e-4` for float32 (and other dtypes).
-    """
+    **Returns:** `tol`: `1e-6` for float64, `1e-4` for float32 (and other dtypes)."""
     return UNIT_TOLERANCE.get(np.dtype(dtype), 1e-4)
 
 
@@ -58,8 +49,7 @@ def nonfinite(x, name: str) -> tuple[jax.Array, str]:
 
 
 def off_unit(q, q_name: str = "q") -> tuple[jax.Array, str]:
-    """`(problem, message)`: whether some finite `|q_i|` differs from 1 by more than
-    `unit_tolerance`."""
+    """`(problem, message)`: whether some `|q_i|` is off 1 by more than `unit_tolerance`."""
     tol = unit_tolerance(jnp.result_type(q))
     return constraint_error(q) > tol, (
         f"{q_name} is not on the spheres: some |q_i| differs from 1 by more than {tol:g} "
@@ -68,8 +58,7 @@ def off_unit(q, q_name: str = "q") -> tuple[jax.Array, str]:
 
 
 def off_tangent(q, v, v_name: str = "v") -> tuple[jax.Array, str]:
-    """`(problem, message)`: whether some `v_i` is not orthogonal to `q_i` within
-    `unit_tolerance` (relative to `1 + max_i |v_i|`)."""
+    """`(problem, message)`: whether some `v_i` is not tangent within `unit_tolerance`."""
     tol = unit_tolerance(jnp.result_type(q))
     normal = jnp.max(jnp.abs(jnp.sum(q * v, axis=-1)))
     scale = 1.0 + jnp.max(jnp.linalg.norm(v, axis=-1))
@@ -88,9 +77,8 @@ def check_scalar(value, what: str):
 
 
 def check_function(fn, name: str, spelled: str, arity: int) -> None:
-    """Static check at construction: `fn` is a function that takes `arity` positional
-    arguments (where `inspect.signature` can read it: `functools.partial` and `*args`
-    work), else a `ValueError` naming `name` and how it is called (`spelled`)."""
+    """Static check: `fn` is a function taking `arity` positional arguments (where
+    `inspect.signature` reads it), else a `ValueError` naming `name` and `spelled`."""
     if not callable(fn):
         raise ValueError(f"{name} must be a function {spelled}, got {type(fn).__name__}.")
     try:

@@ -1,21 +1,8 @@
-"""The Corollary-1 fast path: `L = 1/2 sum_jk M_jk qdot_j . qdot_k - U(t, q)` with a
-constant scalar inertia matrix `M`. No Hessian of `L` is formed.
-
-The projected equations `P_i (sum_j M_ij qddot_j - g_i) = 0`, `q_i . qddot_i = -|qdot_i|^2`
-(with `g = -dU/dq + f`) are solved with one scalar multiplier per sphere:
-`qddot = M^-1 (g + lam q)` where `S lam = -|qdot|^2 - q . (M^-1 g)` and
-`S_ij = (M^-1)_ij q_i . q_j` is n x n symmetric positive definite (Schur product of two
-positive-definite matrices). This is equivalent to the 2n x 2n tangent-coordinate system
-`T^T (M kron I) T`, a quarter of its size, and needs no tangent basis. When `M^-1` is
-tridiagonal (the chain pendulum: `M = diag(l) A^T diag(m) A diag(l)` with `A` lower
-triangular ones, so `A^-1` is bidiagonal) `S` is tridiagonal too and everything is O(n):
-the multipliers are the link tensions.
-
-A point-mass base moving in a subspace (a cart on a line, a trolley in a plane, a drone in
-space) carrying the spheres keeps this structure (DESIGN.md section 7): its 3-D position
-`z_0 = position + A^T x` (`A`, `(m, 3)` orthonormal rows) is one more row of `M`, and the
-forces normal to its subspace (`P = I - A^T A`) are eliminated exactly, which changes
-only the first sphere's entries of `S` (a rank-one correction): still O(n)."""
+"""The Corollary-1 fast path, `L = 1/2 sum_jk M_jk qdot_j . qdot_k - U(t, q)`, constant `M`:
+`qddot = M^-1 (g + lam q)` (`g = -dU/dq + f`), `S lam = -|qdot|^2 - q . (M^-1 g)`,
+`S_ij = (M^-1)_ij q_i . q_j` (n x n SPD); tridiagonal `M^-1` (chains) makes it O(n), the
+multipliers the link tensions. A point-mass base in a subspace (rows `A`, `P = I - A^T A`)
+is one more row of `M`, its normal force eliminated exactly: a rank-one change of `S`."""
 
 import abc
 from collections.abc import Callable
@@ -37,18 +24,10 @@ from ._system import AbstractLagrangianSystem, as_time
 
 
 class AbstractFastPath(AbstractLagrangianSystem):
-    """Base of systems whose kinetic energy is `1/2 sum_jk M_jk qdot_j . qdot_k` with a
-    constant symmetric positive-definite `M` (n x n); state `(q, qdot)`: the machinery of
-    the fast path. Subclasses give `inertia`, `inverse_inertia_bands` (O(n) solves when
-    `M^-1` is tridiagonal), `kinetic_energy`, `potential`, `forces`, `base_axes` and
-    their `space` (`Scene`, `ConstantInertiaLagrangian`; a user's system subclasses
-    `AbstractConstantInertiaLagrangian`).
-
-    With a base (`base_axes` not `None`) the space is `chain_space(m, n)`: states,
-    velocities and forces hold the base's coordinates along the axes and the unit
-    vectors (`chain_parts`), and `inertia`, `inverse_inertia_bands` and
-    `kinetic_energy` are over the `n + 1` points `[base, spheres]`, the base's point
-    being `A^T x` (plus a fixed offset)."""
+    """The fast path's machinery (state `(q, qdot)`): subclasses give `inertia`,
+    `inverse_inertia_bands`, `kinetic_energy`, `potential`, `forces`, `base_axes` and
+    `space`. With a base the space is `chain_space(m, n)` and `M` is over the `n + 1`
+    points `[base, spheres]`, the base's point `A^T x` (plus a fixed offset)."""
 
     quadratic_in_velocity: ClassVar[bool] = True
     state_name: ClassVar[str] = "qdot"
@@ -57,90 +36,42 @@ class AbstractFastPath(AbstractLagrangianSystem):
     @property
     @abc.abstractmethod
     def base_axes(self) -> jax.Array | None:
-        """The directions a point-mass base moves along (`A`, `(m, 3)` with orthonormal
-        rows; `m` = 1: a line, 2: a plane, 3: space), or `None`: the spheres hang from a
-        fixed support."""
+        """The directions a point-mass base moves along (`A`, `(m, 3)` orthonormal rows),
+        or `None`: a fixed support."""
 
     @abc.abstractmethod
     def inertia(self, args: Args) -> jax.Array:
-        """The scalar inertia matrix `M` (over `[base, spheres]` with a base).
-
-        **Arguments:**
-        - `args`: the user's `args` (`M` may depend on them, not on `q` or time).
-
-        **Returns:** `M`, `(n, n)` (`(n + 1, n + 1)` with a base), symmetric positive
-        definite.
-        """
+        """The scalar SPD inertia matrix `M(args)` (not a function of `q` or time), `(n, n)`;
+        `(n + 1, n + 1)` over `[base, spheres]` with a base."""
 
     @abc.abstractmethod
     def inverse_inertia_bands(self, args: Args) -> tuple[jax.Array, jax.Array] | None:
-        """The bands of `M^-1` when it is tridiagonal (then every solve costs O(n)).
-
-        **Arguments:**
-        - `args`: the user's `args`.
-
-        **Returns:** its diagonal `(N,)` and off-diagonal `(N - 1,)` (`N` the size of `M`),
-        or `None` for a dense `M`.
-        """
+        """The diagonal `(N,)` and off-diagonal `(N - 1,)` of `M^-1` when it is tridiagonal
+        (O(n) solves), or `None` for a dense `M`."""
 
     @abc.abstractmethod
     def kinetic_energy(self, q, qdot, args) -> Scalar:
-        """The kinetic energy `1/2 sum_jk M_jk qdot_j . qdot_k`.
-
-        **Arguments:**
-        - `q`: the configuration.
-        - `qdot`: its velocity (same structure).
-        - `args`: the user's `args`.
-
-        **Returns:** a scalar.
-        """
+        """The kinetic energy `1/2 sum_jk M_jk qdot_j . qdot_k`."""
 
     @abc.abstractmethod
     def potential(self, t, q: Points, args: Args) -> Scalar:
-        """The potential energy `U(t, q, args)`.
-
-        **Arguments:**
-        - `t`: time.
-        - `q`: the configuration: `(n, 3)` unit vectors (with a base, the state of a
-          `chain_space`).
-        - `args`: the user's `args`.
-
-        **Returns:** a scalar.
-        """
+        """The potential energy `U(t, q, args)`, a scalar (`q` a `chain_space` state with
+        a base)."""
 
     def spheres(self, q):
-        """The unit vectors of a configuration (`q` itself without a base).
-
-        **Arguments:**
-        - `q`: a configuration (or any state-structured value: velocities, forces).
-
-        **Returns:** its `(n, 3)` sphere part.
-        """
+        """The `(n, 3)` sphere part of a state-structured `q` (`q` itself without a base)."""
         return chain_parts(q)[1]
 
     def lift(self, v) -> jax.Array:
-        """The 3-D rows of a state-structured vector: the base's components along its
-        axes become a 3-D vector (`A^T v_base`) stacked before the spheres' rows.
-
-        **Arguments:**
-        - `v`: a velocity, force or momentum of this system.
-
-        **Returns:** an `(n, 3)` array, `(n + 1, 3)` with a base.
-        """
+        """The 3-D rows of a state-structured `v`: `A^T v_base` (with a base) stacked before
+        the spheres' rows."""
         base, spheres = chain_parts(v)
         return (
             spheres if base is None else jnp.concatenate([(base @ self.base_axes)[None], spheres])
         )
 
     def drop(self, z: jax.Array):
-        """The inverse of `lift` on vectors in the base's subspace: `A z_0` and the
-        spheres' rows.
-
-        **Arguments:**
-        - `z`: 3-D rows as `lift` returns them.
-
-        **Returns:** the state-structured vector.
-        """
+        """The inverse of `lift` on vectors in the base's subspace (`A z_0`, the spheres)."""
         A = self.base_axes
         return z if A is None else chain_state(A @ z[0], z[1:])
 
@@ -148,23 +79,9 @@ class AbstractFastPath(AbstractLagrangianSystem):
         return self.kinetic_energy(q, qdot, args) - self.potential(t, q, args)
 
     def multiplier_solver(self, q, args: Args) -> Callable:
-        """The linear solve of the constrained inertia at the configuration `q`: the map
-        `(rhs, target) -> x` with `sum_j M_ij x_j = rhs_i + lam_i q_i` and
-        `q_i . x_i = target_i` (one scalar multiplier per sphere; with a base, its row
-        also takes the force normal to its subspace that keeps `x_base` in it). With
-        `target = 0`, `x` is the tangent vector with `P M x = P rhs`: the inverse of
-        `T^T (M kron I) T` applied to `T^T rhs`, without forming it. Everything that
-        depends on `q` only is built once (`_Dense` or `_Banded`, with `_BaseRow` for a
-        base), so the map can be applied to many right-hand sides (the Newton iterations
-        of `Variational`); each application is O(n) when `M^-1` is tridiagonal.
-
-        **Arguments:**
-        - `q`: the configuration (its unit vectors are normalized first).
-        - `args`: the system's `args` (they may set `M`).
-
-        **Returns:** a function `(rhs, target=None) -> x`, `rhs` and `x` structured as
-        the state, `target` of shape `(n,)` (default zeros).
-        """
+        """The solve `(rhs, target=None) -> x`, built once per `q`: `sum_j M_ij x_j = rhs_i +
+        lam_i q_i`, `q_i . x_i = target_i` (default 0: the tangent `x` with `P M x = P rhs`);
+        a base's row also takes its normal force."""
         s = normalize(self.spheres(q))
         bands = self.inverse_inertia_bands(args)
         if bands is None:
@@ -173,11 +90,7 @@ class AbstractFastPath(AbstractLagrangianSystem):
             inverse = _Banded(*(b.astype(s.dtype) for b in bands), s)
         if self.base_axes is not None:
             inverse = _BaseRow(inverse, self.base_axes.astype(s.dtype))
-
-        def multiplier_solve(rhs, target=None):
-            return self.drop(inverse.solve(self.lift(rhs), target))
-
-        return multiplier_solve
+        return lambda rhs, target=None: self.drop(inverse.solve(self.lift(rhs), target))
 
     def _vdot(self, t, q, qdot, args):
         t = as_time(t, q)
@@ -191,30 +104,15 @@ class AbstractFastPath(AbstractLagrangianSystem):
     def velocity_from_momentum(
         self, t, q, p, args=None, *, guess=None, quadratic=None, tol=None, max_steps=32
     ):
-        """The fast path of the inverse Legendre map: the tangent `qdot` with
-        `P M qdot = p`, exact, by the same multiplier solve as the accelerations (O(n) when
-        `M^-1` is tridiagonal).
-
-        **Arguments:**
-        - `t`: time.
-        - `q`: `(n, 3)` unit vectors.
-        - `p`: the momentum `mu`, `(n, 3)`.
-        - `args`: the user's `args`.
-        - `guess`, `quadratic`, `tol`, `max_steps`: the options of the general method; they do
-          not apply here.
-
-        **Returns:** `(qdot, result)`: the velocity, `(n, 3)`, and a `RESULTS` code
-        (`singular` if it is not finite).
-        """
+        """The exact tangent `qdot` with `P M qdot = p` by the multiplier solve (the general
+        method's options do not apply); `(qdot, result)`, `singular` if not finite."""
         del guess, quadratic, tol, max_steps
         v = self.multiplier_solver(q, args)(p)
         return v, RESULTS.where(all_finite(v), RESULTS.successful, RESULTS.singular)
 
 
 class _AbstractInverse(eqx.Module):
-    """`M^-1` and the Schur matrix `S_ij = (M^-1)_ij q_i . q_j` of the multipliers at a
-    configuration (its unit vectors `s`), over the rows of `lift` (the spheres' rows
-    last), built once per configuration."""
+    """`M^-1` and the Schur matrix `S` at the unit vectors `s`, over `lift`'s rows."""
 
     s: eqx.AbstractVar[jax.Array]
 
@@ -228,10 +126,8 @@ class _AbstractInverse(eqx.Module):
 
     @abc.abstractmethod
     def with_base_row(self, A: jax.Array) -> tuple["_AbstractInverse", jax.Array]:
-        """For a base moving along the rows of `A` (its row first): this inverse with
-        `S` changed by the elimination of the base's normal force, `Minv_00 c c^T
-        (q_i . P q_j)` with `c = Minv[1:, 0] / Minv_00`, `P = I - A^T A` (its first
-        diagonal entry only when `M^-1` is tridiagonal), and `M^-1 e_0`."""
+        """`S` less `Minv_00 c c^T (q_i . P q_j)`, `c = Minv[1:, 0] / Minv_00` (the base's
+        normal force eliminated; one entry when banded), and `M^-1 e_0`."""
 
     def solve(self, z: jax.Array, target=None) -> jax.Array:
         """`w = M^-1 (z + lam q)` with `q_i . w_i = target_i` (no base)."""
@@ -241,7 +137,7 @@ class _AbstractInverse(eqx.Module):
         return self.add_multipliers(y, lam)
 
     def add_multipliers(self, y: jax.Array, lam: jax.Array) -> jax.Array:
-        """`y + M^-1 (lam q)` (the spheres' rows being the last ones)."""
+        """`y + M^-1 (lam q)`."""
         padding = jnp.zeros((y.shape[0] - self.s.shape[0], 3), self.s.dtype)
         return y + self.apply(jnp.concatenate([padding, lam[:, None] * self.s]))
 
@@ -299,10 +195,8 @@ class _Banded(_AbstractInverse):
 
 
 class _BaseRow(eqx.Module):
-    """A base's row added to `inverse`: the force normal to the base's subspace
-    (`P = I - A^T A`) that keeps it there, `-P w_0 / Minv_00` with `w = Minv (rhs + lam q)`,
-    is eliminated exactly: `x = w - Minv e_0 (P w_0) / Minv_00`, and `S` changes by a
-    rank-one term (`with_base_row`): still O(n)."""
+    """A base's row added to `inverse`: with `w = Minv (rhs + lam q)`,
+    `x = w - Minv e_0 (P w_0) / Minv_00` (`with_base_row` changes `S`)."""
 
     inverse: _AbstractInverse
     P: jax.Array
@@ -323,12 +217,9 @@ class _BaseRow(eqx.Module):
 
 
 class _AbstractFixedDense(AbstractFastPath):
-    """The fast path of a chain on a fixed support with a dense `M`: no base, no bands,
-    `T = 1/2 sum_jk M_jk qdot_j . qdot_k`."""
+    """The fast path on a fixed support with a dense `M`."""
 
-    @property
-    def base_axes(self) -> None:
-        return None
+    base_axes: ClassVar[None] = None
 
     def inverse_inertia_bands(self, args):
         return None
@@ -338,10 +229,9 @@ class _AbstractFixedDense(AbstractFastPath):
 
 
 class AbstractConstantInertiaLagrangian(_AbstractFixedDense):
-    """Base of a user's system `L = 1/2 sum_jk M_jk qdot_j . qdot_k - U(t, q, args)` on
-    the fast path, hanging from a fixed support: subclasses give `inertia(args)`,
-    `potential(t, q, args)` and `forces`; the space is `Spheres()` (any `n`), `M` is
-    dense."""
+    """Base of a user's system `L = 1/2 sum_jk M_jk qdot_j . qdot_k - U(t, q, args)` on the
+    fast path, on a fixed support: subclasses give `inertia(args)`, `potential(t, q, args)`
+    and `forces`; the space is `Spheres()` (any `n`), `M` dense."""
 
     @property
     def space(self) -> AbstractSpace:
@@ -349,16 +239,14 @@ class AbstractConstantInertiaLagrangian(_AbstractFixedDense):
 
 
 class ConstantInertiaLagrangian(_AbstractFixedDense):
-    """`L = 1/2 sum_jk M_jk qdot_j . qdot_k - U(t, q, args)` on the fast path.
+    """`L = 1/2 sum_jk M_jk qdot_j . qdot_k - U(t, q, args)` on the fast path: the answers of
+    `Lagrangian(L)` without any Hessian.
 
     **Arguments:**
     - `inertia`: the `(n, n)` symmetric positive-definite scalar inertia matrix, or a
       function `inertia(args) -> (n, n)`.
     - `potential`: `U(t, q, args) -> scalar`.
-    - `forces`: optional `forces(t, q, qdot, args) -> (n, 3)` (virtual-work convention).
-
-    Gives the same answers as `Lagrangian(L)` for this `L`, without any Hessian.
-    """
+    - `forces`: optional `forces(t, q, qdot, args) -> (n, 3)` (virtual-work convention)."""
 
     inertia_matrix: jax.Array | Callable
     potential_fn: Callable
@@ -366,8 +254,7 @@ class ConstantInertiaLagrangian(_AbstractFixedDense):
 
     def __init__(self, inertia, potential, forces=None):
         self.inertia_matrix = inertia if callable(inertia) else jnp.asarray(inertia)
-        self.potential_fn = potential
-        self.forces = forces
+        self.potential_fn, self.forces = potential, forces
 
     def __check_init__(self):
         if not callable(self.inertia_matrix):
@@ -388,8 +275,7 @@ class ConstantInertiaLagrangian(_AbstractFixedDense):
 
     @property
     def space(self) -> AbstractSpace:
-        """`Spheres(n)` with the inertia matrix's `n` (`Spheres()`, any `n`, for an
-        inertia function)."""
+        """`Spheres(n)`, `n` from the matrix (`Spheres()` for an inertia function)."""
         return Spheres(None if callable(self.inertia_matrix) else self.inertia_matrix.shape[0])
 
     def inertia(self, args):

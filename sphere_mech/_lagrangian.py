@@ -56,45 +56,18 @@ class _AbstractAutodiffLagrangian(AbstractLagrangianSystem):
         return self.L(t, q, v, args)
 
     def velocity_from_momentum(
-        self,
-        t,
-        q: Points,
-        p: Tangents,
-        args: Args = None,
-        *,
-        guess=None,
-        quadratic: bool | None = None,
-        tol=None,
-        max_steps: int = 32,
+        self, t, q, p, args=None, *, guess=None, quadratic=None, tol=None, max_steps=32
     ):
-        """The inverse Legendre map: the tangent velocity `v` with `P dL/dv = p`.
-
-        One linear solve around `guess` when `L` is quadratic, otherwise refined by Newton's
-        method (globalized by a line search when needed).
-
-        **Arguments:**
-        - `t`, `q`, `args`: as in `acceleration`.
-        - `p`: the momentum (`mu` or `pi`), `(n, 3)`.
-        - `guess`: the starting velocity (default zero).
-        - `quadratic`: whether `L` is quadratic in `v` (default `quadratic_in_velocity`).
-        - `tol`: Newton's tolerance (default `eps ** 0.75` of the dtype).
-        - `max_steps`: Newton's iteration limit.
-
-        **Returns:** `(v, result)`: the velocity, `(n, 3)`, and a `RESULTS` code (never raised
-        here).
-        """
-        return invert_momentum(
-            self.lagrangian,
-            self.state_space,
-            t,
-            q,
-            p,
-            args,
-            guess=tree_zeros_like(p) if guess is None else guess,
-            quadratic=self.quadratic_in_velocity if quadratic is None else quadratic,
-            tol=newton_tolerance(tree_dtype(q)) if tol is None else tol,
-            max_steps=max_steps,
-        )
+        """The inverse Legendre map: the tangent `v` with `P dL/dv = p`, by one linear solve
+        around `guess` (default zero) when `quadratic` (default `quadratic_in_velocity`),
+        otherwise refined by Newton's method to `tol` (default `eps ** 0.75`) in at most
+        `max_steps` (globalized by a line search when needed). Returns `(v, result)`, the
+        `RESULTS` code never raised here."""
+        guess = tree_zeros_like(p) if guess is None else guess
+        quadratic = self.quadratic_in_velocity if quadratic is None else quadratic
+        tol = newton_tolerance(tree_dtype(q)) if tol is None else tol
+        options = dict(guess=guess, quadratic=quadratic, tol=tol, max_steps=max_steps)
+        return invert_momentum(self.lagrangian, self.state_space, t, q, p, args, **options)
 
 
 class Lagrangian(_AbstractAutodiffLagrangian):
@@ -170,10 +143,8 @@ class AngularLagrangian(_AbstractAutodiffLagrangian):
         after checking the state.
 
         **Arguments:**
-        - `t`: time.
-        - `q`: `(n, 3)` unit vectors.
-        - `omega`: angular velocities, `(n, 3)`, tangent at `q`.
-        - `args`: the user's `args`.
+        - `t`, `q`, `omega`, `args`: time, `(n, 3)` unit vectors, angular velocities tangent
+          at `q`, the user's `args`.
 
         **Returns:** `omegadot`, `(n, 3)`.
         """

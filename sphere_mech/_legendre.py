@@ -1,7 +1,5 @@
-"""Changes of state variables and of forms: qdot <-> omega <-> mu <-> pi, `angular`
-(form 1 -> 2, form 3 -> 4) and `legendre` (form 1 -> 3, form 2 -> 4). The inverse
-Legendre map is each Lagrangian system's `velocity_from_momentum` (the constant-inertia
-fast path, one linear solve, or Newton)."""
+"""Changes of state variables (qdot <-> omega, mu <-> pi) and of forms: `angular` (form
+1 -> 2, 3 -> 4) and `legendre` (form 1 -> 3, 2 -> 4)."""
 
 from collections.abc import Callable
 
@@ -21,11 +19,9 @@ def omega_from_qdot(q, qdot):
     """Angular velocities from velocities: `omega_i = q_i x qdot_i`.
 
     **Arguments:**
-    - `q`: points, `(n, 3)` unit vectors.
-    - `qdot`: velocities tangent at `q`, `(n, 3)`.
+    - `q`, `qdot`: `(n, 3)` unit vectors and velocities tangent at them.
 
-    **Returns:** the angular velocities `omega`, `(n, 3)`, tangent at `q` too.
-    """
+    **Returns:** the angular velocities `omega`, `(n, 3)`, tangent at `q` too."""
     return Spheres().from_linear(q, qdot)
 
 
@@ -33,24 +29,19 @@ def qdot_from_omega(q, omega):
     """Velocities from angular velocities: `qdot_i = omega_i x q_i`.
 
     **Arguments:**
-    - `q`: points, `(n, 3)` unit vectors.
-    - `omega`: angular velocities tangent at `q`, `(n, 3)`.
+    - `q`, `omega`: `(n, 3)` unit vectors and angular velocities tangent at them.
 
-    **Returns:** the velocities `qdot`, `(n, 3)`.
-    """
+    **Returns:** the velocities `qdot`, `(n, 3)`."""
     return Spheres().to_linear(q, omega)
 
 
 def pi_from_mu(q, mu):
-    """Angular momenta from momenta: `pi_i = q_i x mu_i` (the same map as for
-    velocities).
+    """Angular momenta from momenta: `pi_i = q_i x mu_i` (as for velocities).
 
     **Arguments:**
-    - `q`: points, `(n, 3)` unit vectors.
-    - `mu`: momenta tangent at `q` (form 3), `(n, 3)`.
+    - `q`, `mu`: `(n, 3)` unit vectors and momenta tangent at them (form 3).
 
-    **Returns:** the angular momenta `pi` (form 4), `(n, 3)`.
-    """
+    **Returns:** the angular momenta `pi` (form 4), `(n, 3)`."""
     return Spheres().from_linear(q, mu)
 
 
@@ -58,18 +49,15 @@ def mu_from_pi(q, pi):
     """Momenta from angular momenta: `mu_i = pi_i x q_i`.
 
     **Arguments:**
-    - `q`: points, `(n, 3)` unit vectors.
-    - `pi`: angular momenta tangent at `q` (form 4), `(n, 3)`.
+    - `q`, `pi`: `(n, 3)` unit vectors and angular momenta tangent at them (form 4).
 
-    **Returns:** the momenta `mu` (form 3), `(n, 3)`.
-    """
+    **Returns:** the momenta `mu` (form 3), `(n, 3)`."""
     return Spheres().to_linear(q, pi)
 
 
 class _Reparametrized(eqx.Module):
-    """`fn(t, q, w x q, args)`: a function of `qdot` (or, `momentum`, of `mu`) read as a
-    function of `omega` (or `pi`) (Euclidean factors keep their variable). A Module, so
-    the wrapped system's arrays stay pytree leaves."""
+    """`fn(t, q, w x q, args)`: a function of `qdot` (`mu` when `momentum`) read as one of
+    `omega` (`pi`); a Module, so the system's arrays stay leaves."""
 
     fn: Callable
     space: AbstractSpace
@@ -81,19 +69,13 @@ class _Reparametrized(eqx.Module):
 
 
 def angular(system: AbstractSystem) -> AbstractSystem:
-    """The same system in angular variables.
-
-    A form-1 Lagrangian system becomes an `AngularLagrangian`
-    (`L~(q, omega) = L(q, omega x q)`), a `Hamiltonian` becomes an `AngularHamiltonian`
-    (`H~(q, pi) = H(q, pi x q)`). Forces are carried over.
+    """The system in angular variables: `L~(q, omega) = L(q, omega x q)`, `H~ = H(q, pi x q)`.
 
     **Arguments:**
     - `system`: a form-1 Lagrangian system (`Lagrangian`, `ConstantInertiaLagrangian`, a
-      `Scene`, ...) or a `Hamiltonian`. A system already in angular variables raises
-      `TypeError`.
+      `Scene`, ...) or a `Hamiltonian`; one in angular variables raises `TypeError`.
 
-    **Returns:** an `AngularLagrangian` or an `AngularHamiltonian`.
-    """
+    **Returns:** an `AngularLagrangian` or an `AngularHamiltonian`, forces carried over."""
     if system.angular:
         raise TypeError(
             f"angular() takes a form-1 or form-3 system; {type(system).__name__} "
@@ -111,36 +93,30 @@ def angular(system: AbstractSystem) -> AbstractSystem:
 
 
 def _velocity(system, t, q, p, args, quadratic):
-    """The inverse Legendre map, NaN where it failed (never raised here: inside a run
-    that is a result code; the checked `vector_field` raises, naming the transform)."""
+    """The inverse Legendre map, NaN where it failed (not raised: a run's result code)."""
     v, result = system.velocity_from_momentum(t, q, p, args, quadratic=quadratic)
     return jax.tree.map(lambda x: jnp.where(result == RESULTS.successful, x, jnp.nan), v)
 
 
 @eqx.filter_custom_jvp
 def _legendre_value(system, t, q, p, args, *, quadratic):
-    """`H(t, q, p) = p . v - L(t, q, v)` with `v` the inverse Legendre map of `p`."""
+    """`H(t, q, p) = p . v - L(t, q, v)`, `v` the inverse Legendre map of `p`."""
     v = _velocity(system, t, q, p, args, quadratic)
     return tree_vdot(p, v) - system.lagrangian(t, q, v, args)
 
 
 @_legendre_value.def_jvp
 def _legendre_jvp(primals, tangents, *, quadratic):
-    """Envelope theorem: no derivative of the inverse Legendre map is needed.
-
-    With `r = p - dL/dv` normal to the spheres at the solution (`r_i = rho_i q_i`) and
-    `v` tangent for every `q` (so `q_i . dv_i = -v_i . dq_i`),
-    `dH = v . dp - dL|_(v fixed) - sum_i rho_i v_i . dq_i`, where `dL|_(v fixed)` also
-    carries the derivatives with respect to `t`, `args` and the system's own arrays.
-    Higher derivatives still work: this rule is itself differentiable."""
+    """Envelope theorem (`r = p - dL/dv` normal at `q`, `r . dv = c . dq` for the variations
+    that keep `v` tangent, `c` the space's `tangency_covector`; `-rho_i v_i` on the spheres):
+    `dH = v . dp - dL|_(v fixed) + c . dq`, `dL` also in `t`, `args` and the system's
+    arrays; no derivative of the inverse Legendre map, itself differentiable."""
     system, t, q, p, args = primals
     tangents = fill_zeros(tangents, primals)
     t_system, t_t, t_q, t_p, t_args = tangents
     v = _velocity(system, t, q, p, args, quadratic)
 
-    def L_fixed_v(system_, t_, q_, args_):
-        return system_.lagrangian(t_, q_, v, args_)
-
+    L_fixed_v = lambda system_, t_, q_, args_: system_.lagrangian(t_, q_, v, args_)
     L, dL = eqx.filter_jvp(L_fixed_v, (system, t, q, args), (t_system, t_t, t_q, t_args))
     r = tree_sub(p, jax.grad(lambda v_: system.lagrangian(t, q, v_, args))(v))
     dH = -fill_zeros(dL, L)  # a symbolic zero when L depends on no differentiated input
@@ -152,52 +128,35 @@ def _legendre_jvp(primals, tangents, *, quadratic):
 
 
 class _LegendreH(eqx.Module):
-    """`H(t, q, p) = p . v - L(t, q, v)` with `v` the inverse Legendre map of `p`,
-    differentiated by the envelope theorem (`_legendre_jvp`), not through the solve."""
+    """`_legendre_value` with `system` and `quadratic` fixed."""
 
     system: AbstractLagrangianSystem
     quadratic: bool | None = eqx.field(static=True)
 
-    def velocity(self, t, q, p, args):
-        return _velocity(self.system, t, q, p, args, self.quadratic)
-
     def __call__(self, t, q, p, args):
         return _legendre_value(self.system, t, q, p, args, quadratic=self.quadratic)
 
-
-class _LegendreForces(eqx.Module):
-    """A Lagrangian system's forces `f(t, q, v)` read as a function of the momentum."""
-
-    H: _LegendreH
-
-    def __call__(self, t, q, p, args):
-        system = self.H.system
-        return system.forces(t, q, self.H.velocity(t, q, p, args), args)
+    def forces(self, t, q, p, args):
+        """The system's forces `f(t, q, v)` as a function of the momentum."""
+        v = _velocity(self.system, t, q, p, args, self.quadratic)
+        return self.system.forces(t, q, v, args)
 
 
 def legendre(system: AbstractSystem, *, quadratic: bool | None = None) -> AbstractSystem:
-    """The Hamiltonian counterpart of a Lagrangian system, computed numerically.
-
-    A form-1 system (`Lagrangian`, `ConstantInertiaLagrangian`, a `Scene`, ...) gives a
-    `Hamiltonian` in `(q, mu)`; an `AngularLagrangian` gives an `AngularHamiltonian` in
-    `(q, pi)`. The velocity is recovered from the momentum by the system's
-    `velocity_from_momentum`: O(n) and exact for constant-inertia systems (chains,
-    scenes), one linear solve when `L` is quadratic in the velocity, otherwise Newton's
-    method (globalized by a line search when the linear guess leaves the domain of `L`).
-    `H` is differentiated by the envelope theorem, not through the solve.
+    """The Hamiltonian counterpart of a Lagrangian system, computed numerically (form 1 ->
+    3, 2 -> 4). The velocity comes from `velocity_from_momentum`: O(n) and exact for
+    constant inertia (chains, scenes), one linear solve for `L` quadratic in the velocity,
+    else Newton (globalized by a line search). `H` is differentiated by the envelope theorem.
 
     **Arguments:**
     - `system`: a Lagrangian system (forms 1 and 2); anything else raises `TypeError`.
-    - `quadratic`: overrides the system's `quadratic_in_velocity` declaration on the general
-      path: `True` assumes `L` is quadratic in the velocity (one linear solve; a wrong
-      velocity if it is not), `False` forces Newton's method, `None` (default) keeps the
-      system's declaration.
+    - `quadratic`: overrides `quadratic_in_velocity` on the general path: `True` means one
+      linear solve (a wrong velocity if `L` is not quadratic), `False` forces Newton,
+      `None` (default) keeps the system's declaration.
 
-    **Returns:** a `Hamiltonian` (from form 1) or an `AngularHamiltonian` (from form 2),
-    with the system's forces carried over.
-    """
+    **Returns:** a `Hamiltonian` or an `AngularHamiltonian`, with the forces carried over."""
     if not isinstance(system, AbstractLagrangianSystem):
         raise TypeError(f"legendre() takes a Lagrangian system, got {type(system)}.")
     H = _LegendreH(system, quadratic)
-    forces = _LegendreForces(H) if system.has_forces else None
+    forces = H.forces if system.has_forces else None
     return (AngularHamiltonian if system.angular else Hamiltonian)(H, forces, system.space)

@@ -1,41 +1,31 @@
-"""Linear solves of the constant-inertia fast path and the Newton iterations: dense
-symmetric positive-definite (an unrolled Cholesky for small systems) and tridiagonal
-(O(n)), differentiated as linear solves."""
+"""Dense SPD (unrolled Cholesky when small) and tridiagonal (O(n)) solves, differentiated
+as linear solves."""
 
 import jax
 import jax.numpy as jnp
 
 UNROLL_MAX = 64
-"""Largest tridiagonal system solved by the unrolled recursion below (larger ones run the
-same recursion in `lax.scan`)."""
+"""Largest tridiagonal system solved unrolled (larger ones: the same recursion in a scan)."""
 DENSE_UNROLL_MAX = 16
-"""Largest dense system factorized by the unrolled Cholesky below; larger systems use
-LAPACK (`jax.scipy.linalg.cho_solve`), whose compile time does not grow with n."""
+"""Largest dense system factorized unrolled (larger ones: LAPACK, compiling in O(1))."""
 
 
 def symmetric_solve(matvec, solve, b: jax.Array) -> jax.Array:
-    """`solve(b)`, the solution of `A x = b` for a symmetric `A` applied by `matvec`,
-    differentiated as a linear solve (`jax.lax.custom_linear_solve`) instead of through
-    the steps of `solve`: a tangent or cotangent costs one more `solve` (the same one:
-    `A` is symmetric) and one `matvec` differentiated with respect to `A`'s entries.
-    Measured on a 2-core CPU, this halves the cost of differentiating a chain's
-    integration (`benchmarks/gradients.py`)."""
+    """`solve(b)` for symmetric `A = matvec`, differentiated as a linear solve (one more
+    `solve` and a `matvec` per tangent), not through `solve`'s steps: half the cost of a
+    chain's gradient on a 2-core CPU (`benchmarks/gradients.py`)."""
     return jax.lax.custom_linear_solve(matvec, b, lambda _, r: solve(r), symmetric=True)
 
 
 def spd_solve(A: jax.Array, b: jax.Array) -> jax.Array:
-    """Solve `A x = b` for symmetric positive-definite `A` by Cholesky. A matrix that is
-    not positive definite gives non-finite output (checked by the callers).
-
-    Small systems (the usual case: one per pendulum, many pendulums under `vmap`) are
-    factorized by an unrolled column Cholesky written with elementwise operations only,
-    so that under `vmap` XLA on CPU runs each operation over the whole batch instead of
-    calling LAPACK once per tiny matrix. Derivatives: `symmetric_solve`."""
+    """Solve `A x = b` for SPD `A` by Cholesky (non-finite if `A` is not). Small systems
+    are factorized unrolled with elementwise operations, so that under `vmap` XLA on CPU
+    runs each over the whole batch instead of calling LAPACK per tiny matrix."""
     return symmetric_solve(lambda x: A @ x, _cholesky(A), b)
 
 
 def _cholesky(A):
-    """The factorization of `A`, done once, as the map `b -> A^-1 b`."""
+    """`A`'s factorization, done once, as the map `b -> A^-1 b`."""
     n = A.shape[-1]
     if n > DENSE_UNROLL_MAX:
         c = jax.scipy.linalg.cho_factor(A, lower=True)
@@ -66,21 +56,15 @@ def _cholesky(A):
 
 
 def tridiagonal_matvec(d: jax.Array, e: jax.Array, x: jax.Array) -> jax.Array:
-    """`A x` for the symmetric tridiagonal `A` with diagonal `d` (`(n,)`) and
-    off-diagonal `e` (`(n - 1,)`); `x` is `(n,)` or `(n, k)`."""
+    """`A x`, `A` symmetric tridiagonal (diagonal `d`, off-diagonal `e`), `x` `(n,)`/`(n, k)`."""
     d, e = (d.reshape(d.shape + (1,) * (x.ndim - 1)), e.reshape(e.shape + (1,) * (x.ndim - 1)))
     zero = jnp.zeros_like(x[:1])
-    below = jnp.concatenate([zero, e * x[:-1]])  # e_{i-1} x_{i-1}
-    above = jnp.concatenate([e * x[1:], zero])  # e_i x_{i+1}
-    return d * x + below + above
+    return d * x + jnp.concatenate([zero, e * x[:-1]]) + jnp.concatenate([e * x[1:], zero])
 
 
 def tridiagonal_spd_solve(d: jax.Array, e: jax.Array, b: jax.Array) -> jax.Array:
-    """Solve `A x = b` for a symmetric positive-definite tridiagonal `A` (diagonal `d`,
-    off-diagonal `e`) in O(n): an unrolled `L D L^T` factorization (the Thomas algorithm)
-    with elementwise operations only, fast under `vmap`. `b` is `(n,)` or `(n, k)`.
-    Larger systems than `UNROLL_MAX` run the same recursion in `lax.scan`. Derivatives:
-    `symmetric_solve`."""
+    """Solve `A x = b` for SPD tridiagonal `A` (as in `tridiagonal_matvec`) in O(n): the
+    Thomas algorithm (`L D L^T`), unrolled up to `UNROLL_MAX`, else in `lax.scan`."""
     return symmetric_solve(lambda x: tridiagonal_matvec(d, e, x), lambda r: _thomas(d, e, r), b)
 
 
@@ -102,11 +86,10 @@ def _thomas(d, e, b):
 
 def _tridiagonal_scan(d, e, b):
     def forward(carry, inputs):
-        piv_prev, y_prev = carry
-        d_k, e_prev, b_k = inputs
+        (piv_prev, y_prev), (d_k, e_prev, b_k) = carry, inputs
         ratio = e_prev / piv_prev
-        piv, y = d_k - ratio * e_prev, b_k - ratio * y_prev
-        return (piv, y), (piv, y)
+        carry = (d_k - ratio * e_prev, b_k - ratio * y_prev)
+        return carry, carry
 
     _, (piv, y) = jax.lax.scan(forward, (d[0], b[0]), (d[1:], e, b[1:]))
     piv, y = jnp.concatenate([d[:1], piv]), jnp.concatenate([b[:1], y])

@@ -1,5 +1,4 @@
-"""Arithmetic on pytrees of arrays (states, forces, parameters): the lowest layer, used
-by every other module."""
+"""Arithmetic on pytrees of arrays (states, forces, parameters): the lowest layer."""
 
 import functools
 import operator
@@ -26,11 +25,9 @@ def tree_scale(s, a):
 
 
 def tree_vdot(a, b):
-    """`sum a * b` over every leaf: the pairing of a force (or momentum) with a velocity."""
-    return functools.reduce(
-        operator.add,
-        [jnp.sum(x * y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True)],
-    )
+    """`sum a * b` over every leaf: a force (or momentum) paired with a velocity."""
+    pairs = zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True)
+    return functools.reduce(operator.add, [jnp.sum(x * y) for x, y in pairs])
 
 
 def tree_dtype(tree):
@@ -49,8 +46,7 @@ def tree_max_abs(tree):
 
 
 def all_finite(tree) -> jax.Array:
-    """Whether every array leaf of `tree` is finite (Python numbers count; `True` for a
-    tree without leaves)."""
+    """Whether every leaf of `tree` (Python numbers too) is finite; `True` without leaves."""
     leaves = [jnp.all(jnp.isfinite(jnp.asarray(x))) for x in jax.tree.leaves(tree)]
     return functools.reduce(jnp.logical_and, leaves, jnp.array(True))
 
@@ -67,10 +63,8 @@ def rows(mask, x):
 
 
 def as_arrays(tree):
-    """Python and NumPy floats among the leaves of `tree` (a system, `args`, parameters)
-    become JAX arrays, so a new value reuses the compiled program instead of compiling
-    another (and can be differentiated). Ints and bools stay static: they may describe
-    structure."""
+    """Python and NumPy floats among `tree`'s leaves as JAX arrays (no recompiling for a new
+    value); ints and bools stay static (they may describe structure)."""
     is_float = lambda x: (
         isinstance(x, float | complex | np.floating)
         or (isinstance(x, np.ndarray) and np.issubdtype(x.dtype, np.inexact))

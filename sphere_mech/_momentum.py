@@ -18,8 +18,7 @@ def newton_tolerance(dtype) -> float:
 
 
 def newton(tol) -> optx.Newton:
-    """Newton's method with Cauchy termination: it stops when the last correction and the
-    residual (made relative by the callers) are below `tol`."""
+    """Newton's method, stopping when the last step and the (relative) residual are `< tol`."""
     return optx.Newton(rtol=tol, atol=tol, linear_solver=lx.LU())
 
 
@@ -30,24 +29,14 @@ def residual_scale(*terms) -> jax.Array:
 
 
 def invert_momentum(L, space, t, q, p, args, *, guess, quadratic: bool, tol, max_steps: int):
-    """The tangent `v` with `P dL/dv(t, q, v) = p`, and a result code.
-
-    One linear solve around `guess` (exact when `L` is quadratic in `v`), then, unless
-    `quadratic`, Newton's method (optimistix, implicit differentiation). Where Newton
-    fails, typically because `L` is defined on a bounded set of velocities only (a
-    relativistic particle: `|v| < 1`) and the linear guess lands outside it, the
-    solve is globalized: for strictly convex `L` the velocity minimizes
-    `L(t, q, v) - p . v`, which BFGS with a backtracking line search (it rejects steps
-    where `L` is not finite) approaches from `guess`, and Newton then finishes. Failures
-    are reported as diffrax's codes, never raised (`singular` for a singular linear
-    solve). Solved in a tangent basis, so `v` stays tangent as `q` varies."""
+    """The tangent `v` with `P dL/dv(t, q, v) = p` and a result code (`singular`, never
+    raised): one linear solve around `guess`, then unless `quadratic` Newton; where Newton
+    fails (e.g. `L` defined for `|v| < 1` only), BFGS with a line search minimizes
+    `L - p . v` (strictly convex `L`) from `guess`, and Newton finishes."""
     T = space.tangent_basis(q)
-    to_tangent = space.to_tangent
-    from_tangent = space.from_tangent
+    to_tangent, from_tangent = space.to_tangent, space.from_tangent
 
-    def dL_dv(v):
-        return jax.grad(lambda v_: check_scalar(L(t, q, v_, args), "L(t, q, v, args)"))(v)
-
+    dL_dv = jax.grad(lambda v_: check_scalar(L(t, q, v_, args), "L(t, q, v, args)"))
     p_guess, hvp = jax.linearize(dL_dv, guess)
     a = to_tangent(T, guess) + jnp.linalg.solve(
         space.reduced_matrix(hvp, T), to_tangent(T, tree_sub(p, p_guess))
@@ -73,8 +62,7 @@ def invert_momentum(L, space, t, q, p, args, *, guess, quadratic: bool, tol, max
         return polish(sol.value)
 
     a, ok = polish(jnp.where(finite, a, to_tangent(T, guess)))
-    # Under `vmap` both branches run for every element: converged elements then start the
-    # fallback at their solution, so a batch with no failure leaves it after a step.
+    # Under `vmap` both branches run: converged elements start the fallback at their solution.
     start = jnp.where(ok, a, to_tangent(T, guess))
     a, ok = lax.cond(ok, lambda: (a, ok), lambda: globalized(start))
     return from_tangent(T, a), RESULTS.where(ok, RESULTS.successful, RESULTS.singular)

@@ -1,5 +1,5 @@
-"""`RESULTS`: diffrax's result codes extended with sphere_mech's failure kinds, and the
-one way every entry point turns a failed run into an error."""
+"""`RESULTS`, diffrax's result codes extended with sphere_mech's, and the one way every
+entry point turns a failed run into an error."""
 
 import diffrax
 import equinox as eqx
@@ -31,18 +31,15 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
     )
 
 
-ITEMS = tuple(
-    getattr(RESULTS, name)
-    for name in (
-        # lineax's, optimistix's, diffrax's and ours:
-        "successful max_steps_reached singular breakdown stagnation conlim nonfinite_input "
-        "nonlinear_max_steps_reached nonlinear_divergence "
-        "nonfinite dt_min_reached event_occurred max_steps_rejected internal_error "
-        "nonfinite_initial event_root_failed invalid_initial"
-    ).split()
-)
-"""Every item of `RESULTS`; `code` numbers an item by its place here. A code that a new
-diffrax, optimistix or lineax adds fails the check below at import (add its name)."""
+_NAMES = (  # lineax's, optimistix's, diffrax's and ours:
+    "successful max_steps_reached singular breakdown stagnation conlim nonfinite_input "
+    "nonlinear_max_steps_reached nonlinear_divergence "
+    "nonfinite dt_min_reached event_occurred max_steps_rejected internal_error "
+    "nonfinite_initial event_root_failed invalid_initial"
+).split()
+ITEMS = tuple(getattr(RESULTS, name) for name in _NAMES)
+"""Every item of `RESULTS`, numbered by place (`code`); a code that a new diffrax,
+optimistix or lineax adds fails the check below at import (add its name)."""
 if len(ITEMS) != len(RESULTS):
     raise ImportError(f"sphere_mech.RESULTS has {len(RESULTS)} codes, _results.ITEMS {len(ITEMS)}")
 
@@ -51,30 +48,22 @@ _NEWTON = (
     "Jacobian): use a smaller dt0, an adaptive step-size controller (it retries a failed "
     "step with a smaller one), or a root finder with more iterations."
 )
-_HINTS = (
-    (
-        RESULTS.max_steps_reached,
-        " If most steps were rejected (sol.stats with throw=False) "
-        "the step size collapsed, which happens when the vector field is NaN or singular near "
-        "the state reached; otherwise loosen rtol/atol.",
-    ),
-    (
-        RESULTS.nonfinite,
-        " The state became NaN (the step diverged or the vector field is "
-        "not defined there: a singular mass matrix, NaN parameters or forces): use a smaller "
-        "dt0 or an adaptive step-size controller.",
-    ),
-    (RESULTS.nonlinear_max_steps_reached, _NEWTON),
-    (RESULTS.nonlinear_divergence, _NEWTON),
-    (RESULTS.singular, _NEWTON),
-)
+_HINTS = {
+    "max_steps_reached": " If most steps were rejected (sol.stats with throw=False) "
+    "the step size collapsed, which happens when the vector field is NaN or singular near "
+    "the state reached; otherwise loosen rtol/atol.",
+    "nonfinite": " The state became NaN (the step diverged or the vector field is "
+    "not defined there: a singular mass matrix, NaN parameters or forces): use a smaller "
+    "dt0 or an adaptive step-size controller.",
+    "nonlinear_max_steps_reached": _NEWTON,
+    "nonlinear_divergence": _NEWTON,
+    "singular": _NEWTON,
+}
 
 
 def code(result) -> jax.Array:
-    """The number of a result code: its index in `ITEMS` (`int32`, with the batch axes of
-    `result` under `vmap`), found with the items' public `==`. Codes stay items inside the
-    library; numbers are for the boundary (messages, the command line). A concrete code
-    gives a concrete number, inside `jit` too (as the items' `==` does)."""
+    """The number (index in `ITEMS`, `int32`, batch axes kept) of a result code, by the
+    items' public `==`: concrete for a concrete code, inside `jit` too."""
     with jax.ensure_compile_time_eval():
         matches = [result == item for item in ITEMS]
     if any(isinstance(m, jax.core.Tracer) for m in matches):
@@ -83,7 +72,7 @@ def code(result) -> jax.Array:
 
 
 def _number(item) -> int:
-    """The number (`code`) of an item of `RESULTS` named in `ITEMS`, without comparing."""
+    """The number (`code`) of an item of `ITEMS`, without comparing."""
     return next(i for i, x in enumerate(ITEMS) if x is item)
 
 
@@ -97,20 +86,17 @@ def failed(values) -> jax.Array:
 
 def _messages(max_steps) -> list[str]:
     """The error message of every code, indexed by its value."""
-    hints = {_number(item): hint for item, hint in _HINTS}
-    limit = {_number(RESULTS.max_steps_reached): f"max_steps={max_steps}; "}
+    limit = lambda name: f"max_steps={max_steps}; " if name == "max_steps_reached" else ""
     return [
-        f"{RESULTS[item]}{hints.get(i, '')} ({limit.get(i, '')}with throw=False "
+        f"{RESULTS[item]}{_HINTS.get(name, '')} ({limit(name)}with throw=False "
         "nothing is raised and sol.result holds the code)"
-        for i, item in enumerate(ITEMS)
+        for name, item in zip(_NAMES, ITEMS, strict=True)
     ]
 
 
 def raise_on_failure(sol: diffrax.Solution, max_steps, what: str) -> diffrax.Solution:
-    """Raise if any trajectory of `sol` failed (its result codes may have batch axes; a
-    terminating event is no failure):
-    a `RuntimeError` naming how many, which and why when called eagerly, an
-    `eqx.branched_error_if` check with the same message when traced."""
+    """Raise if any trajectory of `sol` failed (an event is no failure): a `RuntimeError`
+    naming how many, which and why, or when traced an `eqx.branched_error_if` saying so."""
     ok = (sol.result == RESULTS.successful) | (sol.result == RESULTS.event_occurred)
     if not isinstance(ok, jax.core.Tracer) and bool(np.all(ok)):
         return sol  # the usual case, decided without numbering the codes (`code`)
@@ -125,8 +111,7 @@ def raise_on_failure(sol: diffrax.Solution, max_steps, what: str) -> diffrax.Sol
 
 
 def raise_on_codes(values: np.ndarray, max_steps, what: str) -> None:
-    """Raise a `RuntimeError` naming how many of the result code values `values` (a
-    flat array) failed, which and why; nothing if none did."""
+    """Raise a `RuntimeError` naming how many of the flat code values failed, which and why."""
     bad = np.flatnonzero(failed(values))
     if bad.size == 0:
         return
@@ -136,7 +121,7 @@ def raise_on_codes(values: np.ndarray, max_steps, what: str) -> None:
 
 def describe_failures(bad: np.ndarray, size: int, failed: str, one: str) -> str:
     """`" 2 of 8 <failed> (indices 3, 5); <one> 3:"` for the failed members `bad` of a
-    batch of `size` (`""` for a batch of one): what errors about a batch say first."""
+    batch of `size` (`""` for one)."""
     if size == 1:
         return ""
     shown = ", ".join(map(str, bad[:10])) + (", ..." if bad.size > 10 else "")

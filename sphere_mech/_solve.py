@@ -1,5 +1,4 @@
-"""The one solve core: `simulate` and `simulate_batch` both run `solve`, with the same
-options, the same result codes and the same errors."""
+"""The one solve core: `simulate` and `simulate_batch` both run `prepare` and `solve`."""
 
 import functools
 import inspect
@@ -20,8 +19,7 @@ from ._solvers.projected import Projected
 from ._term import MechanicsTerm
 
 DEFAULT_MAX_STEPS = 100_000
-"""Default `max_steps` of `simulate` and `simulate_batch`: the most steps one run may take
-before it fails with `RESULTS.max_steps_reached`."""
+"""Default `max_steps` of `simulate` and `simulate_batch` (past it: `max_steps_reached`)."""
 DEFAULT_TOLERANCES = {np.dtype("float64"): (1e-8, 1e-10), np.dtype("float32"): (1e-5, 1e-6)}
 """Default `(rtol, atol)` of the adaptive step-size controller, by dtype of `q`."""
 
@@ -29,8 +27,7 @@ DEFAULT_TOLERANCES = {np.dtype("float64"): (1e-8, 1e-10), np.dtype("float32"): (
 def default_solver() -> diffrax.AbstractSolver:
     """The solver `simulate` uses when none is given.
 
-    **Returns:** `Projected(diffrax.Tsit5())`.
-    """
+    **Returns:** `Projected(diffrax.Tsit5())`."""
     return Projected(diffrax.Tsit5())
 
 
@@ -40,7 +37,7 @@ class Options(eqx.Module):
     solver: diffrax.AbstractSolver
     controller: diffrax.AbstractStepSizeController
     saveat: diffrax.SaveAt
-    adjoint: diffrax.AbstractAdjoint | None  # None: `default_adjoint`, chosen per derivative
+    adjoint: diffrax.AbstractAdjoint | None  # None: `default_adjoint_run`
     meter: diffrax.AbstractProgressMeter
     event: diffrax.Event | None
     max_steps: int | None = eqx.field(static=True)
@@ -64,9 +61,7 @@ def options(
     adjoint=None,
     event=None,
 ) -> "Options":
-    """Check the options of `simulate` (`batched=False`) or `simulate_batch` (`batched=True`)
-    for a state of `dtype` (values: `check_values`; combinations: `ValueError`) and
-    complete them (default solver, controller and `SaveAt`)."""
+    """`simulate`'s options (`simulate_batch`'s if `batched`), checked and completed."""
     check_values(t0, t1, dt0, rtol, atol, max_steps)
     solver = default_solver() if solver is None else as_solver(solver)
     if stepsize_controller is not None:
@@ -76,10 +71,9 @@ def options(
             )
         controller = stepsize_controller
     elif isinstance(solver, diffrax.AbstractAdaptiveSolver):
-        default_rtol, default_atol = DEFAULT_TOLERANCES.get(np.dtype(dtype), (1e-5, 1e-6))
-        controller = diffrax.PIDController(
-            rtol=default_rtol if rtol is None else rtol, atol=default_atol if atol is None else atol
-        )
+        defaults = DEFAULT_TOLERANCES.get(np.dtype(dtype), (1e-5, 1e-6))
+        rtol, atol = (d if x is None else x for x, d in zip((rtol, atol), defaults, strict=True))
+        controller = diffrax.PIDController(rtol=rtol, atol=atol)
     else:
         if rtol is not None or atol is not None:
             raise ValueError(
@@ -99,22 +93,13 @@ def options(
         raise ValueError(
             f"{type(solver).__name__} with fixed steps needs a step size: pass dt0=..."
         )
-    return Options(
-        solver,
-        controller,
-        diffrax.SaveAt(t1=True) if saveat is None else saveat,
-        adjoint,
-        diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter(),
-        event,
-        max_steps,
-        batched,
-    )
+    saveat = diffrax.SaveAt(t1=True) if saveat is None else saveat
+    meter = diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter()
+    return Options(solver, controller, saveat, adjoint, meter, event, max_steps, batched)
 
 
 class OptionError(ValueError):
-    """A bad value of an option of `simulate`, `simulate_batch`, `fit` or a scene file:
-    `"<field> must be ... (got <value>)"`; `field` names the option (scene files prefix
-    it with `simulate.`)."""
+    """A bad value of the option `field` of `simulate`, `simulate_batch`, `fit` or a scene file."""
 
     def __init__(self, field: str, message: str):
         self.field = field
@@ -122,19 +107,16 @@ class OptionError(ValueError):
 
 
 def _concrete(x) -> float | None:
-    """A concrete scalar as a float; `None` for `None`, a traced value or an array of
-    another shape (left to diffrax)."""
+    """A concrete scalar as a float; `None` for `None`, a tracer or a non-scalar."""
     if x is None or isinstance(x, jax.core.Tracer) or np.ndim(x) != 0:
         return None
     return float(x)
 
 
 def check_values(t0, t1, dt0, rtol, atol, max_steps) -> None:
-    """The one check of the values of the options of `simulate`, `simulate_batch`, `fit`
-    and scene files, where they are concrete (traced values pass): finite times, a
-    finite nonzero `dt0` with the sign of `t1 - t0` (the direction of integration),
-    finite `rtol`, `atol` > 0, an integer `max_steps` >= 1 (or `None`). Raises an
-    `OptionError` (a `ValueError`) `"<name> must be ... (got <value>)"`."""
+    """The one check of concrete option values (traced ones pass): finite times, a finite
+    nonzero `dt0` with the sign of `t1 - t0`, finite `rtol`, `atol` > 0, an integer
+    `max_steps` >= 1 or `None`; else an `OptionError`."""
     t0, t1, dt0, rtol, atol = map(_concrete, (t0, t1, dt0, rtol, atol))
     for name, t in (("t0", t0), ("t1", t1)):
         if t is not None and not math.isfinite(t):
@@ -151,20 +133,15 @@ def check_values(t0, t1, dt0, rtol, atol, max_steps) -> None:
     for name, tol in (("rtol", rtol), ("atol", atol)):
         if tol is not None and not (math.isfinite(tol) and tol > 0):
             raise OptionError(name, f"{name} must be a finite number > 0 (got {tol:g})")
-    if max_steps is not None and not (
-        isinstance(max_steps, int | np.integer)
-        and not isinstance(max_steps, bool)
-        and max_steps >= 1
-    ):
+    integer = isinstance(max_steps, int | np.integer) and not isinstance(max_steps, bool)
+    if max_steps is not None and not (integer and max_steps >= 1):
         raise OptionError(
             "max_steps", f"max_steps must be an integer >= 1 or None (got {max_steps!r})"
         )
 
 
 class Run(eqx.Module):
-    """What `solve` runs, as `prepare` made it: the system and `args` (Python floats as
-    arrays), the checked initial state(s) on the tangent bundle (with a leading batch
-    axis for `simulate_batch`), times in the state's dtype and the options."""
+    """What `solve` runs, as `prepare` made it (initial states with a batch axis if batched)."""
 
     system: Any
     y0: Any
@@ -174,24 +151,13 @@ class Run(eqx.Module):
     dt0: Any
     opts: Options
     valid: Any  # which initial states are valid (one entry per member of a batch)
-    throw: bool = eqx.field(static=True)  # raise for a failed run (after the solve)
-
-    @property
-    def inputs(self) -> tuple:
-        """`(system, y0, t0, t1, dt0, args)`, as `solve` takes them."""
-        return self.system, self.y0, self.t0, self.t1, self.dt0, self.args
+    throw: bool = eqx.field(static=True)
 
 
 def prepare(system, y0, args=None, *, batched=False, batch_system=False, throw=True, **options_):
-    """The one prologue of `simulate`, `simulate_batch`, the command line's program and
-    (through `simulate`) `fit`: the state pair `y0` checked against `system.space`
-    (shapes statically; values per state by `initial_states`, raising unless `batched`
-    with `throw=False`), the options checked and completed (`options`, keyword-only: the
-    names of `simulate`'s; with `batch_system` the system's arrays have a leading batch
-    axis and the space is its members'), Python floats among the system and `args` as arrays
-    (`as_arrays`) and times in the state's dtype (`times`).
-
-    **Returns:** a `Run`."""
+    """The one prologue of `simulate`, `simulate_batch` and the command line: a `Run` with
+    `y0` checked (`initial_states`, raising unless `batched` with `throw=False`), `options`
+    completed, Python floats as arrays and times in the state's dtype."""
     what = "simulate_batch" if batched else "simulate"
     unknown = sorted(set(options_) - set(OPTION_NAMES))
     if unknown:
@@ -209,33 +175,28 @@ def prepare(system, y0, args=None, *, batched=False, batch_system=False, throw=T
     member = lambda: jax.tree.map(lambda x: x[0] if eqx.is_array(x) else x, system)
     space = (member() if batch_system else system).state_space
     space.check_shapes(*jax.tree.map(lambda x: x[0], (q0, v0)), system.state_name)
-    dtype = tree_dtype((q0, v0))  # one floating dtype for the whole state
+    dtype = tree_dtype((q0, v0))
     opts = options(dtype=dtype, batched=batched, **options_)
     system, args = as_arrays((system, args))
     t0, t1, dt0 = times(dtype, options_.get("t0", 0.0), options_["t1"], options_.get("dt0"))
     y0 = jax.tree.map(lambda x: x.astype(dtype), (q0, v0))
     y0, valid = initial_states(space, system.state_name, y0, what, throw or not batched)
-    if not batched:
-        y0 = jax.tree.map(lambda x: x[0], y0)
+    y0 = y0 if batched else jax.tree.map(lambda x: x[0], y0)
     return Run(system, y0, args, t0, t1, dt0, opts, valid, throw)
 
 
-OPTION_NAMES = tuple(
-    "t0 t1 solver dt0 rtol atol stepsize_controller saveat max_steps progress adjoint event "
-    "throw".split()
-)
+OPTION_NAMES = ("t0", "t1", "solver", "dt0", "rtol", "atol", "stepsize_controller", "saveat")
+OPTION_NAMES += ("max_steps", "progress", "adjoint", "event", "throw")
 """The options `simulate` and `simulate_batch` share, as `prepare` takes them."""
 
 
 def run_options(scope: dict) -> dict:
-    """The shared options among the arguments `scope` of `simulate` (its `locals()`)."""
+    """The shared options among `simulate`'s `locals()`."""
     return {name: scope[name] for name in OPTION_NAMES}
 
 
 def shared_signature(fn, like) -> inspect.Signature:
-    """The signature of `fn(..., **options)` with its `options` spelled out as `like`'s
-    (`simulate_batch` takes `simulate`'s options: one list of them, shown by `help` and
-    `inspect.signature`)."""
+    """The signature of `fn(..., **options)` with `options` spelled out as `like`'s."""
     own = inspect.signature(fn).parameters
     options = [p for name, p in inspect.signature(like).parameters.items() if name in OPTION_NAMES]
     params = [p for p in own.values() if p.kind is not p.VAR_KEYWORD]
@@ -244,14 +205,12 @@ def shared_signature(fn, like) -> inspect.Signature:
 
 
 def times(dtype, *ts):
-    """Times as arrays of the state's dtype (`None` stays `None`): new values of `t0`,
-    `t1` or `dt0` do not recompile, and float64 times do not promote a float32 state."""
+    """Times as arrays of the state's dtype (`None` stays): no recompiles, no promotion."""
     return tuple(None if t is None else jnp.asarray(t, dtype=dtype) for t in ts)
 
 
 def state_pair(y0, shapes: str):
-    """`y0` as a pair of arrays (or dicts of arrays) `(q0, v0)`; nested Python lists of
-    numbers become float arrays."""
+    """`y0` as a pair `(q0, v0)` of arrays (or dicts of them); nested lists as float arrays."""
     if not (isinstance(y0, tuple | list) and len(y0) == 2):
         raise ValueError(
             f"y0 must be a pair (q0, v0) of {shapes} arrays (dicts of arrays on a mixed space)."
@@ -261,14 +220,8 @@ def state_pair(y0, shapes: str):
 
 
 def initial_states(space, state_name: str, y0, what: str, check: bool):
-    """Initial states with a leading batch axis (shapes checked), each put on the
-    tangent bundle, and the invalid ones (`space.problems`: NaN, off the spheres, not
-    tangent) found per state: `(y0, valid)`, each invalid state replaced by the first
-    valid one (a stand-in: the caller discards its run).
-
-    With `check`, an invalid state raises: a `ValueError` naming how many, which and the
-    first one's problem (prefixed `what: `) when the states are concrete, an equinox
-    runtime error with the problem's message when traced."""
+    """`(y0, valid)`: batched initial states retracted, invalid ones (`space.problems`)
+    replaced by the first valid one; with `check` an invalid state raises."""
     y0, problem, messages = _initial_states(space, state_name, y0, check and _traced(y0))
     problem = problem if _traced(problem) else np.asarray(problem)
     if check and not _traced(problem):
@@ -297,19 +250,15 @@ def _initial_states(space, state_name, y0, raise_traced: bool):
 
     messages = one(jax.tree.map(lambda x: x[0], y0))[2]
     y0, problem = jax.vmap(lambda y: one(y)[:2])(y0)
-    # An invalid state is replaced by the first valid one: a stand-in whose run is
-    # discarded. (A NaN state would stop at once but stay on its "first step", and
-    # diffrax's Runge-Kutta methods then re-evaluate the first stage of every member of
-    # its vmap at every step (`unvmap_any(first_step)`), which changes the others'
-    # results with `Projected`, whose reused last stage is at the unprojected point.)
+    # Not the invalid state itself: a NaN run stuck on its first step makes diffrax redo every
+    # member's first stage (`unvmap_any(first_step)`), which moves the others with `Projected`.
     stand_in = jax.tree.map(lambda x: x[jnp.argmax(problem < 0)], y0)
     y0 = jax.tree.map(lambda x, s: jnp.where(rows(problem < 0, x), x, s), y0, stand_in)
     return y0, problem, messages
 
 
 def solve(system, y0, t0, t1, dt0, args, opts: Options) -> diffrax.Solution:
-    """One trajectory with the adjoint of `opts`, or the default one when it is `None`
-    (`default_adjoint_run`); as `solve_with`."""
+    """`solve_with` the adjoint of `opts`, or `default_adjoint_run` when it is `None`."""
     if opts.adjoint is None:
         inputs = (system, y0, t0, t1, dt0, args)
         return default_adjoint_run(inputs, opts=opts, solve_with=solve_with)
@@ -317,17 +266,12 @@ def solve(system, y0, t0, t1, dt0, args, opts: Options) -> diffrax.Solution:
 
 
 def solve_with(adjoint, system, y0, t0, t1, dt0, args, opts: Options) -> diffrax.Solution:
-    """One trajectory, never raising for a run-time failure: `sol.result` is a
-    `RESULTS` code. Non-finite rates at the initial state give
-    `RESULTS.nonfinite_initial`; a trajectory that stepped into NaN, `RESULTS.nonfinite`
-    (an adaptive controller rejects such steps; fixed steps carry the NaN to the end)."""
+    """One trajectory, never raising: `sol.result` is a `RESULTS` code."""
     ok = all_finite(system.rates(t0, y0, args))
     saveat = opts.saveat
     if isinstance(opts.controller, diffrax.AbstractAdaptiveStepSizeController):
-        # Not finite at the start: integrate over [t0, t0] (no step, nothing saved)
-        # instead of letting the controller reject NaN steps until max_steps. Fixed steps
-        # keep t1: their step count does not depend on the state, so under vmap the loop
-        # stays unbatched (no select over the loop state at every step).
+        # Not finite at the start: no step over [t0, t0], not NaN steps rejected until
+        # max_steps. Fixed steps keep t1, so under vmap their loop stays unbatched.
         saveat = eqx.tree_at(_save_times, saveat, replace_fn=lambda ts: jnp.where(ok, ts, t0))
         t1 = jnp.where(ok, t1, t0)
     sol = diffrax.diffeqsolve(
@@ -346,8 +290,7 @@ def solve_with(adjoint, system, y0, t0, t1, dt0, args, opts: Options) -> diffrax
         event=opts.event,
         throw=False,
     )
-    # Unreached save times are `inf` in diffrax, never NaN: only NaN is looked for.
-    # A dense-only SaveAt saves no values (`sol.ys` is None): nothing to look at.
+    # Unreached save times are `inf`, never NaN; a dense-only SaveAt saves nothing.
     has_nan = functools.reduce(
         jnp.logical_or, [jnp.any(jnp.isnan(y)) for y in jax.tree.leaves(sol.ys)], jnp.array(False)
     )
@@ -378,10 +321,7 @@ _DEFAULT_SAVE_FN = diffrax.SubSaveAt(t1=True).fn
 
 
 def _retract_saved(space, saveat: diffrax.SaveAt, ys):
-    """Dense output between steps (`SaveAt(ts=...)`) is a polynomial that leaves the
-    spheres by the local error: put saved states back on the tangent bundle. Only
-    states saved by diffrax's default `fn` are touched, and only finite entries (diffrax
-    pads unreached save times with `inf`)."""
+    """Saved states (diffrax's default `fn`, finite entries) put back on the tangent bundle."""
     subs = saveat.subs
     if isinstance(subs, diffrax.SubSaveAt):
         return _retract_if_state(space, subs, ys)

@@ -17,8 +17,6 @@ SINGULAR_MESSAGE = (
     "the reduced mass matrix T^T (d^2 L / d v^2) T is singular or not finite: the "
     "Lagrangian is degenerate at this state (for example a zero mass or length)"
 )
-
-
 NONFINITE_PARAMETERS = (
     "the equations of motion are not finite and args or the system's parameters contain "
     "NaN or infinite values"
@@ -26,9 +24,8 @@ NONFINITE_PARAMETERS = (
 
 
 def check_rates(x, message: str, system, args):
-    """Error (at run time) when the rates `x` are not finite: blaming NaN or infinite
-    array leaves of `args` or of `system` when there are any, else `message` (a singular
-    mass matrix, a degenerate Hamiltonian)."""
+    """Error (at run time) when the rates `x` are not finite, blaming NaN or infinite
+    leaves of `args` or `system` if any, else `message`."""
     inexact = lambda x: eqx.is_inexact_array(x) or isinstance(x, float | complex)
     params = eqx.filter((system, args), inexact)
     return eqx.branched_error_if(
@@ -37,27 +34,18 @@ def check_rates(x, message: str, system, args):
 
 
 def as_time(t, like: jax.Array) -> jax.Array:
-    """`t` as a scalar array of `like`'s floating dtype (so it can be differentiated)."""
+    """`t` as a scalar array of `like`'s floating dtype (differentiable)."""
     return jnp.asarray(t, dtype=tree_dtype(like))
 
 
 class AbstractSystem(eqx.Module):
-    """A mechanical system whose state is `(q, v)`: `q` an `(n, 3)` array of unit vectors
-    and `v` the system's second state variable, tangent to the spheres: `qdot` or `omega`
-    (Lagrangian forms), `mu` or `pi` (Hamiltonian forms), named by `state_name`.
-    `angular` says whether `v` is an angular variable (`omega`, `pi`: `q_i x` the linear
-    one) or a linear one (`qdot`, `mu`).
-
-    `forces` is `None` or `forces(t, q, v, args) -> (n, 3)`, generalized forces with
-    virtual work `sum_i f_i . delta q_i`. Concrete systems implement `rates` (the
-    unchecked time derivative of the state, the vector field handed to diffrax),
-    `energy` and `velocity` (the `qdot` of a state).
-
-    `space` is the configuration space (`Spheres()` for plain `(n, 3)` arrays; a
-    `Product` of factors for mixed spaces, whose states, velocities and forces are dicts
-    with one array per factor): every form, check and solver asks it for projections,
-    tangent bases and angular variables.
-    """
+    """A mechanical system with state `(q, v)`: `q` `(n, 3)` unit vectors, `v` tangent,
+    named by `state_name`: `qdot`, `omega` (Lagrangian forms), `mu`, `pi` (Hamiltonian);
+    `angular` for `omega`, `pi` (`q_i x` the linear one). `forces`: `None` or
+    `forces(t, q, v, args) -> (n, 3)` (virtual work `sum_i f_i . delta q_i`). `space`:
+    `Spheres()` for plain arrays, a `Product` (dict states) for mixed spaces; every form,
+    check and solver asks it for projections, tangent bases and angular variables.
+    Concrete systems implement `rates`, `energy` and `velocity`."""
 
     forces: eqx.AbstractVar[ForceFn | None]
     space: eqx.AbstractVar[AbstractSpace]
@@ -66,29 +54,22 @@ class AbstractSystem(eqx.Module):
 
     @abc.abstractmethod
     def rates(self, t, y: State, args: Args) -> State:
-        """`d(q, v)/dt`: the vector field handed to diffrax, with no input checks
-        (Runge-Kutta stages may be slightly off the spheres).
+        """`d(q, v)/dt`: the vector field handed to diffrax, unchecked (Runge-Kutta stages
+        may be slightly off the spheres).
 
         **Arguments:**
-        - `t`: time.
-        - `y`: the state `(q, v)`, `(n, 3)` arrays.
-        - `args`: the user's `args`.
+        - `t`, `y`, `args`: time, the state `(q, v)` and the user's `args`.
 
-        **Returns:** `(qdot, vdot)`, `(n, 3)` arrays.
-        """
+        **Returns:** `(qdot, vdot)`, `(n, 3)` arrays."""
 
     @abc.abstractmethod
     def energy(self, t, q: Points, v: Tangents, args: Args = None) -> Scalar:
         """Total energy (the Hamiltonian) at the state `(q, v)`.
 
         **Arguments:**
-        - `t`: time.
-        - `q`: `(n, 3)` unit vectors.
-        - `v`: the system's second state variable, `(n, 3)`.
-        - `args`: the user's `args`.
+        - `t`, `q`, `v`, `args`: time, `(n, 3)` unit vectors, the state variable, `args`.
 
-        **Returns:** a scalar.
-        """
+        **Returns:** a scalar."""
 
     @abc.abstractmethod
     def velocity(self, t, q: Points, v: Tangents, args: Args = None) -> Tangents:
@@ -97,8 +78,7 @@ class AbstractSystem(eqx.Module):
         **Arguments:**
         - `t`, `q`, `v`, `args`: as in `energy`.
 
-        **Returns:** `qdot`, `(n, 3)`.
-        """
+        **Returns:** `qdot`, `(n, 3)`."""
 
     @property
     def state_space(self) -> AbstractSpace:
@@ -117,9 +97,7 @@ class AbstractSystem(eqx.Module):
         **Arguments:**
         - `t`, `q`, `v`, `args`: as in `energy`.
 
-        **Returns:** `f`, `(n, 3)`, or `None` without forces (then no force operation is
-        compiled).
-        """
+        **Returns:** `f`, `(n, 3)`, or `None` without forces (nothing compiled)."""
         if self.forces is None:
             return None
         f = self.forces(t, q, v, args)
@@ -132,23 +110,20 @@ class AbstractSystem(eqx.Module):
         **Arguments:**
         - `t`, `q`, `v`, `args`: as in `energy`.
 
-        **Returns:** a scalar (zero without forces).
-        """
+        **Returns:** a scalar (zero without forces)."""
         f = self.generalized_force(t, q, v, args)
         if f is None:
             return jnp.zeros((), dtype=tree_dtype(q))
         return tree_vdot(f, self.velocity(t, q, v, args))
 
     def check_state(self, q: Points, v: Tangents) -> State:
-        """Raise a clear error if `(q, v)` is not a valid state (shape, number of
-        spheres, unit length, tangency, within `unit_tolerance`), as the space checks it.
+        """Raise a clear error if `(q, v)` is not a valid state (shapes, unit length and
+        tangency within `unit_tolerance`).
 
         **Arguments:**
-        - `q`: `(n, 3)` unit vectors.
-        - `v`: the system's second state variable, `(n, 3)`, tangent at `q`.
+        - `q`, `v`: `(n, 3)` unit vectors and the second state variable, tangent at `q`.
 
-        **Returns:** the unchanged state `(q, v)`.
-        """
+        **Returns:** the unchanged state `(q, v)`."""
         self.state_space.check_shapes(q, v, self.state_name)
         return self.state_space.check_values(q, v, self.state_name)
 
@@ -156,33 +131,25 @@ class AbstractSystem(eqx.Module):
         """The linear variable (`qdot` or `mu`) of the state variable `v`.
 
         **Arguments:**
-        - `q`: `(n, 3)` unit vectors.
-        - `v`: the state variable (`omega x q` for angular forms, `v` itself otherwise).
+        - `q`, `v`: `(n, 3)` unit vectors and the state variable.
 
-        **Returns:** `(n, 3)`.
-        """
+        **Returns:** `omega x q` for angular forms, `v` otherwise."""
         return self.space.to_linear(q, v) if self.angular else v
 
     def from_linear(self, q: Points, x: Tangents) -> Tangents:
         """The state variable of the linear variable `x` (`qdot` or `mu`).
 
         **Arguments:**
-        - `q`: `(n, 3)` unit vectors.
-        - `x`: `qdot` or `mu`, `(n, 3)`.
+        - `q`, `x`: `(n, 3)` unit vectors and `qdot` or `mu`.
 
-        **Returns:** `q x x` for angular forms, `x` otherwise.
-        """
+        **Returns:** `q x x` for angular forms, `x` otherwise."""
         return self.space.from_linear(q, x) if self.angular else x
 
 
 class AbstractLagrangianSystem(AbstractSystem):
-    """A system given by a Lagrangian `L(t, q, v, args)` in its velocity variable `v`
-    (`qdot`, form 1, or `omega`, form 2).
-
-    `quadratic_in_velocity` declares `L` (at most) quadratic in `v`: the inverse
-    Legendre map (`velocity_from_momentum`) is then one linear solve instead of Newton's
-    method (`Lagrangian`, `AngularLagrangian`); the constant-inertia fast path has its
-    own, exact one."""
+    """A system given by a Lagrangian `L(t, q, v, args)` (`v`: `qdot`, form 1, or `omega`,
+    form 2); `quadratic_in_velocity` (`L` at most quadratic in `v`) makes the inverse
+    Legendre map one linear solve instead of Newton's method."""
 
     quadratic_in_velocity: eqx.AbstractVar[bool]
 
@@ -191,13 +158,9 @@ class AbstractLagrangianSystem(AbstractSystem):
         """The Lagrangian in the system's own velocity variable.
 
         **Arguments:**
-        - `t`: time.
-        - `q`: `(n, 3)` unit vectors.
-        - `v`: `qdot` (form 1) or `omega` (form 2), `(n, 3)`.
-        - `args`: the user's `args`.
+        - `t`, `q`, `v`, `args`: time, `(n, 3)` unit vectors, `qdot` or `omega`, `args`.
 
-        **Returns:** a scalar.
-        """
+        **Returns:** a scalar."""
 
     @abc.abstractmethod
     def _vdot(self, t, q: Points, v: Tangents, args: Args) -> Tangents:
@@ -208,18 +171,13 @@ class AbstractLagrangianSystem(AbstractSystem):
         return self.to_linear(q, v), self._vdot(t, q, v, args)
 
     def acceleration(self, t, q: Points, v: Tangents, args: Args = None) -> Tangents:
-        """`qddot` at the state `(q, v)` (Proposition 1; in form 2 the time
-        derivative of `omega x q`). Checks its input (shapes, unit `q`, tangent `v`) and raises
-        on a singular reduced mass matrix.
+        """`qddot` at the state `(q, v)` (Proposition 1; in form 2 the time derivative of
+        `omega x q`). Checks the state and raises on a singular reduced mass matrix.
 
         **Arguments:**
-        - `t`: time.
-        - `q`: `(n, 3)` unit vectors.
-        - `v`: `qdot` (form 1) or `omega` (form 2), `(n, 3)`, tangent at `q`.
-        - `args`: the user's `args`.
+        - `t`, `q`, `v`, `args`: as in `lagrangian`, `v` tangent at `q`.
 
-        **Returns:** `qddot`, `(n, 3)`.
-        """
+        **Returns:** `qddot`, `(n, 3)`."""
         q, v = self.check_state(q, v)
         qddot = jax.jvp(self.to_linear, (q, v), self.rates(t, (q, v), args))[1]
         return check_rates(qddot, SINGULAR_MESSAGE, self, args)
@@ -231,11 +189,9 @@ class AbstractLagrangianSystem(AbstractSystem):
         """The Lagrangian as a function of `qdot`, whatever the form.
 
         **Arguments:**
-        - `t`, `q`, `args`: as in `lagrangian`.
-        - `qdot`: velocities, `(n, 3)`.
+        - `t`, `q`, `qdot`, `args`: as in `lagrangian`, with velocities `qdot`.
 
-        **Returns:** a scalar.
-        """
+        **Returns:** a scalar."""
         return self.lagrangian(t, q, self.from_linear(q, qdot), args)
 
     def _dL_dv(self, t, q, v, args) -> Tangents:
@@ -246,20 +202,18 @@ class AbstractLagrangianSystem(AbstractSystem):
         """The conjugate momentum `P dL/dv` (`mu` in form 1, `pi` in form 2).
 
         **Arguments:**
-        - `t`, `q`, `v`, `args`: as in `acceleration`.
+        - `t`, `q`, `v`, `args`: as in `lagrangian`.
 
-        **Returns:** the momentum, `(n, 3)`, tangent at `q`.
-        """
+        **Returns:** the momentum, `(n, 3)`, tangent at `q`."""
         return self.state_space.project(q, self._dL_dv(t, q, v, args))
 
     def energy(self, t, q, v, args=None):
         """The energy `E = sum_i v_i . dL/dv_i - L`.
 
         **Arguments:**
-        - `t`, `q`, `v`, `args`: as in `acceleration`.
+        - `t`, `q`, `v`, `args`: as in `lagrangian`.
 
-        **Returns:** a scalar.
-        """
+        **Returns:** a scalar."""
         return tree_vdot(v, self._dL_dv(t, q, v, args)) - self.lagrangian(t, q, v, args)
 
     @abc.abstractmethod
@@ -267,14 +221,10 @@ class AbstractLagrangianSystem(AbstractSystem):
         """The inverse Legendre map: the tangent velocity `v` with `P dL/dv = p`.
 
         **Arguments:**
-        - `t`, `q`, `args`: as in `acceleration`.
-        - `p`: the momentum (`mu` or `pi`), `(n, 3)`.
-        - `options`: `guess`, `quadratic`, `tol`, `max_steps` of the general method
-          (Newton from `guess`; one linear solve when `quadratic`).
+        - `t`, `q`, `p`, `args`: as in `lagrangian`, with the momentum `p` (`mu` or `pi`).
+        - `options`: `guess`, `quadratic`, `tol`, `max_steps` of the general method (Newton).
 
-        **Returns:** `(v, result)`: the velocity, `(n, 3)`, and a `RESULTS` code (never raised
-        here).
-        """
+        **Returns:** `(v, result)`: the velocity and a `RESULTS` code (never raised here)."""
 
 
 class AbstractHamiltonianSystem(AbstractSystem):
@@ -297,22 +247,16 @@ class AbstractHamiltonianSystem(AbstractSystem):
         return self._hamilton(q, p, dH_dp, dH_dq if f is None else tree_sub(dH_dq, f))
 
     def _gradients(self, t, q, p, args):
-        def H(q_, p_):
-            return check_scalar(self.H(as_time(t, q), q_, p_, args), "H(t, q, p, args)")
-
+        H = lambda q_, p_: check_scalar(self.H(as_time(t, q), q_, p_, args), "H(t, q, p, args)")
         return jax.grad(H, argnums=(0, 1))(q, p)
 
     def energy(self, t, q, p, args=None):
         """The Hamiltonian `H(t, q, p, args)`.
 
         **Arguments:**
-        - `t`: time.
-        - `q`: `(n, 3)` unit vectors.
-        - `p`: the momentum (`mu` or `pi`), `(n, 3)`.
-        - `args`: the user's `args`.
+        - `t`, `q`, `p`, `args`: time, `(n, 3)` unit vectors, `mu` or `pi`, `args`.
 
-        **Returns:** a scalar.
-        """
+        **Returns:** a scalar."""
         return self.H(t, q, p, args)
 
     def velocity(self, t, q, p, args=None):
@@ -321,8 +265,7 @@ class AbstractHamiltonianSystem(AbstractSystem):
         **Arguments:**
         - `t`, `q`, `p`, `args`: as in `energy`.
 
-        **Returns:** `qdot`, `(n, 3)`.
-        """
+        **Returns:** `qdot`, `(n, 3)`."""
         dH_dp = self._gradients(t, q, p, args)[1]
         return self.to_linear(q, dH_dp) if self.angular else self.space.project(q, dH_dp)
 
@@ -332,15 +275,12 @@ class AbstractHamiltonianSystem(AbstractSystem):
         **Arguments:**
         - `t`, `q`, `p`, `args`: as in `energy`; `p` tangent at `q`.
 
-        **Returns:** `(qdot, pdot)`, two `(n, 3)` arrays (`(qdot, mudot)` in form 3,
-        `(qdot, pidot)` in form 4).
-        """
+        **Returns:** `(qdot, pdot)` (`(qdot, mudot)` in form 3, `(qdot, pidot)` in form 4)."""
         q, p = self.check_state(q, p)
-        qdot, pdot = self.rates(t, (q, p), args)
         message = (
             "Hamilton's equations are not finite at this state: H or its gradient is NaN "
             "or infinite (a degenerate Hamiltonian; for sm.legendre(system): the Legendre "
             "transform is not invertible at this state, e.g. a zero mass or a sphere "
             "without kinetic energy; or NaN parameters)"
         )
-        return check_rates((qdot, pdot), message, self, args)
+        return check_rates(self.rates(t, (q, p), args), message, self, args)

@@ -7,11 +7,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import central_differences, fitted_order
 from scipy.integrate import solve_ivp
 from scipy.special import ellipj
 
 import sphere_mech as sm
-from helpers import central_differences, fitted_order
 
 J = jnp.array([1.0, 2.0, 3.0])  # J1 < J2 < J3
 RHO = jnp.array([0.1, -0.2, 1.0])  # the centre of mass in the body frame (m)

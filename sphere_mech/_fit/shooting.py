@@ -1,5 +1,4 @@
-"""Multiple shooting for `fit`: the records cut into segments, the residual function, and
-a custom JVP that builds each segment's Jacobian once."""
+"""Multiple shooting for `fit`: segments, residuals, each segment's Jacobian built once."""
 
 from collections.abc import Callable
 
@@ -19,11 +18,9 @@ from .._system import AbstractSystem
 
 
 def split_segments(ts: Array, observations: Array, segments: int) -> tuple[Array, ...]:
-    """`ts (B, T)` and `observations (B, T, ...)` cut into `segments = K` pieces:
-    `(ts, obs, t0, t1, mask)`, each with leading axes `(B, K)`. Segment `k` runs from
-    observation `bounds[k]` to `bounds[k + 1]` and owns the observations from
-    `bounds[k]` up to the next segment's first (the last one: to the end), padded by
-    repeating its last one with `mask` False there."""
+    """`ts (B, T)` and `observations (B, T, ...)` cut into `K` segments: `(ts, obs, t0, t1,
+    mask)` with leading axes `(B, K)`. Segment `k` runs from observation `bounds[k]` to
+    `bounds[k + 1]` and owns those before the next segment's first, padded (`mask` False)."""
     num_records, num_times = ts.shape
     if not isinstance(segments, int) or segments < 1:
         raise ValueError(f"segments must be a positive integer, got {segments!r}.")
@@ -52,12 +49,17 @@ def model_output(model: Callable, params: PyTree) -> tuple[AbstractSystem, PyTre
     )
 
 
+def simulate_at(system, args, state, t0, t1, ts, sim: dict):
+    """`(q, v)` at `ts` of `simulate` from `state` at `t0` to `t1`, never raising."""
+    saveat = diffrax.SaveAt(ts=ts)
+    return simulate(system, state, t1, t0=t0, args=args, saveat=saveat, throw=False, **sim).ys
+
+
 def map_flagged(fn: Callable, tree: PyTree, flags: tuple[bool, ...]) -> PyTree:
     """`fn` applied to the leaves of `tree` whose flag is True."""
     leaves, treedef = jtu.tree_flatten(tree)
-    return jtu.tree_unflatten(
-        treedef, [fn(x) if f else x for x, f in zip(leaves, flags, strict=True)]
-    )
+    mapped = [fn(x) if f else x for x, f in zip(leaves, flags, strict=True)]
+    return jtu.tree_unflatten(treedef, mapped)
 
 
 def over_states(fn: Callable) -> Callable:
@@ -65,15 +67,19 @@ def over_states(fn: Callable) -> Callable:
     return jax.vmap(jax.vmap(fn))
 
 
-class Residuals(eqx.Module):
-    """The least-squares residuals `(unknowns, (segment data, y0)) -> (observation
-    residuals (B, K, W, ...), continuity jumps (dq, dv))`, the jumps with the structure of
-    a state and leading axes `(B, K - 1)` (`(B, K - 1, n, 3)` arrays on (S^2)^n).
+def with_first(y0, rest):
+    """`y0` as segment 0 before `rest` (leading axes `(B, K - 1)`, or `None`)."""
+    first = jtu.tree_map(lambda y: y[:, None], y0)
+    if rest is None:
+        return first
+    return jtu.tree_map(lambda a, b: jnp.concatenate([a, b], 1), first, rest)
 
-    The unknowns are `(u, z)`: `u` the fitted parameters (leaves flagged `positive` as
-    their logarithm), `z` the ambient pairs `(a, b)` that `space.retract` puts on the
-    tangent bundle at the starts of the segments after the first (of all segments with
-    `fit_initial_state`), or `None`."""
+
+class Residuals(eqx.Module):
+    """The residuals `((u, z), (segment data, y0)) -> (observation residuals (B, K, W, ...),
+    continuity jumps (dq, dv) with leading axes (B, K - 1))`: `u` the fitted parameters
+    (`positive` ones as logarithms), `z` the ambient pairs `(a, b)` that `space.retract`
+    makes the starts of segments 2..K (1..K with `fit_initial_state`), or `None`."""
 
     model: Callable
     space: AbstractSpace
@@ -89,53 +95,39 @@ class Residuals(eqx.Module):
         return eqx.combine(map_flagged(jnp.exp, u, self.positive), self.static_params)
 
     def states(self, z, y0):
-        """Initial states of all segments, leading axes `(B, K)`, on the tangent bundle."""
+        """Initial states of all segments, leading axes `(B, K)`."""
         retract = over_states(self.space.retract)
         if self.fit_initial_state:
             return retract(*z)
-        first = jtu.tree_map(lambda y: y[:, None], y0)
-        if z is None:
-            return first
-        return jtu.tree_map(lambda a, b: jnp.concatenate([a, b], 1), first, retract(*z))
+        return with_first(y0, None if z is None else retract(*z))
 
     def segment(self, u, state, ts, obs, t0, t1, mask):
         """Masked observation residuals of one segment and its state at `t1`."""
         system, args = model_output(self.model, self.params(u))
-        saveat = diffrax.SaveAt(ts=jnp.append(ts, t1))
-        q, v = simulate(
-            system, state, t1, t0=t0, args=args, saveat=saveat, throw=False, **self.sim
-        ).ys
+        q, v = simulate_at(system, args, state, t0, t1, jnp.append(ts, t1), self.sim)
         q_obs, v_obs = jtu.tree_map(lambda x: x[:-1], (q, v))
         pred = jax.vmap(self.observe, in_axes=(None, 0, 0, 0))(system, ts, q_obs, v_obs)
         mask = mask.reshape(mask.shape + (1,) * (pred.ndim - 1))
         return jnp.where(mask, pred - obs, 0.0), jtu.tree_map(lambda x: x[-1], (q, v))
 
     def __call__(self, unknowns, data):
-        segment_data, y0 = data
-        u, z = unknowns
-        qs, vs = self.states(z, y0)
-        res, ends = _segments(u, (qs, vs), problem=self, data=segment_data)
+        (u, z), (segment_data, y0) = unknowns, data
+        states = self.states(z, y0)
+        res, ends = _segments(u, states, problem=self, data=segment_data)
         w = jnp.sqrt(self.continuity).astype(res.dtype)
-        return res, jtu.tree_map(lambda e, s: w * (e[:, :-1] - s[:, 1:]), ends, (qs, vs))
-
-
-def _over_segments(fn, states, data):
-    """`fn(state, ts, obs, t0, t1, mask)` over all records and segments."""
-    return over_states(fn)(states, *data)
+        return res, jtu.tree_map(lambda e, s: w * (e[:, :-1] - s[:, 1:]), ends, states)
 
 
 @eqx.filter_custom_jvp
 def _segments(u, states, *, problem, data):
-    return _over_segments(lambda s, *d: problem.segment(u, s, *d), states, data)
+    return over_states(lambda s, *d: problem.segment(u, s, *d))(states, *data)
 
 
 @_segments.def_jvp
 def _segments_jvp(primals, tangents, *, problem, data):
-    """Segment `k` depends only on the parameters and its own initial state: build each
-    segment's Jacobian (`dim(u)` columns plus the size of a state, `6n` on (S^2)^n;
-    forward mode; or its rows, reverse mode) once, from the primals only, then apply it
-    to any tangent. Under the `vmap` over basis tangents that materializes the
-    least-squares Jacobian, its cost is thus independent of the number of segments."""
+    """Segment `k` depends only on `u` and its own initial state: its Jacobian (`dim(u)`
+    plus `6n` columns on (S^2)^n, by `jac`) is built once from the primals and applied to
+    any tangent, so the `vmap` over basis tangents costs the same for any number of segments."""
     u, states = primals
     du, dstates = (fill_zeros(t, p) for t, p in zip(tangents, primals, strict=True))
     u_flat, unravel_u = ravel_pytree(u)
@@ -147,13 +139,13 @@ def _segments_jvp(primals, tangents, *, problem, data):
 
     jacobian = jax.jacfwd if problem.jac == "fwd" else jax.jacrev
     block = jacobian(flat, argnums=(0, 1), has_aux=True)
-    (J_u, J_s), out = _over_segments(lambda s, *d: block(u_flat, s, *d), s_flat, data)
+    (J_u, J_s), out = over_states(lambda s, *d: block(u_flat, s, *d))(s_flat, *data)
     ds_flat = _ravel_segments(dstates)[0]
     t_out = J_u @ ravel_pytree(du)[0] + jnp.einsum("bkrs,bks->bkr", J_s, ds_flat)
-    return out, jax.vmap(jax.vmap(_ravel_segments(out)[1]))(t_out)
+    return out, over_states(_ravel_segments(out)[1])(t_out)
 
 
 def _ravel_segments(tree):
-    """A pytree of `(B, K, ...)` arrays as `(B, K, m)`, and the unravel of one segment."""
-    flat = jax.vmap(jax.vmap(lambda x: ravel_pytree(x)[0]))(tree)
+    """`(B, K, ...)` arrays as `(B, K, m)`, and the unravel of one segment."""
+    flat = over_states(lambda x: ravel_pytree(x)[0])(tree)
     return flat, ravel_pytree(jtu.tree_map(lambda x: x[0, 0], tree))[1]

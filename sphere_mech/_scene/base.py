@@ -12,8 +12,7 @@ import numpy as np
 from .._checks import unit_tolerance
 
 MAX_MAGNITUDE = 1e100
-"""The largest magnitude of a parameter: products and squares of a few such numbers (an
-energy `m g l`, a kinetic energy `m v^2`) stay finite in float64."""
+"""The largest magnitude of a parameter: products of a few (`m g l`, `m v^2`) stay finite."""
 MAX_COUNT = 100_000
 """The most items (links, particles, beads) one kinetic term may have."""
 
@@ -42,18 +41,13 @@ def _show(x) -> str:
 
 def check_magnitude(name: str, x) -> None:
     """`x` finite and within `MAX_MAGNITUDE` elementwise, unless traced."""
-    if not _concrete(x):
-        return
-    a = np.asarray(x)
-    if not jnp.issubdtype(a.dtype, jnp.inexact):
+    a = np.asarray(x) if _concrete(x) else None
+    if a is None or not jnp.issubdtype(a.dtype, jnp.inexact):
         return
     bad = ~(np.abs(a).astype(np.float64) <= MAX_MAGNITUDE)  # NaN too; float32 compared in 64
     if np.any(bad):
-        raise ParameterError(
-            name,
-            f"{name} must be finite and at most {MAX_MAGNITUDE:g} in "
-            f"magnitude, got {a[bad].flat[0]:g}",
-        )
+        message = f"{name} must be finite and at most {MAX_MAGNITUDE:g} in magnitude"
+        raise ParameterError(name, f"{message}, got {a[bad].flat[0]:g}")
 
 
 def check_fields(module: eqx.Module) -> None:
@@ -92,9 +86,8 @@ def check_axes(name: str, x) -> None:
         if not error <= tol:
             raise ParameterError(
                 name,
-                f"{name} must be orthonormal rows (unit length, "
-                f"mutually perpendicular, within {tol:g}), got "
-                f"{_show(x)}",
+                f"{name} must be orthonormal rows (unit length, mutually perpendicular, "
+                f"within {tol:g}), got {_show(x)}",
             )
 
 
@@ -114,15 +107,14 @@ def check_index(owner, name: str, i: int, n: int) -> None:
     if not -n <= i < n:
         raise ParameterError(
             name,
-            f"{type(owner).__name__}.{name} must be a sphere index "
-            f"in [-{n}, {n}) (the scene has {n} spheres), got {i}",
+            f"{type(owner).__name__}.{name} must be a sphere index in [-{n}, {n}) "
+            f"(the scene has {n} spheres), got {i}",
         )
 
 
 def per_item(count: int | None, count_name: str, **arrays) -> list[jax.Array]:
-    """Arrays of one value per item: a scalar broadcasts to `count` entries (`count`, the
-    argument `count_name`, defaults to the length of the 1-D arrays given; at most
-    `MAX_COUNT`, checked before anything is allocated); all must have the same length."""
+    """Arrays of one value per item, scalars broadcast to `count` (argument `count_name`;
+    default: the 1-D arrays' length; at most `MAX_COUNT`, checked before allocating)."""
     if count is not None and not 1 <= count <= MAX_COUNT:
         raise ParameterError(
             count_name, f"{count_name} must be an integer from 1 to {MAX_COUNT}, got {count}"
@@ -143,31 +135,27 @@ def per_item(count: int | None, count_name: str, **arrays) -> list[jax.Array]:
     return out
 
 
-class AbstractEffect(eqx.Module):
-    """Anything a scene can list. Parameters are array leaves; counts and indices are
-    static. Each effect checks its own parameters in `__check_init__` (every floating
-    array finite and within `MAX_MAGNITUDE`, here) and its indices against the scene in
-    `check`."""
+class _Checked(eqx.Module):
+    """Every floating array field finite and within `MAX_MAGNITUDE`; an optional `check`."""
 
     def __check_init__(self):
         check_fields(self)
 
     def check(self, scene) -> None:
-        """Raise `ValueError` if this effect does not fit `scene` (indices, counts). The
-        one optional hook of an effect (a user's own effect need not check anything): by
-        default it checks nothing."""
+        """Raise `ValueError` if this does not fit `scene` (indices, counts); an optional
+        hook, by default checking nothing."""
+
+
+class AbstractEffect(_Checked):
+    """Anything a scene can list: parameters are array leaves (checked in `__check_init__`),
+    counts and indices static (checked against the scene in `check`)."""
 
 
 class Drawing(NamedTuple):
-    """What a picture shows of a kinetic term, its masses numbered from 0 (its own).
-
-    **Attributes:**
-    - `links`: polylines, each `(support, masses)`: the fixed `(3,)` point it starts from
-      and the masses it joins, in order (in a scene with a moving `Base`, the polyline
-      starts from the base's point instead).
-    - `spheres`: `(centre, radius)` of each sphere drawn (one that several masses share).
-    - `free`: the masses on no link.
-    """
+    """What a picture shows of a kinetic term, its masses numbered from 0 (its own):
+    polylines `links`, each `(support, masses)` (the fixed `(3,)` point, or a moving
+    `Base`'s, and the masses joined in order); `spheres`, `(centre, radius)` of each
+    sphere several masses share; `free`, the masses on no link."""
 
     links: tuple[tuple[np.ndarray, tuple[int, ...]], ...] = ()
     spheres: tuple[tuple[np.ndarray, float], ...] = ()
@@ -175,9 +163,8 @@ class Drawing(NamedTuple):
 
 
 class AbstractKinetic(AbstractEffect):
-    """A block of spheres carrying one point mass each, with a constant scalar inertia.
-
-    Its kinetic energy is `1/2 sum_jk M_jk qdot_j . qdot_k` on its own spheres."""
+    """A block of spheres carrying one point mass each, with a constant scalar inertia:
+    kinetic energy `1/2 sum_jk M_jk qdot_j . qdot_k` on its own spheres."""
 
     masses: eqx.AbstractVar[jax.Array]
 
@@ -188,25 +175,16 @@ class AbstractKinetic(AbstractEffect):
 
     @abc.abstractmethod
     def point_masses(self) -> jax.Array:
-        """The masses carried by the spheres (`masses` plus any payload).
-
-        **Returns:** an `(n,)` array (kg).
-        """
+        """The masses the spheres carry (`masses` plus any payload). **Returns:** `(n,)` (kg)."""
 
     @abc.abstractmethod
     def inertia(self) -> jax.Array:
-        """The block's scalar inertia matrix.
-
-        **Returns:** `M`, `(n, n)`, over this block's spheres.
-        """
+        """The block's scalar inertia matrix. **Returns:** `M`, `(n, n)`."""
 
     @abc.abstractmethod
     def inverse_inertia_bands(self) -> tuple[jax.Array, jax.Array]:
-        """The bands of `M^-1`, tridiagonal for every kinetic term here (used by
-        the O(n) fast path).
-
-        **Returns:** its diagonal `(n,)` and off-diagonal `(n - 1,)`.
-        """
+        """The bands of `M^-1`, tridiagonal for every kinetic term here (the O(n) fast path).
+        **Returns:** its diagonal `(n,)` and off-diagonal `(n - 1,)`."""
 
     @abc.abstractmethod
     def positions(self, q: jax.Array) -> jax.Array:
@@ -215,32 +193,22 @@ class AbstractKinetic(AbstractEffect):
         **Arguments:**
         - `q`: this block's unit vectors, `(n, 3)`.
 
-        **Returns:** the positions, `(n, 3)` (m).
-        """
+        **Returns:** the positions, `(n, 3)` (m)."""
 
     @abc.abstractmethod
     def parents(self) -> tuple[int, ...]:
-        """The joint structure, for joint damping and joint torques.
-
-        **Returns:** for each sphere, the local index of its parent in its joint (-1: the
-        support).
-        """
+        """The joint structure, for joint damping and joint torques. **Returns:** each sphere's
+        parent's local index (-1: the support)."""
 
     @abc.abstractmethod
     def bends(self) -> tuple[tuple[int, int], ...]:
-        """Where bending stiffness acts.
-
-        **Returns:** the local index pairs `(i, i + 1)` of consecutive links (may be none).
-        """
+        """Where bending stiffness acts. **Returns:** the local index pairs `(i, i + 1)` of
+        consecutive links (may be none)."""
 
     @abc.abstractmethod
     def drawing(self) -> Drawing:
-        """What a picture of this block shows (`sm.animate`, `sphere-mech run`'s figures);
-        called with concrete parameters, outside `jit`.
-
-        **Returns:** a `Drawing`: its links, shared spheres and free masses, numbered
-        locally.
-        """
+        """What a picture of this block shows (`sm.animate`, `sphere-mech run`'s figures),
+        with concrete parameters, outside `jit`. **Returns:** a `Drawing`, numbered locally."""
 
 
 class AbstractPotential(AbstractEffect):
@@ -251,13 +219,10 @@ class AbstractPotential(AbstractEffect):
         """The potential energy of the scene's configuration.
 
         **Arguments:**
-        - `t`: time.
-        - `q`: the scene's unit vectors, `(n, 3)`.
-        - `scene`: the `Scene` (positions, masses and joints).
-        - `args`: the user's `args`.
+        - `t`, `q`: time and the scene's unit vectors, `(n, 3)`.
+        - `scene`, `args`: the `Scene` (positions, masses and joints) and the user's `args`.
 
-        **Returns:** a scalar (J).
-        """
+        **Returns:** a scalar (J)."""
 
 
 class AbstractForce(AbstractEffect):
@@ -269,27 +234,16 @@ class AbstractForce(AbstractEffect):
         """The generalized force, virtual work `sum_i f_i . delta q_i`.
 
         **Arguments:**
-        - `t`: time.
-        - `q`: the scene's unit vectors, `(n, 3)`.
-        - `qdot`: their velocities, `(n, 3)`.
-        - `scene`: the `Scene` (positions, masses and joints).
-        - `args`: the user's `args`.
+        - `t`, `q`, `qdot`: time, the scene's unit vectors and their velocities, `(n, 3)`.
+        - `scene`, `args`: the `Scene` (positions, masses and joints) and the user's `args`.
 
-        **Returns:** `f`, `(n, 3)`.
-        """
+        **Returns:** `f`, `(n, 3)`."""
 
 
-class AbstractDrive(eqx.Module):
+class AbstractDrive(_Checked):
     """A controller for a torque or force: `drive(t, q, qdot, args) -> (3,)` (scene files
-    write it as an inline table). Its floating arrays are checked as an effect's."""
-
-    def __check_init__(self):
-        check_fields(self)
+    write it as an inline table). Its floating arrays and `check` are as an effect's."""
 
     @abc.abstractmethod
     def __call__(self, t, q, qdot, args) -> jax.Array:
         """The `(3,)` torque or force."""
-
-    def check(self, scene) -> None:
-        """Raise `ValueError` if this drive does not fit `scene`; optional, as an
-        effect's: by default it checks nothing."""

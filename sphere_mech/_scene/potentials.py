@@ -17,10 +17,8 @@ def safe_norm(x: jax.Array) -> jax.Array:
 
 
 class Gravity(AbstractPotential):
-    """Uniform gravity.
-
-    `U = -g sum_i m_i direction . x_i` over the positions `x_i` of the masses (a `Base`
-    included).
+    """Uniform gravity. `U = -g sum_i m_i direction . x_i` over the positions `x_i` of the
+    masses (a `Base` too).
 
     **Arguments:**
     - `g`: strength (m/s^2), a scalar `>= 0`.
@@ -40,9 +38,7 @@ class Gravity(AbstractPotential):
 
 
 class Spring(AbstractPotential):
-    """A linear spring between two points of the scene.
-
-    `U = 1/2 k (|x_a - x_b| - L0)^2`.
+    """A linear spring between two points of the scene. `U = 1/2 k (|x_a - x_b| - L0)^2`.
 
     **Arguments:**
     - `a`, `b`: the ends: each the index of a mass of the scene (an `int`, static;
@@ -64,15 +60,12 @@ class Spring(AbstractPotential):
         rest_length: jax.Array = 0.0,
     ):
         self.ends = tuple(int(e) if isinstance(e, int | np.integer) else None for e in (a, b))
+        anchors = []
         for name, end, i in zip("ab", (a, b), self.ends, strict=True):
             if i is None:
                 base.check_vector(name, end)
-        self.anchors = jnp.stack(
-            [
-                base.as_float(jnp.zeros(3) if i is not None else end)
-                for end, i in zip((a, b), self.ends, strict=True)
-            ]
-        )
+            anchors.append(base.as_float(jnp.zeros(3) if i is not None else end))
+        self.anchors = jnp.stack(anchors)
         self.stiffness, self.rest_length = stiffness, rest_length
 
     def __check_init__(self):
@@ -114,12 +107,8 @@ class Bending(AbstractPotential):
         if joints == 0:
             raise ParameterError("", "Bending needs a Chain with at least two links in the scene")
         if jnp.ndim(self.stiffness):
-            base.check_shape(
-                "stiffness",
-                self.stiffness,
-                (joints,),
-                f"a scalar or {joints} values, one per joint",
-            )
+            what = f"a scalar or {joints} values, one per joint"
+            base.check_shape("stiffness", self.stiffness, (joints,), what)
 
     def potential(self, t, q, scene, args):
         i, j = scene.bend_pairs()
@@ -133,7 +122,6 @@ MAX_PAIRS = 10**7
 
 class PairInteraction(AbstractPotential):
     """A pairwise interaction between masses, `U = k sum_{i<j} c_i c_j / |x_i - x_j|^p`.
-
     Inverse-distance repulsion of charges `c_i` for `p = 1`, `k > 0`.
 
     **Arguments:**
@@ -168,15 +156,14 @@ class PairInteraction(AbstractPotential):
         if pairs > MAX_PAIRS:
             raise ParameterError(
                 "masses",
-                f"PairInteraction sums over at most {MAX_PAIRS:.0e} "
-                f"pairs, got {len(idx)} masses ({pairs:.2e} pairs)",
+                f"PairInteraction sums over at most {MAX_PAIRS:.0e} pairs, got {len(idx)} "
+                f"masses ({pairs:.2e} pairs)",
             )
         for i in idx:
             base.check_index(self, "masses", int(i), scene.n)
         if self.charges is not None:
-            base.check_shape(
-                "charges", self.charges, (len(idx),), f"one value per interacting mass ({len(idx)})"
-            )
+            what = f"one value per interacting mass ({len(idx)})"
+            base.check_shape("charges", self.charges, (len(idx),), what)
 
     def potential(self, t, q, scene, args):
         x = scene.positions(q)

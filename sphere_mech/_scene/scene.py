@@ -18,16 +18,12 @@ from .potentials import Gravity
 
 class Scene(AbstractFastPath):
     """The system `L = sum kinetic - sum potentials`, `f = sum forces` of the listed
-    effects, on the Corollary-1 fast path (O(n)); state `(q, qdot)`.
-
-    Kinetic terms stack their spheres in the order given. Only the listed effects are
-    traced, each under its class name (no force effect: `forces` is `None`). Each
-    effect is checked against the scene (indices, counts) at construction.
-
-    With a `Base`, the scene's one `Chain` hangs from the moving base and the state
-    holds the base's coordinates `(m,)` beside the unit vectors `(n, 3)` (the space
-    `chain_space(m, n)`, the product of `Euclidean(m)` and `Spheres(n)`); the fast path
-    stays O(n).
+    effects, on the Corollary-1 fast path (O(n)); state `(q, qdot)`. Kinetic terms stack
+    their spheres in the order given; only the listed effects are traced, each under its
+    class name (no force effect: `forces` is `None`), and each is checked against the
+    scene (indices, counts) at construction. With a `Base`, the one `Chain` hangs from
+    the moving base and the state holds the base's coordinates `(m,)` beside the unit
+    vectors `(n, 3)` (the space `chain_space(m, n)`); the fast path stays O(n).
 
     **Arguments:**
     - `effects`: the effects, in any order: at least one kinetic term (`Chain`,
@@ -87,8 +83,10 @@ class Scene(AbstractFastPath):
     def base_axes(self):
         return None if self.base is None else self.base.axes
 
-    def _offsets(self) -> list[int]:
-        return list(np.cumsum([0] + [k.n for k in self.kinetic]))
+    def _blocks(self):
+        """Each kinetic term with the global indices `start, stop` of its spheres."""
+        o = np.cumsum([0] + [k.n for k in self.kinetic])
+        return zip(self.kinetic, o[:-1], o[1:], strict=True)
 
     def _with_base(self) -> tuple[jax.Array, jax.Array]:
         """The masses and lengths of the chain with the base as its first point."""
@@ -102,158 +100,108 @@ class Scene(AbstractFastPath):
         return jsl.block_diag(*[k.inertia() for k in self.kinetic])
 
     def inverse_inertia_bands(self, args=None):
-        """The bands of `M^-1`: `M` is block-diagonal over the kinetic terms and each
-        block has a tridiagonal inverse, so `M^-1` is tridiagonal (zero coupling between
-        blocks): O(n) solves.
-
-        **Arguments:**
-        - `args`: unused (the inertia is the effects' own).
-
-        **Returns:** its diagonal `(n,)` and off-diagonal `(n - 1,)` (`n + 1` and `n` with
-        a `Base`: the chain's with the base as its first point).
-        """
+        # M is block-diagonal, each block with a tridiagonal inverse: zero coupling between.
         if self.base is not None:
             return chain_inverse_bands(*self._with_base())
         bands = [k.inverse_inertia_bands() for k in self.kinetic]
         d = jnp.concatenate([b[0] for b in bands])
         zero = jnp.zeros((1,), dtype=d.dtype)
-        e = jnp.concatenate(
-            [part for k, b in enumerate(bands) for part in ((zero,) if k else ()) + (b[1],)]
-        )
-        return d, e
+        return d, jnp.concatenate([part for b in bands for part in (zero, b[1])][1:])
 
     def masses(self) -> jax.Array:
-        """The point masses of the kinetic terms, in the order of the spheres.
-
-        **Returns:** an `(n,)` array (kg).
-        """
+        """The point masses of the kinetic terms, sphere by sphere. **Returns:** `(n,)` (kg)."""
         return jnp.concatenate([k.point_masses() for k in self.kinetic])
 
     def positions(self, q) -> jax.Array:
         """Positions of the masses the spheres carry, in the support frame.
 
         **Arguments:**
-        - `q`: the scene's configuration: `(n, 3)` unit vectors (with a `Base`, the state
-          of `chain_space(m, n)`).
+        - `q`: the configuration, `(n, 3)` unit vectors (with a `Base`, `chain_space(m, n)`'s).
 
-        **Returns:** the positions, `(n, 3)` (m).
-        """
-        (base, s), o = chain_parts(q), self._offsets()
-        x = jnp.concatenate(
-            [k.positions(s[a:b]) for k, a, b in zip(self.kinetic, o[:-1], o[1:], strict=True)]
-        ).astype(s.dtype)
+        **Returns:** the positions, `(n, 3)` (m)."""
+        base, s = chain_parts(q)
+        x = jnp.concatenate([k.positions(s[a:b]) for k, a, b in self._blocks()]).astype(s.dtype)
         return x if base is None else x + self.base.point(base)
 
     def points(self, q) -> jax.Array:
-        """Positions of every point mass: the base's point (with a `Base`) first, then
-        `positions(q)`.
+        """Positions of every point mass: the base's point (with a `Base`), then `positions`.
 
         **Arguments:**
-        - `q`: the scene's configuration.
+        - `q`: the configuration.
 
-        **Returns:** an `(n, 3)` array (`(n + 1, 3)` with a `Base`) (m).
-        """
+        **Returns:** an `(n, 3)` array (`(n + 1, 3)` with a `Base`) (m)."""
         x, base = self.positions(q), chain_parts(q)[0]
         return x if base is None else jnp.concatenate([self.base.point(base)[None], x])
 
     def point_masses(self) -> jax.Array:
-        """The masses at `points(q)`.
-
-        **Returns:** an `(n,)` array (`(n + 1,)` with a `Base`) (kg).
-        """
+        """The masses at `points(q)`. **Returns:** `(n,)` (`(n + 1,)` with a `Base`) (kg)."""
         m = self.masses()
         return m if self.base is None else jnp.concatenate([self.base.mass[None], m])
 
     def on_spheres(self, f: jax.Array):
-        """A generalized force acting on the spheres only, structured as the state.
+        """A generalized force on the spheres only, structured as the state.
 
         **Arguments:**
         - `f`: the spheres' part, `(n, 3)`.
 
-        **Returns:** `f`, or with a `Base` the force with zeros on the base.
-        """
+        **Returns:** `f`, or with a `Base` the force with zeros on the base."""
         return chain_state(None if self.base is None else jnp.zeros((self.base.m,), f.dtype), f)
 
     def parents(self) -> np.ndarray:
-        """The joint structure of the scene.
-
-        **Returns:** the global index of each sphere's parent in its joint (-1: the support),
-        an `(n,)` integer array.
-        """
-        blocks = zip(self.kinetic, self._offsets(), strict=False)
-        return np.asarray(
-            [p + a if p >= 0 else -1 for k, a in blocks for p in k.parents()], dtype=int
-        )
+        """The joint structure of the scene. **Returns:** each sphere's parent's global
+        index (-1: the support), an `(n,)` integer array."""
+        parents = [p + a if p >= 0 else -1 for k, a, _ in self._blocks() for p in k.parents()]
+        return np.asarray(parents, dtype=int)
 
     def bend_pairs(self) -> tuple[np.ndarray, np.ndarray]:
-        """Where bending stiffness acts.
-
-        **Returns:** global index arrays `(i, j)` of consecutive links.
-        """
-        blocks = zip(self.kinetic, self._offsets(), strict=False)
-        pairs = [(i + a, j + a) for k, a in blocks for i, j in k.bends()]
+        """Where bending stiffness acts. **Returns:** index arrays `(i, j)` of consecutive links."""
+        pairs = [(i + a, j + a) for k, a, _ in self._blocks() for i, j in k.bends()]
         return np.asarray(pairs, dtype=int).reshape(-1, 2).T
 
     def kinetic_energy(self, q, qdot, args=None):
-        """`T = 1/2 sum_i m_i |xdot_i|^2` over every point mass, O(n).
-
-        **Arguments:**
-        - `q`: the scene's configuration.
-        - `qdot`: its velocity.
-        - `args`: unused.
-
-        **Returns:** a scalar (J).
-        """
+        # T = 1/2 sum_i m_i |xdot_i|^2 over every point mass, O(n).
         xdot = jax.jvp(self.points, (q,), (qdot,))[1]
         T = 0.5 * jnp.sum(self.point_masses() * jnp.sum(xdot**2, axis=-1))
         return T.astype(xdot.dtype)
 
+    def _sum(self, effects, total, term):
+        """`total` plus each effect's `term(e)` (in `total`'s dtype), under its class name."""
+        for e in effects:
+            with jax.named_scope(type(e).__name__):
+                total = jax.tree.map(lambda a, b: a + b.astype(a.dtype), total, term(e))
+        return total
+
     def potential(self, t, q, args=None):
-        dtype = tree_dtype(q)
-        U = jnp.zeros((), dtype=dtype)
-        for p in self.potentials:
-            with jax.named_scope(type(p).__name__):
-                U = U + p.potential(t, q, self, args).astype(dtype)
-        return U
+        U = jnp.zeros((), dtype=tree_dtype(q))
+        return self._sum(self.potentials, U, lambda p: p.potential(t, q, self, args))
 
     def _force(self, t, q, qdot, args):
-        f = tree_zeros_like(q)
-        for e in self.force_effects:
-            with jax.named_scope(type(e).__name__):
-                fe = e.generalized_force(t, q, qdot, self, args)
-                f = jax.tree.map(lambda a, b: a + b.astype(a.dtype), f, fe)
-        return f
+        f = lambda e: e.generalized_force(t, q, qdot, self, args)
+        return self._sum(self.force_effects, tree_zeros_like(q), f)
 
     @property
     def forces(self) -> Callable | None:
-        """`forces(t, q, qdot, args) -> (n, 3)`, the sum of the force effects, or `None`
-        when the scene lists none."""
+        """`forces(t, q, qdot, args)`, the sum of the force effects, or `None` if none."""
         return self._force if self.force_effects else None
 
 
 def chain_pendulum(masses, lengths, g=9.81, *, torque=None, tip_force=None) -> Scene:
-    """The chain pendulum of Lee, Leok & McClamroch, section V.
-
-    `Scene(Chain(masses, lengths), Gravity(g) [, BaseTorque(torque)] [, TipForce(tip_force)])`,
-    with lengths and `g` in the floating dtype of `masses`.
+    """The chain pendulum of Lee, Leok & McClamroch, section V: `Scene(Chain(masses,
+    lengths), Gravity(g) [, BaseTorque(torque)] [, TipForce(tip_force)])`, with lengths
+    and `g` in the floating dtype of `masses`.
 
     **Arguments:**
-    - `masses`: the masses at the tips of the links (kg), one per link.
-    - `lengths`: the link lengths (m), one per link.
+    - `masses`, `lengths`: one per link: the masses at their tips (kg), their lengths (m).
     - `g`: gravity (m/s^2), along `-e3`.
-    - `torque`: optional torque applied by the base on the first link
-      (`f_1 = torque x q_1`): a `(3,)` vector or a function `(t, q, qdot, args) -> (3,)`.
-    - `tip_force`: optional force on the last mass: a `(3,)` vector or a function
-      `(t, q, qdot, args) -> (3,)`.
+    - `torque`, `tip_force`: optional torque of the base on the first link (`f_1 = torque x
+      q_1`) and force on the last mass, each `(3,)` or a function `(t, q, qdot, args)`.
 
     **Returns:** the `Scene` (state `(q, qdot)`, Corollary-1 fast path).
     """
     masses = jnp.asarray(masses)
     dtype = jnp.result_type(masses, float)
-    effects = [
-        Chain(masses.astype(dtype), jnp.asarray(lengths, dtype)),
-        Gravity(jnp.asarray(g, dtype)),
-    ]
+    chain = Chain(masses.astype(dtype), jnp.asarray(lengths, dtype))
+    effects = [chain, Gravity(jnp.asarray(g, dtype))]
     effects += [] if torque is None else [BaseTorque(torque)]
     effects += [] if tip_force is None else [TipForce(tip_force)]
     return Scene(*effects)

@@ -33,11 +33,8 @@ def _combine(coeffs, ks):
 
 class LieInterpolation(AbstractLocalInterpolation):
     r"""`LieRK`'s dense output on one step: $y(t) = \exp(\sigma(t)) \cdot y_0$, finished
-    as the step's end point is, where $\sigma(t)$ is a dense output of the step's
-    algebra increment (`sigma`, a diffrax local interpolation of Lie-algebra elements
-    with $\sigma(t_0) = 0$ and $\sigma(t_1) = \sum_i b_i k_i$). The points are moved by
-    the group, so they lie on the spheres (and, with `"SE3"` or after `finish`, in the
-    tangent planes) to rounding."""
+    as the end point is; `sigma` interpolates the algebra increment ($\sigma(t_0) = 0$,
+    $\sigma(t_1) = \sum_i b_i k_i$)."""
 
     t0: Any
     t1: Any
@@ -53,9 +50,8 @@ class LieInterpolation(AbstractLocalInterpolation):
 
 
 class _LieInterpolationCls(eqx.Module):
-    """`LieRK.interpolation_cls`: builds a `LieInterpolation` from a step's `dense_info`
-    with the algebra interpolation `algebra` (compared by value, so that diffrax's
-    `DenseInterpolation`, which keeps it as a static field, hashes and compares stably)."""
+    """`LieRK.interpolation_cls`: a `LieInterpolation` from a step's `dense_info` (a Module,
+    compared by value: diffrax's `DenseInterpolation` keeps it as a static field)."""
 
     algebra: Callable[..., AbstractLocalInterpolation] = eqx.field(static=True)
 
@@ -68,78 +64,47 @@ class _LieInterpolationCls(eqx.Module):
 class LieRK(AbstractAdaptiveSolver):
     r"""A Runge-Kutta-Munthe-Kaas (RKMK) method on $T(S^2)^n$ over the Butcher tableau
     of any explicit diffrax Runge-Kutta solver: `LieRK(diffrax.Dopri5())`,
-    `LieRK(diffrax.Tsit5())`, `LieRK(diffrax.Bosh3())`, `LieRK(diffrax.Dopri8())`,
     `LieRK(sphere_mech.RK4())`, ...
 
-    A step writes the state as $y = \exp(u) \cdot y_0$ for a Lie group acting on the
-    tangent bundle and integrates $u$ in the Lie algebra with the tableau:
-    $u_i = \sum_j a_{ij} k_j$,
-    $k_i = h\, \mathrm{dexp}_{u_i}^{-1}\big(\xi(\exp(u_i) \cdot y_0)\big)$, where
-    $\xi(y)$ is the algebra element whose infinitesimal action at $y$ is the system's
-    rate (the diffrax term's vector field), and $y_1 = \exp(\sum_i b_i k_i) \cdot y_0$.
-    $\mathrm{dexp}^{-1}$ is in closed form (on $so(3)$ and on $se(3)$), so the method
-    has the order of the tableau (measured in tests/test_liegroup.py: 3 for Bosh3, 4
-    for RK4, 5 for Dopri5 and Tsit5, 8 for Dopri8).
+    A step writes $y = \exp(u) \cdot y_0$ for a Lie group acting on the tangent bundle
+    and integrates $u$ in the algebra: $u_i = \sum_j a_{ij} k_j$,
+    $k_i = h\, \mathrm{dexp}_{u_i}^{-1}\big(\xi(\exp(u_i) \cdot y_0)\big)$ ($\xi(y)$ the
+    algebra element whose infinitesimal action at $y$ is the vector field),
+    $y_1 = \exp(\sum_i b_i k_i) \cdot y_0$. $\mathrm{dexp}^{-1}$ is in closed form, so
+    the method has the tableau's order (tests/test_liegroup.py: 3 for Bosh3, 4 for RK4,
+    5 for Dopri5 and Tsit5, 8 for Dopri8). The embedded pair gives the error estimate,
+    for any diffrax step-size controller (or `diffrax.ConstantStepSize()`). $f(y_1)$ is
+    reused as the next first stage: a first-same-as-last tableau (Bosh3, Dopri5, Tsit5,
+    Dopri8, RK4's embedded stage) costs `num_stages - 1` evaluations a step.
 
-    Adaptive steps use the tableau's embedded pair: the error estimate is the
-    difference of $\exp(\sum_i b_i k_i) \cdot y_0$ and $\exp(\sum_i \hat b_i k_i) \cdot y_0$
-    (`error="state"`), so
-    any diffrax step-size controller works (`PIDController` with `rtol`/`atol` as
-    usual); with `diffrax.ConstantStepSize()` it is a fixed-step method. The rate at
-    the end point, $f(y_1)$, is evaluated once per step and reused as the first stage
-    of the next: for first-same-as-last tableaus (Bosh3, Dopri5, Tsit5, Dopri8, and
-    RK4's with its embedded order-3 stage) it *is* the last stage, so a step costs
-    `num_stages - 1` evaluations; otherwise it costs `num_stages`, as in diffrax.
-
-    Dense output (`SaveAt(ts=...)`, `SaveAt(dense=True)`, event times) is the tableau's
-    own continuous extension carried through the Lie algebra: $y(t_0 + \theta h) =
-    \exp(\sigma(\theta)) \cdot y_0$ with $\sigma(\theta) = \sum_i b_i(\theta) k_i$,
-    the wrapped solver's `interpolation_cls` applied to the algebra stages $k_i$ (for
-    the ODE that the stages integrate, $\sigma' = \mathrm{dexp}^{-1}_\sigma(h\,\xi)$,
-    these are ordinary Runge-Kutta stages, so the extension keeps its order): order 4
-    for `Dopri5` and `Tsit5` (their quartic and Tsitouras' interpolants), diffrax's
-    Bogacki-Shampine polynomial for `Dopri8`, cubic Hermite for `Bosh3` and `RK4()`
-    (order 3). A tableau that is not first-same-as-last (`Heun`, `Midpoint`,
-    `Ralston`, `Euler`) has no stage at $y_1$, which diffrax's interpolants take as the
-    last stage; it gets the cubic Hermite of $\sigma$ from $k_1$ and
-    $\mathrm{dexp}^{-1}_{\sigma(1)}(h\,\xi(y_1))$ (order 3; the rate at $y_1$ is
-    evaluated anyway). Dense points lie on the spheres and in the tangent planes to
-    rounding, with either action, and equal the steps' end points at the steps. The
-    wrapped solver's interpolation must be linear in `(y0, y1, k)`, as diffrax's are.
+    Dense output is the tableau's continuous extension carried through the algebra,
+    $y(t_0 + \theta h) = \exp(\sigma(\theta)) \cdot y_0$, $\sigma(\theta) = \sum_i
+    b_i(\theta) k_i$ (the wrapped solver's `interpolation_cls` on the stages, which are
+    ordinary RK stages of $\sigma' = \mathrm{dexp}^{-1}_\sigma(h\,\xi)$: the order is
+    kept); a tableau that is not first-same-as-last (`Heun`, `Midpoint`, ...) gets the
+    cubic Hermite of $\sigma$ from $k_1$ and $\mathrm{dexp}^{-1}_{\sigma(1)}(h\,\xi(y_1))$.
+    Dense points lie on the spheres and in the tangent planes to rounding; the wrapped
+    interpolation must be linear in `(y0, y1, k)`, as diffrax's are.
 
     **Arguments:**
-
-    - `solver`: an explicit Runge-Kutta solver whose `tableau` is used: any
-      `diffrax.AbstractERK` (`Bosh3`, `Dopri5`, `Tsit5`, `Dopri8`, `Heun`, ...) or
-      `sphere_mech.RK4()`. Only its tableau and order are read.
-    - `action`: the group acting on $T(S^2)^n$, one copy per sphere (on a mixed space
-      the sphere factors; Euclidean factors are translated, $(x, v) \mapsto (x + a,
-      v + b)$, by either):
+    - `solver`: an explicit Runge-Kutta solver (any `diffrax.AbstractERK` or
+      `sphere_mech.RK4()`); only its tableau and order are read.
+    - `action`: the group acting on $T(S^2)^n$, one copy per sphere (Euclidean factors
+      of a mixed space are translated, $(x, v) \mapsto (x + a, v + b)$, by either):
         - `"SE3"` (default): $SE(3)$ acting by
           $(A, b) \cdot (q, \omega) = (A q, A \omega + b \times A q)$ on the angular form
-          (Celledoni, Cokaj, Leone, Murari, Owren 2022); states in a linear variable
-          (`qdot`, `mu`) are converted, $\omega_i = q_i \times v_i$. It keeps
-          $|q_i| = 1$ and $q_i \cdot v_i = 0$ to rounding with no projection. It needs
-          the system, so integrate a `MechanicsTerm` (as `simulate` does). The default:
-          on the N-fold pendulum benchmark (benchmarks/nfold_pendulum.py, P = 2 to 20)
-          both actions need the same evaluations and steps for the same error (within
-          2 %, benchmarks/README.md), and this one keeps the tangent bundle exactly
-          instead of by a projection.
+          (Celledoni, Cokaj, Leone, Murari, Owren 2022; linear variables are converted,
+          $\omega_i = q_i \times v_i$): $|q_i| = 1$ and $q_i \cdot v_i = 0$ to rounding
+          with no projection. Needs a `MechanicsTerm` (as `simulate` uses); as cheap as
+          `"SO3xR3"` for the same error (benchmarks/nfold_pendulum.py).
         - `"SO3xR3"`: $SO(3)^n \times \mathbb{R}^{3n}$, rotating each $q_i$ by
-          $\exp(\widehat{w_i})$, $w_i = q_i \times \dot q_i$, and translating $v$;
-          the normal part of $v$ is removed at the end of each step (a change of the
-          order of the local error). Works with any diffrax term whose state is
-          `(q, v)`.
-    - `error`: `"state"` (default), the difference of the two solutions, for diffrax's
-      controllers; or `"algebra"`, the difference of the two algebra increments
-      $\sum_i (b_i - \hat b_i) k_i$ as a state-shaped pair (the estimate of the paper
-      above, for a controller that takes its norm unscaled).
+          $\exp(\widehat{w_i})$, $w_i = q_i \times \dot q_i$, and translating $v$ (its
+          normal part removed after each step); any diffrax term with state `(q, v)`.
+    - `error`: `"state"` (default), the difference of the two solutions; or `"algebra"`,
+      $\sum_i (b_i - \hat b_i) k_i$ as a state-shaped pair (the paper's estimate).
 
-    **Returns:** a diffrax `AbstractAdaptiveSolver`, for `simulate`, `simulate_batch`,
-    `fit` or `diffrax.diffeqsolve(sphere_mech.MechanicsTerm(system), ...)`; it composes
-    with `jax.jit`, `jax.vmap` and `jax.grad`. A step that becomes non-finite is
-    rejected by an adaptive controller; with fixed steps the NaN is carried to the end
-    and the solve reports `RESULTS.nonfinite`.
+    **Returns:** a diffrax `AbstractAdaptiveSolver` (`jit`, `vmap` and `grad` compose with
+    it). A non-finite step is rejected, or with fixed steps reported `RESULTS.nonfinite`.
 
     Reference: H. Munthe-Kaas, High order Runge-Kutta methods on manifolds, Appl.
     Numer. Math. 29 (1999) 115-127.
@@ -151,15 +116,12 @@ class LieRK(AbstractAdaptiveSolver):
 
     @property
     def term_structure(self):
-        """`MechanicsTerm` for the action `"SE3"`, which needs the system (its angular
-        variables); any diffrax term for `"SO3xR3"`, which needs only the vector field."""
+        """`MechanicsTerm` for `"SE3"` (it needs the system), else any diffrax term."""
         return MechanicsTerm if self.action == "SE3" else AbstractTerm
 
     @property
     def interpolation_cls(self):
-        """The dense output of a step (see the class docstring): the wrapped solver's
-        interpolation of the algebra increment for a first-same-as-last tableau, cubic
-        Hermite otherwise."""
+        """The wrapped solver's interpolation of the algebra increment, or cubic Hermite."""
         if self.solver.tableau.fsal:
             return _LieInterpolationCls(self.solver.interpolation_cls)
         return _LieInterpolationCls(ThirdOrderHermitePolynomialInterpolation.from_k)
@@ -183,14 +145,14 @@ class LieRK(AbstractAdaptiveSolver):
         return self.solver.error_order(terms)
 
     def _group(self, terms, y) -> AbstractLieAction:
-        """The group action this solver moves states `y` with (for the system of `terms`)."""
-        space = space_of(terms, y, "LieRK")  # checks y against it
+        """The group action this solver moves states `y` with."""
+        space = space_of(terms, y, "LieRK")
         angular = self.action == "SE3" and system_of(terms).angular  # SO3xR3: any term
         return space.lie_action(self.action, angular)
 
     def _stage_rows(self, dtype):
-        """`(i, a_i, c_i)` for the stages `i = 2..s` computed inside a step (0-based `i`;
-        all but the last of a first-same-as-last tableau), `a_i` padded to length `s`."""
+        """`(i, a_i, c_i)` of the stages computed inside a step (0-based `i` from 1; not an
+        FSAL tableau's last), `a_i` padded to length `s`."""
         tableau = self.solver.tableau
         s = tableau.num_stages
         rows = tableau.a_lower[: s - 1 - tableau.fsal]
@@ -201,7 +163,7 @@ class LieRK(AbstractAdaptiveSolver):
         return index, jnp.asarray(a, dtype), jnp.asarray(tableau.c[: len(rows)], dtype)
 
     def init(self, terms, t0, t1, y0, args):
-        self._group(terms, y0)  # a static error now, if the action cannot work with `terms`
+        self._group(terms, y0)  # a static error now if the action cannot work with `terms`
         return terms.vf(t0, y0, args)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
@@ -212,8 +174,7 @@ class LieRK(AbstractAdaptiveSolver):
             f0 = lax.cond(jnp.any(made_jump), lambda: terms.vf(t0, y0, args), lambda: f0)
         dtype = jnp.result_type(*jtu.tree_leaves(y0))
         rows, s = self._stage_rows(dtype), tableau.num_stages
-        # The stages' algebra elements k_1..k_s, in one array per leaf (k_s of a
-        # first-same-as-last tableau is filled in after the step).
+        # The stages' algebra elements k_1..k_s stacked per leaf (an FSAL k_s comes last).
         k1 = group.algebra(y0, terms.prod(f0, h))
         ks = jtu.tree_map(lambda k: jnp.zeros((s,) + k.shape, k.dtype).at[0].set(k), k1)
 
@@ -229,19 +190,15 @@ class LieRK(AbstractAdaptiveSolver):
         y1_unfinished = group.act(u, y0)
         y1 = group.finish(y1_unfinished)
         f1 = terms.vf(t1, y1, args)
-        # The rate at y1 in the algebra: the last stage of a first-same-as-last tableau
-        # (u_s = u), else the end slope of the dense output's Hermite.
+        # The rate at y1: an FSAL tableau's last stage (u_s = u), else the Hermite's end slope.
         k_end = group.dexpinv(u, group.algebra(y1, terms.prod(f1, h)))
         if tableau.fsal:
-            ks = jtu.tree_map(lambda K, x: K.at[s - 1].set(x), ks, k_end)
-            k_dense = ks
+            ks = k_dense = jtu.tree_map(lambda K, x: K.at[s - 1].set(x), ks, k_end)
         else:
             k_dense = jtu.tree_map(lambda a, b: jnp.stack([a[0], b]), ks, k_end)
-        u_error = _combine(jnp.asarray(tableau.b_error, dtype), ks)
-        if self.error == "algebra":
-            y_error = u_error
-        else:
-            y_error = tree_sub(y1_unfinished, group.act(tree_sub(u, u_error), y0))
+        y_error = _combine(jnp.asarray(tableau.b_error, dtype), ks)  # error="algebra"
+        if self.error == "state":
+            y_error = tree_sub(y1_unfinished, group.act(tree_sub(u, y_error), y0))
         dense_info = dict(y0=y0, u=u, k=k_dense, group=group)
         return y1, y_error, dense_info, f1, RESULTS.successful
 
@@ -250,11 +207,7 @@ class LieRK(AbstractAdaptiveSolver):
 
 
 def LieRK4() -> LieRK:
-    """The Runge-Kutta-Munthe-Kaas method of order 4 on the classic RK4 tableau, with an
-    embedded order-3 error estimate, moving states by `SO(3)^n x R^(3n)`:
-    `LieRK(RK4(), action="SO3xR3")` (see `LieRK`). Works with any diffrax term whose
-    state is `(q, v)`, adaptive or with fixed steps; 4 evaluations per step.
-
-    **Returns:** the `LieRK` solver.
-    """
+    """`LieRK(RK4(), action="SO3xR3")`: the Runge-Kutta-Munthe-Kaas method of order 4 with
+    an embedded order-3 estimate, for any diffrax term whose state is `(q, v)`, adaptive
+    or with fixed steps; 4 evaluations per step. **Returns:** the `LieRK` solver."""
     return LieRK(RK4(), action="SO3xR3")

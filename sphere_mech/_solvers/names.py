@@ -1,6 +1,7 @@
-"""Solvers named as in Python (`"Projected(Tsit5)"`), as scene files and `simulate`'s
-`solver=` spell them, and the one check that turns `solver=` into a solver instance."""
+"""Solvers named as in Python (`"Projected(Tsit5)"`, in scene files and `solver=`), and the one
+check that turns `solver=` into a solver instance."""
 
+import contextlib
 import re
 
 import diffrax
@@ -10,19 +11,9 @@ from .projected import Projected
 from .rk4 import RK4
 from .variational import Variational
 
-DIFFRAX_SOLVERS = (
-    "Euler",
-    "Heun",
-    "Midpoint",
-    "Ralston",
-    "Bosh3",
-    "Tsit5",
-    "Dopri5",
-    "Dopri8",
-    "ImplicitEuler",
-    "Kvaerno3",
-    "Kvaerno4",
-    "Kvaerno5",
+DIFFRAX_SOLVERS = tuple(
+    "Euler Heun Midpoint Ralston Bosh3 Tsit5 Dopri5 Dopri8 "
+    "ImplicitEuler Kvaerno3 Kvaerno4 Kvaerno5".split()
 )
 """diffrax's ODE solvers a file may name (bare: unprojected, as in Python)."""
 PLAIN_SOLVERS = {"RK4": RK4, "LieRK4": LieRK4} | {n: getattr(diffrax, n) for n in DIFFRAX_SOLVERS}
@@ -31,9 +22,8 @@ MAX_SOLVER_LENGTH = 200
 
 
 def parse_solver(text: str) -> diffrax.AbstractSolver:
-    """A solver spelled as in Python, `"Projected(Tsit5)"` -> `Projected(diffrax.Tsit5())`,
-    parsed over a whitelist (never evaluated). Raises `ValueError` for anything else,
-    and for more than `MAX_SOLVER_LENGTH` characters."""
+    """`"Projected(Tsit5)"` -> `Projected(diffrax.Tsit5())`, parsed over a whitelist (never
+    evaluated); `ValueError` for anything else or over `MAX_SOLVER_LENGTH` characters."""
     if len(text) > MAX_SOLVER_LENGTH:
         raise ValueError(
             f"solver must be at most {MAX_SOLVER_LENGTH} characters (got "
@@ -60,7 +50,7 @@ def parse_solver(text: str) -> diffrax.AbstractSolver:
 
 
 def _lie_option(text: str) -> tuple[str, str]:
-    """`action='SE3'` -> `("action", "SE3")`: a keyword argument of `LieRK` in a file."""
+    """`action='SE3'` -> `("action", "SE3")`."""
     match = re.fullmatch(r"""\s*(action|error)\s*=\s*(['"])(\w+)\2\s*""", text)
     if match is None:
         raise ValueError(
@@ -71,10 +61,8 @@ def _lie_option(text: str) -> tuple[str, str]:
 
 
 def as_solver(solver) -> diffrax.AbstractSolver:
-    """`simulate`'s `solver=` as a solver instance: an instance as it is, a name as in
-    scene files (`"Tsit5"`, `"Projected(Dopri8)"`, `parse_solver`) or a solver class
-    that needs no arguments (`diffrax.Tsit5`) instantiated; anything else raises a
-    `ValueError` naming `solver`."""
+    """`simulate`'s `solver=` as an instance: an instance as it is, a name as in scene files
+    (`parse_solver`), a solver class needing no arguments instantiated; else `ValueError`."""
     if isinstance(solver, diffrax.AbstractSolver):
         return solver
     if isinstance(solver, str):
@@ -86,10 +74,8 @@ def as_solver(solver) -> diffrax.AbstractSolver:
                 text if text.startswith("solver") else f"solver must be a diffrax solver or {text}"
             ) from None
     if isinstance(solver, type) and issubclass(solver, diffrax.AbstractSolver):
-        try:
+        with contextlib.suppress(TypeError):
             return solver()
-        except TypeError:
-            pass
     raise ValueError(
         f"solver must be a diffrax solver instance, e.g. "
         f"sm.Projected(diffrax.Tsit5()), or its name, e.g. 'Projected(Tsit5)' "

@@ -17,41 +17,31 @@ from diffrax import (
 
 def axpy(y, *terms):
     """`y + sum_i c_i k_i` over PyTrees, for `terms = ((c_1, k_1), (c_2, k_2), ...)`."""
-    leaves = [k for _, k in terms]
-    coeffs = [c for c, _ in terms]
+    coeffs, leaves = zip(*terms, strict=True)
     return jtu.tree_map(
         lambda a, *ks: a + sum(c * k for c, k in zip(coeffs, ks, strict=True)), y, *leaves
     )
 
 
-_RK4_TABLEAU = ButcherTableau(
-    c=np.array([0.5, 0.5, 1.0, 1.0]),
-    b_sol=np.array([1 / 6, 1 / 3, 1 / 3, 1 / 6, 0.0]),
-    b_error=np.array([0.0, 0.0, 0.0, 1 / 6, -1 / 6]),
-    a_lower=(
-        np.array([0.5]),
-        np.array([0.0, 0.5]),
-        np.array([0.0, 0.0, 1.0]),
-        np.array([1 / 6, 1 / 3, 1 / 3, 1 / 6]),
-    ),
-)
-
-
 class RK4(AbstractSolver):
-    """The classic Runge-Kutta method of order 4: four vector-field evaluations per
-    step, fixed steps only (it has no error estimate), cubic Hermite dense output.
+    """The classic Runge-Kutta method of order 4 (diffrax has none; MuJoCo's RK4 is the
+    same method): four evaluations per step, fixed steps only (no error estimate), cubic
+    Hermite dense output. Use it with `diffrax.ConstantStepSize()` and a `dt0`, wrapped
+    in `sphere_mech.Projected` to stay on the spheres (unwrapped, `|q_i| - 1` drifts)."""
 
-    diffrax has no such solver; this one lets comparisons with MuJoCo's RK4 integrator
-    use the same method and the same number of force evaluations. Use it with
-    `diffrax.ConstantStepSize()` and a `dt0`, and wrap it in `sphere_mech.Projected` to
-    keep the state on the spheres (unwrapped, `|q_i| - 1` drifts by the local error of
-    every step).
-    """
-
-    tableau: ClassVar[ButcherTableau] = _RK4_TABLEAU
-    """The classic tableau with a fifth, first-same-as-last stage `f(y1)` and the embedded
-    order-3 weights `(1/6, 1/3, 1/3, 0, 1/6)`: what `LieRK(RK4())` integrates with (the
-    fixed-step `RK4` itself evaluates only the first four stages)."""
+    tableau: ClassVar[ButcherTableau] = ButcherTableau(
+        c=np.array([0.5, 0.5, 1.0, 1.0]),
+        b_sol=np.array([1 / 6, 1 / 3, 1 / 3, 1 / 6, 0.0]),
+        b_error=np.array([0.0, 0.0, 0.0, 1 / 6, -1 / 6]),
+        a_lower=(
+            np.array([0.5]),
+            np.array([0.0, 0.5]),
+            np.array([0.0, 0.0, 1.0]),
+            np.array([1 / 6, 1 / 3, 1 / 3, 1 / 6]),
+        ),
+    )
+    """The classic tableau plus an FSAL stage `f(y1)` and embedded order-3 weights
+    `(1/6, 1/3, 1/3, 0, 1/6)`, for `LieRK(RK4())` (`RK4` evaluates only four stages)."""
 
     term_structure: ClassVar = AbstractTerm
     interpolation_cls: ClassVar[Callable[..., ThirdOrderHermitePolynomialInterpolation]] = (
@@ -73,7 +63,7 @@ class RK4(AbstractSolver):
         k3 = terms.vf_prod(tm, axpy(y0, (0.5, k2)), args, h)
         k4 = terms.vf_prod(t1, axpy(y0, (1.0, k3)), args, h)
         y1 = axpy(y0, (1 / 6, k1), (1 / 3, k2), (1 / 3, k3), (1 / 6, k4))
-        # Hermite dense output from the end-point slopes (k4 approximates f(t1, y1)).
+        # Hermite dense output from the end slopes (k4 approximates f(t1, y1)).
         k = jtu.tree_map(lambda a, b: jnp.stack([a, b]), k1, k4)
         return y1, None, dict(y0=y0, y1=y1, k=k), None, RESULTS.successful
 

@@ -18,10 +18,9 @@ from .discrete_mechanics import check_lagrangian, substep
 
 
 def composition_coefficients(order: int, composition: str) -> tuple[float, ...]:
-    """Step fractions `gamma_k` (summing to 1) of the symmetric composition of the
-    order-2 step: `(1,)` for order 2; for order 4 Suzuki's 5-stage fractal (smaller
-    error constants, no large backward substep) or Yoshida's triple jump (3 stages).
-    See Hairer, Lubich & Wanner, Geometric Numerical Integration, section II.4."""
+    """Step fractions `gamma_k` (summing to 1) of the symmetric composition of the order-2
+    step: `(1,)` for order 2; for order 4 Suzuki's 5-stage fractal or Yoshida's triple
+    jump (Hairer, Lubich & Wanner, Geometric Numerical Integration, section II.4)."""
     if order not in (2, 4):
         raise ValueError(f"Variational: order must be 2 or 4, got {order!r}.")
     if composition == "suzuki":
@@ -38,57 +37,40 @@ def composition_coefficients(order: int, composition: str) -> tuple[float, ...]:
 class Variational(AbstractSolver):
     """The variational integrator for Lagrangian systems on (S^2)^n: the discrete
     Euler-Lagrange (RATTLE-type) equations of the trapezoidal discrete Lagrangian, with
-    the constraints `|q_i| = 1` imposed by Lagrange multipliers.
+    `|q_i| = 1` imposed by Lagrange multipliers. Symplectic, time-reversible (stepping
+    back with `-h` returns the initial state to rounding), `|q_i| = 1` to rounding, and
+    for conservative systems an energy error bounded over millions of steps. Order 2;
+    `order=4` composes the same step symmetrically (still symplectic and reversible).
 
-    Symplectic, time-reversible (stepping back with `-h` returns the initial state to
-    rounding), `|q_i| = 1` to rounding, and for conservative systems an energy error
-    that stays bounded over millions of steps instead of drifting. Order 2; `order=4`
-    uses a symmetric composition of the same step (still symplectic and reversible).
-
-    Works for any `Lagrangian`, `AngularLagrangian`, `ConstantInertiaLagrangian`
-    or `Scene`: the equations come from `L` by autodiff; each (sub)step
-    solves `2n` nonlinear equations (optimistix; implicit differentiation, so
-    `jax.grad` works through it), started from a predictor built from the
-    accelerations. General systems use Newton's method (about two iterations, each
-    with the dense `2n x 2n` Jacobian: O(n^3)). Constant-inertia systems (chains,
-    scenes) take the Newton steps with the constant inertia in place of the exact
-    Jacobian, solved by the fast path's O(n) multiplier solve, and Anderson
-    acceleration (a few more, much cheaper iterations: O(n) per step). Both solve the
-    same equations, to the same tolerance. `L` is evaluated on the
-    tangent bundle only (at the chord velocity projected on each tangent plane), so the
-    discrete trajectory does not depend on how `L` is written off it, and forms 1 and 2
-    give the same steps. Time-dependent `L` is supported (the step stays symplectic;
-    energy is then not conserved, of course). With forces (`system.has_forces`) it is
-    the forced Lagrange-d'Alembert integrator (discrete forces `h/2 f` at both ends of
-    the step): reversible in form and of the same order, no longer symplectic.
-    Hamiltonian systems are refused with a `ValueError`: simulate their Lagrangian form.
-    On a mixed space (Euclidean factors beside the spheres) the multipliers act on the
-    sphere factors only: a Euclidean factor steps by `x1 = x0 + h a` with its momentum
-    `dL/dxdot` unprojected, and the step stays symplectic (tests/test_mixed.py).
+    For any `Lagrangian`, `AngularLagrangian`, `ConstantInertiaLagrangian` or `Scene`
+    (Hamiltonian systems are refused with a `ValueError`): each (sub)step solves `2n`
+    equations derived from `L` by autodiff (optimistix, implicit differentiation, so
+    `jax.grad` works), from a predictor built from the accelerations: Newton's method
+    (about two iterations, O(n^3)), or for constant-inertia systems (chains, scenes)
+    Newton steps with the constant inertia, solved in O(n), Anderson-accelerated; both
+    to the same tolerance. `L` is evaluated at the chord velocity projected on each
+    tangent plane, so forms 1 and 2 give the same steps. Time-dependent `L` is supported
+    (still symplectic). With forces it is the forced Lagrange-d'Alembert integrator
+    (`h/2 f` at both ends): reversible in form, of the same order, not symplectic. On a
+    mixed space a Euclidean factor steps by `x1 = x0 + h a` (tests/test_mixed.py).
 
     Fixed steps only (no error estimate): `sphere_mech.simulate(system, y0, t1,
     solver=Variational(), dt0=h)`, or `diffrax.diffeqsolve(sphere_mech.MechanicsTerm(
-    system), Variational(), t0, t1, h, y0, args=args)`: the solver takes the system
-    from its term (`term_structure = MechanicsTerm`) and `args` stay the user's. A
-    Newton iteration that does not converge is reported through the solution's
-    `result` (and raised by `simulate` unless `throw=False`); the state then stays at
-    the last good step.
+    system), Variational(), t0, t1, h, y0, args=args)`. A Newton iteration that does
+    not converge is reported through the solution's `result` (raised by `simulate`
+    unless `throw=False`); the state then stays at the last good step.
 
     **Arguments:**
     - `order`: 2 (the basic step) or 4 (a symmetric composition of it).
-    - `composition` (order 4): `"suzuki"` (default; 5 substeps, smaller error
-      constants) or `"yoshida"` (the triple jump: 3 substeps, one of them backward and
-      1.7 times the step, so Newton needs a smaller step to converge).
+    - `composition` (order 4): `"suzuki"` (default; 5 substeps) or `"yoshida"` (3
+      substeps, one backward and 1.7 times the step: Newton needs smaller steps).
     - `root_find_max_steps`: iterations allowed per substep (default 32).
-    - `root_find_tol`: Newton tolerance; default `eps ** 0.75` of the state's dtype.
-      Newton stops when its last correction is below it (relative to the velocity) and
-      the residual, relative to the momenta it is made of, is too; quadratic
-      convergence then leaves errors at about rounding.
+    - `root_find_tol`: Newton tolerance on the last correction and the residual, both
+      relative (default `eps ** 0.75` of the state's dtype).
     - `fast_path`: whether constant-inertia systems use the O(n) iteration (default
-      `True`). Its convergence rate is about the angle a link turns per step, times
-      the spread of the inertia's eigenvalues: on steps too coarse for it (a long
-      chain whipping at a step that barely resolves it), it runs out of iterations
-      where Newton's method (`fast_path=False`, O(n^3) per step) may still converge.
+      `True`). Its rate is about the angle a link turns per step times the spread of the
+      inertia's eigenvalues: on too coarse steps it may run out of iterations where
+      Newton's method (`False`, O(n^3)) still converges.
     """
 
     gammas: tuple[float, ...] = eqx.field(static=True)
@@ -121,7 +103,7 @@ class Variational(AbstractSolver):
         return self.claimed_order
 
     def init(self, terms, t0, t1, y0, args):
-        system = check_lagrangian(system_of(terms))  # refuse other systems at trace time
+        system = check_lagrangian(system_of(terms))
         return system.rates(physical_time(terms, t0), y0, args)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
@@ -134,8 +116,7 @@ class Variational(AbstractSolver):
             rates0 = lax.cond(
                 made_jump, lambda: system.rates(start, y0, args), lambda: solver_state
             )
-        # diffrax integrates backwards in a reversed time with wrapped terms: the step in
-        # physical time is the term's control (and the Hermite data below is in it too).
+        # Backwards, diffrax reverses time and wraps the terms: the physical step is the control.
         h = jnp.asarray(terms.contr(t0, t1), dtype=dtype)
         h_safe = jnp.where(h == 0, jnp.ones_like(h), h)  # a zero-length step changes nothing
 
@@ -143,16 +124,7 @@ class Variational(AbstractSolver):
             t, y, rates, result = carry
             dt = gamma * h_safe
             y1, rates1, result1 = substep(
-                system,
-                t,
-                dt,
-                y[0],
-                y[1],
-                rates,
-                args,
-                tol,
-                self.root_find_max_steps,
-                self.fast_path,
+                system, t, dt, *y, rates, args, tol, self.root_find_max_steps, self.fast_path
             )
             result = RESULTS.where(result == RESULTS.successful, result1, result)
             return (t + dt, y1, rates1, result), None
@@ -163,13 +135,11 @@ class Variational(AbstractSolver):
         else:
             carry, _ = lax.scan(one, carry, jnp.asarray(np.array(self.gammas), dtype))
         _, y1, rates1, result = carry
-        # On failure keep the last good state, so `throw=False` trajectories stay sane.
+        # On failure keep the last good state (`throw=False`).
         keep = (result == RESULTS.successful) & (h != 0)
-        y1 = jtu.tree_map(lambda a, b: jnp.where(keep, a, b), y1, y0)
-        rates1 = jtu.tree_map(lambda a, b: jnp.where(keep, a, b), rates1, rates0)
+        y1, rates1 = jtu.tree_map(lambda a, b: jnp.where(keep, a, b), (y1, rates1), (y0, rates0))
         k = jtu.tree_map(lambda a, b: jnp.stack([h * a, h * b]), rates0, rates1)
-        dense_info = dict(y0=y0, y1=y1, k=k)
-        return y1, None, dense_info, rates1, result
+        return y1, None, dict(y0=y0, y1=y1, k=k), rates1, result
 
     def func(self, terms, t0, y0, args):
         return terms.vf(t0, y0, args)

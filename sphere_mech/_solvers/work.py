@@ -10,50 +10,37 @@ from .wrapped import AbstractTransparentSolver, unwrapped
 
 
 def power_and_rate(system, t, q, v, args):
-    """The power of the forces `P = system.power` and its time derivative along the
-    flow, `dP/dt` (by `jax.jvp` along `system.rates`).
-
-    **Returns:** `(P, dP/dt)`, two scalars.
-    """
+    """`(P, dP/dt)`: the power `system.power` of the forces and its derivative along the
+    flow (`jax.jvp` along `system.rates`)."""
     p = lambda s, y: system.power(s, y[0], y[1], args)
     tangent = (jnp.ones_like(t), system.rates(t, (q, v), args))
     return jax.jvp(p, (t, (q, v)), tangent)
 
 
 def work_step(h, P0, dP0, P1, dP1):
-    """The work `int P dt` over one step of length `h` by the end-corrected trapezoidal
-    rule `h/2 (P0 + P1) + h^2/12 (P0' - P1')` (fourth order)."""
+    """`int P dt` over a step of length `h` by the end-corrected trapezoidal rule
+    `h/2 (P0 + P1) + h^2/12 (P0' - P1')` (fourth order)."""
     return 0.5 * h * (P0 + P1) + h**2 / 12.0 * (dP0 - dP1)
 
 
 class WithWork(AbstractTransparentSolver):
-    """Wraps any solver of a `MechanicsTerm` and accumulates the work
-    `W = int P dt` of the system's forces (`P = system.power`) over the accepted steps,
-    step by step with `work_step` (`P` and `dP/dt` at both ends of each step, by
-    autodiff), in its solver state: memory independent of the number of steps.
-
-    The steps, states, error estimates and dense output are the wrapped solver's. Read
-    the work done since `t0` at the end of a run from the final solver state,
-    `work_done(sol.solver_state)` with `SaveAt(solver_state=True)`; the work-energy
-    balance `E(t1) - E(t0) - W` then measures the integrator alone.
-
-    **Arguments:**
-    - `wrapped`: the solver (e.g. `Projected(diffrax.Tsit5())`).
-    """
+    """Wraps any solver of a `MechanicsTerm` (`wrapped`) and accumulates the work
+    `W = int P dt` of the system's forces over the accepted steps (`work_step`, with `P`
+    and `dP/dt` at both ends by autodiff) in its solver state: memory independent of the
+    number of steps. Steps, states, error estimates and dense output are the wrapped
+    solver's. `work_done(sol.solver_state)` (with `SaveAt(solver_state=True)`) reads the
+    work since `t0`; `E(t1) - E(t0) - W` then measures the integrator alone."""
 
     wrapped: AbstractSolver
 
     @property
     def solver(self):
-        """The solver inside `wrapped`'s transparent wrappers (`Projected`): diffrax
-        forwards `isinstance` checks one level only, and `WithWork(Projected(Kvaerno5()))`
-        must still be seen as implicit and adaptive."""
+        """The solver inside `wrapped` (diffrax forwards `isinstance` checks one level only)."""
         return unwrapped(self.wrapped)
 
     def _power(self, terms, t, y, args):
-        system = system_of(terms)
         t = jnp.asarray(physical_time(terms, t), dtype=tree_dtype(y))
-        return t, *power_and_rate(system, t, *y, args)
+        return t, *power_and_rate(system_of(terms), t, *y, args)
 
     def init(self, terms, t0, t1, y0, args):
         _, P, dP = self._power(terms, t0, y0, args)
