@@ -157,7 +157,7 @@ def test_body_torque_is_the_generalized_force_of_a_rotation():
     one = sm.Lagrangian(lambda t, R, Rd, a: free_L2(t, R, body(R, Rd), a), forces, space=SPACE)
     for system, v0 in ((two, W0), (one, R0 @ sm.hat(W0))):
         sol = sm.simulate(system, (R0, v0), 3.0, solver=sm.Projected(diffrax.Dopri8()), **TIGHT)
-        W = jax.vmap(lambda R, v: body(R, system.velocity(0.0, R, v)))(*sol.ys)[:, 0]
+        W = jax.vmap(lambda R, v, s=system: body(R, s.velocity(0.0, R, v)))(*sol.ys)[:, 0]
         assert np.max(np.abs(np.asarray(W) - ref)) < 1e-9
         # the power of the torque is tau . Omega
         power = system.power(0.0, R0, v0)
