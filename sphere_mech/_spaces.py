@@ -427,6 +427,8 @@ class Rotations(_AbstractBlockFactor):
 
     **Arguments:**
     - `k`: the number of rotations (a positive int), or `None` (default) for any number.
+    - `body`: whether a state's second part is the body `Omega` (`(k, 3)`) rather than
+      `Rdot`: the angular forms' `state_space` sets it; leave it `False`.
     """
 
     k: int | None = eqx.field(default=None, static=True)

@@ -229,3 +229,42 @@ def test_bad_rotation_input_is_named():
         sm.simulate(torque, (R0, W0), 1.0)
     with pytest.raises(ValueError, match="Rotations\\(k\\): k must be a positive int"):
         sm.Rotations(0)
+    with pytest.raises(ValueError, match="not Rotations yet: use LieRK or Projected"):
+        sm.simulate(system, (R0, W0), 1.0, solver=sm.Variational(), dt0=0.01)
+
+
+def test_batch_of_rigid_bodies_equals_one_by_one():
+    system = sm.AngularLagrangian(pendulum_L2, space=SPACE)
+    R = sm.rotation_matrix(jnp.array([[[0.3, -0.2, 0.5]], [[1.0, 0.2, -0.4]], [[0.0, 0.0, 0.1]]]))
+    W = jnp.array([[[1.0, 0.0, 0.8]], [[0.1, 0.2, 0.3]], [[0.0, -1.0, 0.0]]])
+    options = dict(solver=sm.LieRK4(), dt0=0.01, stepsize_controller=FIXED)
+    batch = sm.simulate_batch(system, (R, W), 0.5, **options)
+    for b in range(3):
+        one = sm.simulate(system, (R[b], W[b]), 0.5, **options)
+        assert jnp.allclose(batch.ys[0][b], one.ys[0], rtol=0, atol=1e-13)
+        assert jnp.allclose(batch.ys[1][b], one.ys[1], rtol=0, atol=1e-13)
+
+
+@pytest.mark.parametrize("angular", [False, True], ids=["form 1", "form 2"])
+def test_a_body_with_a_position_and_an_attitude(angular):
+    """`{"base": Euclidean(3), "attitude": Rotations(1)}`, a thrust `f R e3` along the body
+    axis and no torque, from rest: `R` stays, `x(t) = (f R e3 / m - g e3) t^2 / 2`."""
+    m, f, g = 2.0, 30.0, 9.81
+    e3 = jnp.array([0.0, 0.0, 1.0])
+    space = {"base": sm.Euclidean(3), "attitude": SPACE}
+
+    def L(t, q, v, args):
+        W = v["attitude"] if angular else body(q["attitude"], v["attitude"])
+        kinetic = 0.5 * m * v["base"] @ v["base"] + 0.5 * jnp.sum(J * W**2)
+        return kinetic - m * g * q["base"][2]
+
+    def forces(t, q, v, args):
+        return {"base": f * q["attitude"][0] @ e3, "attitude": jnp.zeros((1, 3))}
+
+    system = (sm.AngularLagrangian if angular else sm.Lagrangian)(L, forces, space=space)
+    q0 = {"base": jnp.zeros(3), "attitude": R0}
+    v0 = {"base": jnp.zeros(3), "attitude": jnp.zeros((1, 3) if angular else (1, 3, 3))}
+    sol = sm.simulate(system, (q0, v0), 3.0, solver=sm.LieRK(diffrax.Dopri8()), **TIGHT)
+    expected = (f * R0[0] @ e3 / m - g * e3) * TS[:, None] ** 2 / 2
+    assert float(jnp.max(jnp.abs(sol.ys[0]["base"] - expected))) < 1e-10
+    assert float(jnp.max(jnp.abs(sol.ys[0]["attitude"] - R0))) < 1e-13

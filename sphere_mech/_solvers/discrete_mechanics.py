@@ -18,6 +18,7 @@ from .._anderson import Anderson
 from .._inertia import AbstractFastPath
 from .._misc import tree_add, tree_scale
 from .._momentum import newton, residual_scale
+from .._spaces import Product, Rotations
 from .._system import AbstractLagrangianSystem
 
 
@@ -29,6 +30,13 @@ def check_lagrangian(system) -> AbstractLagrangianSystem:
             "AngularLagrangian, ConstantInertiaLagrangian, a Scene, ...): the discrete "
             f"action is built from L. Got {type(system).__name__}; simulate the Lagrangian "
             "form of the system, or use another solver for a Hamiltonian."
+        )
+    space = system.space
+    factors = space.factors.values() if isinstance(space, Product) else (space,)
+    if any(isinstance(f, Rotations) for f in factors):
+        raise ValueError(
+            "The variational integrator steps spheres and Euclidean factors only, not "
+            "Rotations yet: use LieRK or Projected for rigid bodies."
         )
     return system
 
