@@ -41,10 +41,8 @@ def _png(rgba: np.ndarray) -> str:
 def _artists(ax, skel: Skeleton) -> tuple:
     line = lambda *style, **kwargs: ax.plot([], [], [], *style, animated=True, **kwargs)[0]
     marker = "" if max([len(link) for link in skel.links] + [0]) > 9 else "o"
-    links = [
-        line("-", color="k", lw=1.4, marker=marker, ms=4, mfc="tab:blue", markevery=slice(1, None))
-        for _ in skel.links
-    ]
+    link = dict(color="k", lw=1.4, marker=marker, ms=4, mfc="tab:blue", markevery=slice(1, None))
+    links = [line("-", **link) for _ in skel.links]
     tips, bases = line("o", color="tab:red", ms=5), line("ks", ms=7)
     n_trails = len(skel.tips) if len(skel.tips) <= 8 else 0
     trails = [line("-", lw=0.8, alpha=0.7, color=f"C{k}") for k in range(n_trails)]
@@ -61,8 +59,7 @@ def render(
     idx = frame_indices(t, frames)
     pts = skel.points(x[idx])
     fig = Figure(figsize=(5.6, 5.6), dpi=90)
-    canvas = FigureCanvasAgg(fig)
-    ax = fig.add_subplot(projection="3d")
+    canvas, ax = FigureCanvasAgg(fig), fig.add_subplot(projection="3d")
     fig.subplots_adjust(0.0, 0.02, 0.94, 0.96)
     equal_axes(ax, skel, x)
     draw_static(ax, skel)
@@ -237,9 +234,8 @@ def animate(
     the unit sphere.
 
     **Arguments:**
-    - `system_or_scene`: the system that was simulated.
-    - `sol`: a solution of `sm.simulate` saved at several times (e.g.
-      `saveat=diffrax.SaveAt(ts=...)`).
+    - `system_or_scene`, `sol`: the system simulated and a solution of `sm.simulate` saved at
+      several times (e.g. `saveat=diffrax.SaveAt(ts=...)`).
     - `frames`: the most frames embedded (states are subsampled evenly).
 
     **Returns:** the player's HTML as a `str` subclass that notebooks display (write it

@@ -56,16 +56,10 @@ def _solve_batch(static, chunk, mesh, shared, batched, y0, valid, size, padded):
     solve = lambda s, b, y: _local_solve(static, chunk, s, b, y)
     if mesh is not None:
         spec = PartitionSpec(BATCH_AXIS)
-        solve = jax.shard_map(
-            solve,
-            mesh=mesh,
-            in_specs=(PartitionSpec(), spec, spec),
-            out_specs=spec,
-            check_vma=False,
-        )
+        specs = dict(in_specs=(PartitionSpec(), spec, spec), out_specs=spec)
+        solve = jax.shard_map(solve, mesh=mesh, check_vma=False, **specs)
     sol = jax.tree.map(lambda x: x[:size], solve(shared, batched, y0))
-    # Invalid initial states ran a stand-in (`initial_states`): their own code, no steps,
-    # nothing saved (`inf`).
+    # invalid initial states ran a stand-in: their own code, no steps, nothing saved (inf)
     invalid = lambda ok, r: RESULTS.where(ok, r, RESULTS.invalid_initial)
     result = jax.vmap(invalid)(valid, sol.result)
     discard = lambda fill: lambda x: jnp.where(rows(valid, x), x, fill)
@@ -121,8 +115,7 @@ def simulate_batch(
       (docs/batched.md). With an adaptive controller a NaN vector field rejects steps until
       `max_steps`, which the batch waits for (fixed steps stop it).
     - `chunk_size`: trajectories per `vmap` on a device (default: about `512 / n` on CPU,
-      which keeps the working set in cache; the whole batch elsewhere); results do not
-      depend on it.
+      keeping the working set in cache; the whole batch elsewhere); results do not change.
     - `devices`: devices to shard the batch over with `shard_map` (default: all of JAX's
       default backend; at most one per trajectory); the batch is padded to a multiple of
       their count and the padding stripped.

@@ -79,9 +79,8 @@ def cube(skel: Skeleton, x: np.ndarray) -> tuple[np.ndarray, float]:
     """Centre and half-width of a cube holding every point and sphere (equal aspect)."""
     pts = skel.points(x).reshape(-1, 3)
     pts = pts[np.all(np.isfinite(pts), axis=-1)]
-    lo, hi = pts.min(axis=0), pts.max(axis=0)
-    for c, r in skel.spheres:
-        lo, hi = np.minimum(lo, c - r), np.maximum(hi, c + r)
+    lo = np.min([pts.min(axis=0), *(c - r for c, r in skel.spheres)], axis=0)
+    hi = np.max([pts.max(axis=0), *(c + r for c, r in skel.spheres)], axis=0)
     half = 0.54 * float(np.max(hi - lo))
     return (lo + hi) / 2, half if half > 0 else 1.0
 

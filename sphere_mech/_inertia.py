@@ -36,8 +36,7 @@ class AbstractFastPath(AbstractLagrangianSystem):
     @property
     @abc.abstractmethod
     def base_axes(self) -> jax.Array | None:
-        """The directions a point-mass base moves along (`A`, `(m, 3)` orthonormal rows),
-        or `None`: a fixed support."""
+        """`A`, the `(m, 3)` orthonormal directions a point-mass base moves along, or `None`."""
 
     @abc.abstractmethod
     def inertia(self, args: Args) -> jax.Array:
@@ -55,16 +54,14 @@ class AbstractFastPath(AbstractLagrangianSystem):
 
     @abc.abstractmethod
     def potential(self, t, q: Points, args: Args) -> Scalar:
-        """The potential energy `U(t, q, args)`, a scalar (`q` a `chain_space` state with
-        a base)."""
+        """The potential energy `U(t, q, args)`, a scalar (`q` state-structured)."""
 
     def spheres(self, q):
         """The `(n, 3)` sphere part of a state-structured `q` (`q` itself without a base)."""
         return chain_parts(q)[1]
 
     def lift(self, v) -> jax.Array:
-        """The 3-D rows of a state-structured `v`: `A^T v_base` (with a base) stacked before
-        the spheres' rows."""
+        """The 3-D rows of a state-structured `v`: `A^T v_base` (with a base), then the spheres'."""
         base, spheres = chain_parts(v)
         return (
             spheres if base is None else jnp.concatenate([(base @ self.base_axes)[None], spheres])

@@ -16,19 +16,23 @@ class AbstractLieAction(eqx.Module):
 
     @abc.abstractmethod
     def algebra(self, y, dy):
-        """The algebra element `u` whose infinitesimal action at `y` is `dy`."""
+        """The algebra element `u` whose infinitesimal action at `y` is `dy`
+        (`d/ds exp(s u) . y = dy` at `s = 0`): how RKMK reads a stage's rates."""
 
     @abc.abstractmethod
     def act(self, u, y):
-        """`exp(u) . y`."""
+        """`exp(u) . y`: the state `y` moved by the group element `exp(u)`, exactly (the
+        points stay on their manifold to rounding)."""
 
     @abc.abstractmethod
     def dexpinv(self, u, k):
-        """`dexp_u^{-1}(k)` (with `ad_u = [u, .]`, the matrix commutator)."""
+        """`dexp_u^{-1}(k)` (with `ad_u = [u, .]`, the matrix commutator): the derivative of
+        a stage's `u` from the algebra element `k` of its rates."""
 
     @abc.abstractmethod
     def finish(self, y):
-        """The state a step returns from `exp(u) . y0`."""
+        """The state a step returns from `exp(u) . y0`: `y`, or `y` put back on the tangent
+        bundle where the action moves velocities off it."""
 
 
 class RotateTranslate(AbstractLieAction):

@@ -1,8 +1,7 @@
 """The program of `sphere-mech run`: `_solve.solve` over at most `SEGMENTS` segments of whole
-save intervals, compiled once (JAX's persistent cache keys it by the traced program: editing
-a comment or a file's `name` does not recompile); the progress bar moves between segments.
-Adaptive solvers choose each segment's first step afresh; fixed steps divide a segment into
-as many equal steps as `dt0` fits (`simulate`'s when `save_dt` is a multiple of `dt0`)."""
+save intervals (the progress bar's steps), compiled once (keyed by the traced program: a file's
+comments or `name` do not recompile). Adaptive solvers choose each segment's first step afresh;
+fixed steps: as many equal ones as `dt0` fits (`simulate`'s when `dt0` divides `save_dt`)."""
 
 import dataclasses
 import math
@@ -140,8 +139,7 @@ def build(spec, t1=None) -> tuple[Program, jax.stages.Compiled]:
 
     inputs = (ts[0, 0], ts[0], *jax.tree.map(np.asarray, (q0, v0)), [np.asarray(p) for p in params])
     compiled = jax.jit(segment).lower(*inputs).compile()
-    max_steps_code = int(code(RESULTS.max_steps_reached))
-    args = (*inputs[2:], spec.max_steps, max_steps_code, scene.has_forces)
+    args = (*inputs[2:], spec.max_steps, int(code(RESULTS.max_steps_reached)), scene.has_forces)
     return Program(compiled, ts, count, *args), compiled
 
 

@@ -161,5 +161,4 @@ def scene_result(spec, run, t1=None) -> SceneResult:
         **base,
     }
     summary = strict_json(summary, reasons)
-    error = np.asarray(error)
     return SceneResult(t, q, v, x, energy, error_t, error, constraint, summary, potential, W, e_s)

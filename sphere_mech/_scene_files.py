@@ -144,9 +144,8 @@ def _module(path, where: str, table, registry: dict, what: str):
     cls, values = registry[kind], {}
     fields = schema(cls)
     summary = " ".join(cls.__doc__.split()).split(". ")[0]  # the docstring's first sentence
-    _no_unknown(
-        path, where, table, ["type", *fields], f"one of {', '.join(fields)}; {kind}: {summary}"
-    )
+    expected = f"one of {', '.join(fields)}; {kind}: {summary}"
+    _no_unknown(path, where, table, ["type", *fields], expected)
     for key, (kinds, default) in fields.items():
         expected, x = " or ".join(KINDS[k][0] for k in kinds), table.get(key)
         if key not in table and default is inspect.Parameter.empty:
@@ -236,9 +235,8 @@ def _spheres_initial(path, table, n: int):
         bad = int(np.argmax(np.abs(norms - 1.0)))
         if abs(norms[bad] - 1.0) > unit_tolerance(q.dtype):
             expected = f"unit vectors (length 1 within {unit_tolerance(q.dtype):g})"
-            raise SceneFileError(
-                path, "initial.q", f"{expected}, got length {norms[bad]:.6g} for q[{bad}]"
-            )
+            expected += f", got length {norms[bad]:.6g} for q[{bad}]"
+            raise SceneFileError(path, "initial.q", expected)
     else:
         missing = [key for key in ("polar_deg", "azimuth_deg") if key not in table]
         if missing:
@@ -337,9 +335,8 @@ def _simulate_args(path, data, t1=None) -> dict:
     for key, ok in checks.items():
         if not ok(out[key]):
             field = key.removesuffix("_name")
-            raise SceneFileError(
-                path, f"simulate.{field}", f"expected {SIMULATE[field]}, got {_show(out[key])}"
-            )
+            expected = f"expected {SIMULATE[field]}, got {_show(out[key])}"
+            raise SceneFileError(path, f"simulate.{field}", expected)
     out["solver"] = _checked(path, "simulate.solver", lambda: parse_solver(out["solver_name"]))
     opts = _checked(  # the options simulate would refuse, with its words
         path, "simulate", lambda: options(dtype=np.float64, **{k: out[k] for k in SIMULATE})
@@ -371,10 +368,8 @@ def _save_dt(path, table: dict, args: dict, numbers: int) -> float:
     intervals = (args["t1"] - args["t0"]) / save_dt
     if not (intervals + 1) * numbers <= MAX_SAVED:
         expected = f"at most {MAX_SAVED:.0e} saved numbers from t0 to t1 ((t1 - t0) / save_dt"
-        expected += f" = {intervals:.3g} intervals, {numbers} numbers a state)"
-        raise SceneFileError(
-            path, "output.save_dt", f"save_dt must give {expected} (got {save_dt:g})"
-        )
+        expected += f" = {intervals:.3g} intervals, {numbers} numbers a state) (got {save_dt:g})"
+        raise SceneFileError(path, "output.save_dt", f"save_dt must give {expected}")
     return save_dt
 
 

@@ -540,17 +540,30 @@ def _check_keys(tree, keys, name):
         )
 
 
-def _factorwise(method: str):
-    """A `Product`'s `method`: each factor's own on its entries of the arguments (states,
-    vectors, bases: dicts with the factors' keys)."""
+def _factorwise(*methods: str):
+    """Give a `Product` class `methods` that apply each factor's own to its entries of the
+    arguments (states, vectors, bases: dicts with the factors' keys)."""
 
-    def apply(self, *trees):
-        return {k: getattr(f, method)(*(t[k] for t in trees)) for k, f in self.factors.items()}
+    def method(name):
+        def apply(self, *trees):
+            return {k: getattr(f, name)(*(t[k] for t in trees)) for k, f in self.factors.items()}
 
-    apply.__doc__ = getattr(AbstractSpace, method).__doc__
-    return apply
+        apply.__name__, apply.__doc__ = name, getattr(AbstractSpace, name).__doc__
+        return apply
+
+    def decorate(cls):
+        for name in methods:
+            setattr(cls, name, method(name))
+        return abc.update_abstractmethods(cls)
+
+    return decorate
 
 
+@_factorwise(
+    *"normalize project to_linear from_linear from_covector to_covector force_covector "
+    "bracket angular_terms momentum_transport normal_acceleration tangency_covector exp "
+    "tangent_basis".split()
+)
 class Product(AbstractSpace):
     """The product of the factors of a dict: states are dicts with the same keys, one
     array per factor. Built by `as_space` from a system's `space=` dict."""
@@ -574,21 +587,6 @@ class Product(AbstractSpace):
         _check_keys(f, self.factors, "forces(t, q, v, args)")
         for k, factor in self.factors.items():
             factor.check_forces(f[k], q[k], f"{q_name}[{k!r}]")
-
-    normalize = _factorwise("normalize")
-    project = _factorwise("project")
-    to_linear = _factorwise("to_linear")
-    from_linear = _factorwise("from_linear")
-    from_covector = _factorwise("from_covector")
-    to_covector = _factorwise("to_covector")
-    force_covector = _factorwise("force_covector")
-    bracket = _factorwise("bracket")
-    angular_terms = _factorwise("angular_terms")
-    momentum_transport = _factorwise("momentum_transport")
-    normal_acceleration = _factorwise("normal_acceleration")
-    tangency_covector = _factorwise("tangency_covector")
-    exp = _factorwise("exp")
-    tangent_basis = _factorwise("tangent_basis")
 
     def to_tangent(self, T, v):
         return jnp.concatenate([f.to_tangent(T[k], v[k]) for k, f in self.factors.items()])

@@ -221,26 +221,17 @@ def _main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog=PROG, description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     p_run = sub.add_parser("run", help="simulate a scene file and write results")
-    p_run.add_argument(
-        "scene",
-        nargs="?",
-        help="a scene file (.toml); default: the packaged double spherical pendulum",
-    )
-    p_run.add_argument(
-        "--out",
-        type=Path,
-        default=Path("sphere_mech_out"),
-        help="output folder (default ./sphere_mech_out)",
-    )
+    scene_help = "a scene file (.toml); default: the packaged double spherical pendulum"
+    p_run.add_argument("scene", nargs="?", help=scene_help)
+    out_help = "output folder (default ./sphere_mech_out)"
+    p_run.add_argument("--out", type=Path, default=Path("sphere_mech_out"), help=out_help)
     p_run.add_argument("--t1", type=float, help="override the end time of [simulate] (s)")
+    cache_help = "do not read or write the compilation cache (default folder "
+    cache_help += f"{cache_dir() or 'off'}; set by ${CACHE_ENV}, 'off' disables it)"
     for flag, text in (
         ("--no-progress", "hide the progress bar"),
         ("--no-animation", "skip animation.html (saves the time to draw its frames)"),
-        (
-            "--no-cache",
-            "do not read or write the compilation cache (default folder "
-            f"{cache_dir() or 'off'}; set by ${CACHE_ENV}, 'off' disables it)",
-        ),
+        ("--no-cache", cache_help),
     ):
         p_run.add_argument(flag, action="store_true", help=text)
     ns = parser.parse_args(argv)

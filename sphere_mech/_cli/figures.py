@@ -13,10 +13,8 @@ def _configuration(ax, skel, pts, style, label):
     handles = []
     for link in skel.links:
         many = len(link) > LONG_CHAIN + 1
-        marker = "" if many else "o"  # none on the pivot
-        handles += ax.plot(
-            *pts[link].T, lw=1.6, marker=marker, ms=4, markevery=slice(1, None), **style
-        )
+        markers = dict(marker="" if many else "o", ms=4, markevery=slice(1, None))  # not the pivot
+        handles += ax.plot(*pts[link].T, lw=1.6, **markers, **style)
         if many:  # the tip only
             ax.plot(*pts[link[-1:]].T, "o", ms=4, **style)
     dots = {**style, "ls": ""}
@@ -49,12 +47,10 @@ def draw_motion(ax, skel: Skeleton, t: np.ndarray, x: np.ndarray) -> list:
         for s in np.linspace(0, len(t) - 1, SNAPSHOTS + 2)[1:-1].round().astype(int):
             for link in long:
                 ax.plot(*pts[s, link].T, lw=0.8, color=cmap(t[s] / t[-1] if t[-1] else 0))
-        handles += ax.plot(
-            [], [], color=cmap(0.5), lw=0.8, label=f"snapshots (colour: t, {t[0]:g} to {t[-1]:g} s)"
-        )
-    handles += _configuration(
-        ax, skel, pts[0], {"color": "0.55", "ls": "--", "mfc": "white"}, f"start (t = {t[0]:g} s)"
-    )
+        label = f"snapshots (colour: t, {t[0]:g} to {t[-1]:g} s)"
+        handles += ax.plot([], [], color=cmap(0.5), lw=0.8, label=label)
+    start = {"color": "0.55", "ls": "--", "mfc": "white"}
+    handles += _configuration(ax, skel, pts[0], start, f"start (t = {t[0]:g} s)")
     handles += _configuration(ax, skel, pts[-1], {"color": "k"}, f"end (t = {t[-1]:g} s)")
     return handles
 
@@ -66,8 +62,7 @@ def _energy(ax, result) -> None:
         ax.plot(t, E - result.potential, lw=0.7, color="tab:red", label="kinetic T")
         ax.plot(t, result.potential, lw=0.7, color="tab:blue", label="potential U")
     if result.work is not None:
-        balance = result.step_energy - result.work
-        label = "E - W (W: work of the forces)"
+        balance, label = result.step_energy - result.work, "E - W (W: work of the forces)"
         ax.plot(result.error_t, balance, lw=1.4, ls="--", color="tab:green", label=label)
     ax.set_ylabel("energy [J]", fontsize=8)
     ax.legend(fontsize=7, ncol=4, loc="lower center", bbox_to_anchor=(0.5, 1.0), frameon=False)
@@ -85,8 +80,7 @@ def figure(result, scene):
     from matplotlib.figure import Figure
 
     s, skel = result.summary, skeleton(scene, result.x.shape[1])
-    eps = np.finfo(result.constraint.dtype).eps
-    worst = float(np.max(result.constraint))
+    eps, worst = np.finfo(result.constraint.dtype).eps, float(np.max(result.constraint))
     drift = worst > 1000 * eps  # the constraint error says something: a panel
     fig = Figure(figsize=(13, 6.2), dpi=100)
     FigureCanvasAgg(fig)
@@ -95,10 +89,9 @@ def figure(result, scene):
     ax = fig.add_subplot(grid[:, 0], projection="3d")
     ax.legend(handles=draw_motion(ax, skel, result.t, result.x), fontsize=7, loc="upper left")
     _energy(fig.add_subplot(grid[0, 1]), result)
+    title = "relative energy error |E - E(0)| / |E(0)|"
     if result.work is not None:
         title = "work-energy balance |E - E(0) - W| / scale"
-    else:
-        title = "relative energy error |E - E(0)| / |E(0)|"
     _semilogy(fig.add_subplot(grid[1, 1]), result.error_t, result.error, title)
     if drift:
         title = "constraint error max_i | |q_i| - 1 |"

@@ -60,10 +60,9 @@ class FitResult(eqx.Module):
       bundle), `p` the fitted parameters and `2d` per fitted segment state: as for single
       shooting, the observed values minus the parameters (and `2d` per fitted `y0`).
 
-    These assume independent Gaussian noise of one variance on every observed value and
-    continuity penalty (a large `continuity` tends to the single-shooting covariance), and
-    a model close to linear over the size of the errors: weight the observations (in
-    `observe` and `observations`) if their noise levels differ.
+    These assume a model nearly linear over the errors' size and independent Gaussian noise
+    of one variance on every observed value and continuity penalty (weight `observe` and
+    `observations` if levels differ; large `continuity`: the single-shooting covariance).
     """
 
     params: PyTree
@@ -336,9 +335,8 @@ def fit(
     (u, z), loss, initial_loss, num_steps, result, linear = _solve(
         residuals, solver, unknowns0, (segment_data, y0), max_steps, dof
     )
-    jacobian, covariance, residual_variance = linear
+    jacobian, covariance, variance = linear
     states = jtu.tree_map(lambda s: s if batched else s[0], residuals.states(z, y0))
     converged = result == optx.RESULTS.successful
     fitted = (residuals.params(u), loss, initial_loss, num_steps, converged, states, result)
-    stderr = _stderr(covariance, u, flags)
-    return FitResult(*fitted, jacobian, covariance, stderr, residual_variance, dof)
+    return FitResult(*fitted, jacobian, covariance, _stderr(covariance, u, flags), variance, dof)

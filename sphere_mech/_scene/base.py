@@ -68,27 +68,20 @@ def check_vector(name: str, x, unit: bool = False) -> None:
     check_magnitude(name, x)
     tol = unit_tolerance(jnp.result_type(x))
     if unit and _concrete(x) and not abs(np.linalg.norm(x) - 1.0) <= tol:
-        raise ParameterError(
-            name, f"{name} must be a unit vector (length 1 within {tol:g}), got {_show(x)}"
-        )
+        message = f"{name} must be a unit vector (length 1 within {tol:g}), got {_show(x)}"
+        raise ParameterError(name, message)
 
 
 def check_axes(name: str, x) -> None:
     """`(m, 3)` rows, `1 <= m <= 3`, orthonormal within `unit_tolerance` (unless traced)."""
     if jnp.ndim(x) != 2 or jnp.shape(x)[1] != 3 or not 1 <= jnp.shape(x)[0] <= 3:
-        raise ParameterError(
-            name,
-            f"{name} must be an (m, 3) array of m = 1, 2 or 3 directions, got shape {jnp.shape(x)}",
-        )
+        check_shape(name, x, None, "an (m, 3) array of m = 1, 2 or 3 directions")
     if _concrete(x):
         x, tol = np.asarray(x), unit_tolerance(jnp.result_type(x))
         error = np.max(np.abs(x @ x.T - np.eye(x.shape[0])))
         if not error <= tol:
-            raise ParameterError(
-                name,
-                f"{name} must be orthonormal rows (unit length, mutually perpendicular, "
-                f"within {tol:g}), got {_show(x)}",
-            )
+            what = f"orthonormal rows (unit length, mutually perpendicular, within {tol:g})"
+            raise ParameterError(name, f"{name} must be {what}, got {_show(x)}")
 
 
 def check_sign(name: str, x, unit: str = "", *, strict: bool = True, scalar=False) -> None:
@@ -97,41 +90,32 @@ def check_sign(name: str, x, unit: str = "", *, strict: bool = True, scalar=Fals
         check_shape(name, x, (), "a scalar")
     check_magnitude(name, x)
     if _concrete(x) and not np.all(np.asarray(x) > 0 if strict else np.asarray(x) >= 0):
-        raise ParameterError(
-            name, f"{name} must be {'>' if strict else '>='} 0{unit}, got {_show(x)}"
-        )
+        message = f"{name} must be {'>' if strict else '>='} 0{unit}, got {_show(x)}"
+        raise ParameterError(name, message)
 
 
 def check_index(owner, name: str, i: int, n: int) -> None:
     """Python's convention: `-n <= i < n`."""
     if not -n <= i < n:
-        raise ParameterError(
-            name,
-            f"{type(owner).__name__}.{name} must be a sphere index in [-{n}, {n}) "
-            f"(the scene has {n} spheres), got {i}",
-        )
+        what = f"a sphere index in [-{n}, {n}) (the scene has {n} spheres)"
+        raise ParameterError(name, f"{type(owner).__name__}.{name} must be {what}, got {i}")
 
 
 def per_item(count: int | None, count_name: str, **arrays) -> list[jax.Array]:
     """Arrays of one value per item, scalars broadcast to `count` (argument `count_name`;
     default: the 1-D arrays' length; at most `MAX_COUNT`, checked before allocating)."""
     if count is not None and not 1 <= count <= MAX_COUNT:
-        raise ParameterError(
-            count_name, f"{count_name} must be an integer from 1 to {MAX_COUNT}, got {count}"
-        )
+        message = f"{count_name} must be an integer from 1 to {MAX_COUNT}, got {count}"
+        raise ParameterError(count_name, message)
     arrays = {k: as_float(v) for k, v in arrays.items()}
     if count is None:
         count = max((jnp.shape(v)[0] for v in arrays.values() if jnp.ndim(v) == 1), default=1)
     if not 1 <= count <= MAX_COUNT:
-        raise ParameterError(
-            next(iter(arrays)),
-            f"{', '.join(arrays)}: need from 1 to {MAX_COUNT} values, got {count}",
-        )
-    out = []
-    for name, x in arrays.items():
-        x = jnp.broadcast_to(x, (count,)) if jnp.ndim(x) == 0 else x
+        message = f"{', '.join(arrays)}: need from 1 to {MAX_COUNT} values, got {count}"
+        raise ParameterError(next(iter(arrays)), message)
+    out = [jnp.broadcast_to(x, (count,)) if jnp.ndim(x) == 0 else x for x in arrays.values()]
+    for name, x in zip(arrays, out, strict=True):
         check_shape(name, x, (count,), f"a scalar or {count} values, one per sphere")
-        out.append(x)
     return out
 
 

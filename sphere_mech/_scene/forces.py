@@ -14,16 +14,14 @@ from .base import AbstractDrive, AbstractForce, ParameterError
 
 
 def _relative_omega(q, qdot, scene):
-    """`omega_i - omega_parent(i)` for every joint (`omega_i = q_i x qdot_i`), from the
-    spheres' `(n, 3)` arrays."""
+    """`omega_i - omega_parent(i)` per joint (`omega_i = q_i x qdot_i`), `(n, 3)` arrays."""
     omega = jnp.cross(q, qdot)
     padded = jnp.concatenate([jnp.zeros_like(omega[:1]), omega])
     return omega - padded[scene.parents() + 1]
 
 
 def _drive(name: str, on_base: bool = False):
-    """A field holding a drive: a constant vector (`(3,)`; on the `Base`, one component per
-    axis) or a function `(t, q, qdot, args) -> vector`, such as an `AbstractDrive`."""
+    """A drive field: a constant `(3,)` vector (`(m,)` on the `Base`) or a function."""
 
     def convert(x):
         if callable(x):
@@ -32,20 +30,15 @@ def _drive(name: str, on_base: bool = False):
         if not on_base:
             base.check_vector(name, x)
         elif jnp.ndim(x) != 1:
-            raise ParameterError(
-                name,
-                f"{name} must be an (m,) vector (one component "
-                f"per axis of the Base), got shape {jnp.shape(x)}",
-            )
+            what = f"an (m,) vector (one component per axis of the Base), got shape {jnp.shape(x)}"
+            raise ParameterError(name, f"{name} must be {what}")
         return x
 
     return eqx.field(converter=convert)
 
 
 def _check_drive(field: str, drive, scene, shape=(3,)) -> None:
-    """Check a drive held in `field` against the scene, and the shape of what it returns
-    (a constant or a user's function: nothing to check); its errors name
-    `field.<its field>`, as a scene file writes it."""
+    """Check an `AbstractDrive` in `field`, and its output's shape (errors: `field.<its field>`)."""
     if not isinstance(drive, AbstractDrive):
         return
     try:
@@ -58,14 +51,12 @@ def _check_drive(field: str, drive, scene, shape=(3,)) -> None:
     state = chain_state(base, spheres)
     out = jax.eval_shape(drive, jax.ShapeDtypeStruct((), spheres.dtype), state, state, None)
     if out.shape != shape:
-        raise ParameterError(
-            field, f"{field}: {type(drive).__name__} returns shape {out.shape}, expected {shape}"
-        )
+        message = f"{type(drive).__name__} returns shape {out.shape}, expected {shape}"
+        raise ParameterError(field, f"{field}: {message}")
 
 
 def _evaluate(drive, t, q, qdot, args, shape=(3,)):
-    dtype = tree_dtype(q)
-    out = jnp.asarray(drive(t, q, qdot, args) if callable(drive) else drive, dtype=dtype)
+    out = jnp.asarray(drive(t, q, qdot, args) if callable(drive) else drive, tree_dtype(q))
     if out.shape != shape:
         raise ValueError(
             f"a torque or force function must return shape {shape}, got shape {out.shape}."
@@ -90,12 +81,8 @@ class JointDamping(AbstractForce):
 
     def check(self, scene):
         if jnp.ndim(self.coefficient):
-            base.check_shape(
-                "coefficient",
-                self.coefficient,
-                (scene.n,),
-                f"a scalar or {scene.n} values, one per sphere",
-            )
+            what = f"a scalar or {scene.n} values, one per sphere"
+            base.check_shape("coefficient", self.coefficient, (scene.n,), what)
 
     def generalized_force(self, t, q, qdot, scene, args):
         def dissipation(v):
@@ -124,8 +111,7 @@ class BaseTorque(AbstractForce):
         _check_drive("torque", self.torque, scene)
 
     def generalized_force(self, t, q, qdot, scene, args):
-        tau = _evaluate(self.torque, t, q, qdot, args)
-        s = scene.spheres(q)
+        tau, s = _evaluate(self.torque, t, q, qdot, args), scene.spheres(q)
         link = self.link % s.shape[0]
         f = jnp.zeros_like(s).at[link].add(jnp.cross(tau, s[link]))
         parent = int(scene.parents()[link])
@@ -142,8 +128,7 @@ class PDTorque(AbstractDrive):
     projection).
 
     **Arguments:**
-    - `kp`: proportional gain (N m, `>= 0`).
-    - `kd`: derivative gain (N m s, `>= 0`).
+    - `kp`, `kd`: proportional and derivative gains (N m and N m s, `>= 0`).
     - `target`: the unit vector the link is steered toward.
     - `link`: the index of the link whose direction is measured (static).
     """
@@ -199,10 +184,8 @@ class VibratingSupport(AbstractForce):
     `amplitude^2 angular_frequency^2 > 2 g l` (vertical vibration).
 
     **Arguments:**
-    - `amplitude`: `a` (m).
-    - `angular_frequency`: `w` (rad/s).
+    - `amplitude`, `angular_frequency`, `phase`: `a` (m), `w` (rad/s) and the phase (rad).
     - `direction`: the unit vector of the motion.
-    - `phase`: (rad).
     """
 
     amplitude: jax.Array = eqx.field(converter=base.as_float)
@@ -237,13 +220,9 @@ class VibratingSupport(AbstractForce):
 
 def _base_vector(owner, name: str, x, scene) -> None:
     """`x` is a scalar or one value per axis of the scene's `Base`."""
-    m = scene.base.m
-    if jnp.ndim(x) and jnp.shape(x) != (m,):
-        raise ParameterError(
-            name,
-            f"{type(owner).__name__}.{name} must be a scalar or {m} "
-            f"values, one per axis of the Base, got shape {jnp.shape(x)}",
-        )
+    if jnp.ndim(x) and jnp.shape(x) != (m := scene.base.m,):
+        what, got = f"a scalar or {m} values, one per axis of the Base", jnp.shape(x)
+        raise ParameterError(name, f"{type(owner).__name__}.{name} must be {what}, got shape {got}")
 
 
 class BaseForce(AbstractForce):
@@ -264,10 +243,9 @@ class BaseForce(AbstractForce):
         if scene.base is None:
             raise ParameterError("", "BaseForce needs a Base in the scene")
         if not callable(self.force) and jnp.shape(self.force) != (scene.base.m,):
+            what = f"{scene.base.m} components, one per axis of the Base"
             raise ParameterError(
-                "force",
-                f"force must have {scene.base.m} components, one "
-                f"per axis of the Base, got shape {jnp.shape(self.force)}",
+                "force", f"force must have {what}, got shape {jnp.shape(self.force)}"
             )
         _check_drive("force", self.force, scene, (scene.base.m,))
 
@@ -284,8 +262,7 @@ class PDPosition(AbstractDrive):
     `target(t) = target` before `step_time` and `target + step` from then on.
 
     **Arguments:**
-    - `kp`: proportional gain (N/m, `>= 0`).
-    - `kd`: derivative gain (N s/m, `>= 0`).
+    - `kp`, `kd`: proportional and derivative gains (N/m and N s/m, `>= 0`).
     - `target`: the set point (m): a scalar or one value per axis of the `Base`.
     - `feedforward`: a constant force added (N), e.g. the weight the drone carries: a
       scalar or one value per axis.
@@ -324,8 +301,7 @@ class Harmonic(AbstractDrive):
 
     **Arguments:**
     - `amplitude`: a vector of the force's shape (`(m,)` on a base, `(3,)` otherwise).
-    - `angular_frequency`: (rad/s), a scalar.
-    - `phase`: (rad), a scalar.
+    - `angular_frequency`, `phase`: scalars (rad/s, rad).
     - `offset`: a constant part, of the force's shape (or a scalar).
     """
 
@@ -338,16 +314,11 @@ class Harmonic(AbstractDrive):
         base.check_shape("angular_frequency", self.angular_frequency, (), "a scalar")
         base.check_shape("phase", self.phase, (), "a scalar")
         if jnp.ndim(self.amplitude) != 1:
-            raise ParameterError(
-                "amplitude", f"amplitude must be a vector, got shape {jnp.shape(self.amplitude)}"
-            )
+            got = jnp.shape(self.amplitude)
+            raise ParameterError("amplitude", f"amplitude must be a vector, got shape {got}")
         if jnp.ndim(self.offset) and jnp.shape(self.offset) != jnp.shape(self.amplitude):
-            raise ParameterError(
-                "offset",
-                f"offset must be a scalar or of amplitude's shape "
-                f"{jnp.shape(self.amplitude)}, got {jnp.shape(self.offset)}",
-            )
+            what = f"a scalar or of amplitude's shape {jnp.shape(self.amplitude)}"
+            raise ParameterError("offset", f"offset must be {what}, got {jnp.shape(self.offset)}")
 
     def __call__(self, t, q, qdot, args):
-        phase = self.angular_frequency * t + self.phase
-        return self.offset + self.amplitude * jnp.cos(phase)
+        return self.offset + self.amplitude * jnp.cos(self.angular_frequency * t + self.phase)

@@ -32,9 +32,7 @@ def chain_inverse_bands(masses: jax.Array, lengths: jax.Array):
     lengths, `L` lower-triangular ones: `M^-1` is tridiagonal (`L^-1` is bidiagonal)."""
     inv_m = 1.0 / masses
     previous = jnp.concatenate([jnp.zeros_like(inv_m[:1]), inv_m[:-1]])
-    d = (inv_m + previous) / lengths**2
-    e = -inv_m[:-1] / (lengths[:-1] * lengths[1:])
-    return d, e
+    return (inv_m + previous) / lengths**2, -inv_m[:-1] / (lengths[:-1] * lengths[1:])
 
 
 class Chain(AbstractKinetic):
@@ -46,11 +44,10 @@ class Chain(AbstractKinetic):
     and `base` is the offset of its first joint from the base's point.
 
     **Arguments:**
-    - `masses`: `m_i` (kg, `> 0`): one value per link, or a scalar for every link.
-    - `lengths`: `l_i` (m, `> 0`): one value per link, or a scalar for every link.
+    - `masses`, `lengths`: `m_i` (kg) and `l_i` (m), `> 0`: one value per link, or a scalar
+      for every link.
     - `base`: the pivot, a `(3,)` point (m).
-    - `links`: the number of links (optional; needed when both `masses` and `lengths` are
-      scalars).
+    - `links`: the number of links (needed only when `masses` and `lengths` are scalars).
     - `payload`: a point mass (kg, `>= 0`) carried at the chain's end, added to the last
       link's mass (the load at the end of a cable).
     """
@@ -69,8 +66,7 @@ class Chain(AbstractKinetic):
         payload: jax.Array = 0.0,
     ):
         self.masses, self.lengths = per_item(links, "links", masses=masses, lengths=lengths)
-        self.base = as_float(base)
-        self.payload = as_float(payload)
+        self.base, self.payload = as_float(base), as_float(payload)
 
     def __check_init__(self):
         check_sign("masses", self.masses, " (kg)")
@@ -139,24 +135,19 @@ class Base(AbstractEffect):
         **Arguments:**
         - `x`: its coordinates, `(m,)`.
 
-        **Returns:** `position + x @ axes`, `(3,)` (m).
-        """
+        **Returns:** `position + x @ axes`, `(3,)` (m)."""
         return self.position.astype(x.dtype) + x @ self.axes.astype(x.dtype)
 
     def check(self, scene):
         if len(scene.kinetic) != 1 or not isinstance(scene.kinetic[0], Chain):
-            raise ParameterError(
-                "",
-                "a Base carries one Chain: the scene must list exactly "
-                "one kinetic term, a Chain, got "
-                f"{[type(k).__name__ for k in scene.kinetic]}",
-            )
+            got = [type(k).__name__ for k in scene.kinetic]
+            message = "a Base carries one Chain: the scene must list exactly one kinetic term"
+            raise ParameterError("", f"{message}, a Chain, got {got}")
 
 
 class AbstractSphereMasses(AbstractKinetic):
     """Point masses `m_i` each on a sphere of radius `r_i` centred at `c_i`:
-    `x_i = c_i + r_i q_i`, `M = diag(m_i r_i^2)`; each sphere its own joint, no bending.
-    What a picture shows is each final class's (`drawing`)."""
+    `x_i = c_i + r_i q_i`, `M = diag(m_i r_i^2)`; each sphere its own joint, no bending."""
 
     masses: eqx.AbstractVar[jax.Array]
     radii: eqx.AbstractVar[jax.Array]
@@ -191,11 +182,10 @@ class Particles(AbstractSphereMasses):
     """Free point masses, each on its own sphere: `x_i = c_i + r_i q_i`.
 
     **Arguments:**
-    - `masses`: `m_i` (kg, `> 0`): one per particle, or a scalar for every particle.
-    - `radii`: `r_i` (m, `> 0`): one per particle, or a scalar for every particle.
+    - `masses`, `radii`: `m_i` (kg) and `r_i` (m), `> 0`: one per particle, or a scalar
+      for every particle.
     - `centers`: `c_i` (m): one `(3,)` centre for all, or an `(n, 3)` array.
-    - `count`: the number of particles (optional; needed when `masses` and `radii` are
-      scalars).
+    - `count`: the number of particles (needed only when `masses` and `radii` are scalars).
     """
 
     masses: jax.Array
@@ -217,8 +207,7 @@ class SharedSphere(AbstractSphereMasses):
 
     **Arguments:**
     - `masses`: `m_i` (kg, `> 0`): one per bead, or a scalar for all `count` beads.
-    - `radius`: the sphere's radius (m, `> 0`).
-    - `center`: the sphere's centre, a `(3,)` point (m).
+    - `radius`, `center`: the sphere's radius (m, `> 0`) and centre, a `(3,)` point (m).
     - `count`: the number of beads (optional; needed when `masses` is a scalar).
     """
 

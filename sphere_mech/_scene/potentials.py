@@ -12,8 +12,7 @@ from .base import AbstractPotential, ParameterError
 def safe_norm(x: jax.Array) -> jax.Array:
     """Row-wise norm whose gradient at zero is zero instead of NaN."""
     s = jnp.sum(x * x, axis=-1)
-    nonzero = s > 0
-    return jnp.where(nonzero, jnp.sqrt(jnp.where(nonzero, s, 1.0)), 0.0)
+    return jnp.where(s > 0, jnp.sqrt(jnp.where(s > 0, s, 1.0)), 0.0)
 
 
 class Gravity(AbstractPotential):
@@ -43,8 +42,7 @@ class Spring(AbstractPotential):
     **Arguments:**
     - `a`, `b`: the ends: each the index of a mass of the scene (an `int`, static;
       negative counts from the end) or a fixed point in the support frame (a `(3,)` vector).
-    - `stiffness`: `k` (N/m), a scalar `>= 0`.
-    - `rest_length`: `L0` (m).
+    - `stiffness`, `rest_length`: `k` (N/m) and `L0` (m), scalars `>= 0`.
     """
 
     stiffness: jax.Array = eqx.field(converter=base.as_float)
@@ -53,11 +51,7 @@ class Spring(AbstractPotential):
     ends: tuple = eqx.field(static=True)
 
     def __init__(
-        self,
-        a: int | jax.Array,
-        b: int | jax.Array,
-        stiffness: jax.Array,
-        rest_length: jax.Array = 0.0,
+        self, a: int | jax.Array, b: int | jax.Array, stiffness: jax.Array, rest_length=0.0
     ):
         self.ends = tuple(int(e) if isinstance(e, int | np.integer) else None for e in (a, b))
         anchors = []
@@ -111,8 +105,7 @@ class Bending(AbstractPotential):
             base.check_shape("stiffness", self.stiffness, (joints,), what)
 
     def potential(self, t, q, scene, args):
-        i, j = scene.bend_pairs()
-        s = scene.spheres(q)
+        (i, j), s = scene.bend_pairs(), scene.spheres(q)
         return jnp.sum(self.stiffness * (1.0 - jnp.sum(s[i] * s[j], axis=-1)))
 
 
@@ -125,8 +118,7 @@ class PairInteraction(AbstractPotential):
     Inverse-distance repulsion of charges `c_i` for `p = 1`, `k > 0`.
 
     **Arguments:**
-    - `strength`: `k` (J m^p), a scalar.
-    - `exponent`: `p > 0`.
+    - `strength`, `exponent`: `k` (J m^p) and `p > 0`, scalars.
     - `charges`: one value per interacting mass (default: ones).
     - `masses`: the indices of the interacting masses (static; default: all of the scene),
       at most `MAX_PAIRS` pairs (about 4500 masses).
@@ -149,16 +141,12 @@ class PairInteraction(AbstractPotential):
     def check(self, scene):
         idx = self._indices(scene.n)
         if len(idx) < 2:
-            raise ParameterError(
-                "masses", f"PairInteraction needs at least two masses, got {len(idx)}"
-            )
+            message = f"PairInteraction needs at least two masses, got {len(idx)}"
+            raise ParameterError("masses", message)
         pairs = len(idx) * (len(idx) - 1) // 2
         if pairs > MAX_PAIRS:
-            raise ParameterError(
-                "masses",
-                f"PairInteraction sums over at most {MAX_PAIRS:.0e} pairs, got {len(idx)} "
-                f"masses ({pairs:.2e} pairs)",
-            )
+            message = f"PairInteraction sums over at most {MAX_PAIRS:.0e} pairs, got {len(idx)}"
+            raise ParameterError("masses", f"{message} masses ({pairs:.2e} pairs)")
         for i in idx:
             base.check_index(self, "masses", int(i), scene.n)
         if self.charges is not None:

@@ -21,15 +21,12 @@ class Scene(AbstractFastPath):
     effects, on the Corollary-1 fast path (O(n)); state `(q, qdot)`. Kinetic terms stack
     their spheres in the order given; only the listed effects are traced, each under its
     class name (no force effect: `forces` is `None`), and each is checked against the
-    scene (indices, counts) at construction. With a `Base`, the one `Chain` hangs from
-    the moving base and the state holds the base's coordinates `(m,)` beside the unit
-    vectors `(n, 3)` (the space `chain_space(m, n)`); the fast path stays O(n).
+    scene (indices, counts) at construction. With a `Base`, the one `Chain` hangs from it
+    and the state holds its coordinates `(m,)` beside the unit vectors (`chain_space(m, n)`).
 
     **Arguments:**
-    - `effects`: the effects, in any order: at least one kinetic term (`Chain`,
-      `Particles`, `SharedSphere`), at most one `Base`, then any potentials (`Gravity`,
-      `Spring`, `Bending`, `PairInteraction`) and forces (`JointDamping`, `BaseTorque`,
-      `TipForce`, `VibratingSupport`, `BaseForce`).
+    - `effects`: in any order: at least one kinetic term (`Chain`, `Particles`,
+      `SharedSphere`), at most one `Base`, any potentials and forces (see each).
     """
 
     kinetic: tuple[AbstractKinetic, ...]
@@ -40,10 +37,8 @@ class Scene(AbstractFastPath):
     def __init__(self, *effects: AbstractEffect):
         for e in effects:
             if not isinstance(e, AbstractKinetic | Base | AbstractPotential | AbstractForce):
-                raise ValueError(
-                    f"Scene takes effects (kinetic terms, a base, potentials, "
-                    f"forces), got {type(e).__name__}."
-                )
+                what = "effects (kinetic terms, a base, potentials, forces)"
+                raise ValueError(f"Scene takes {what}, got {type(e).__name__}.")
         bases = [e for e in effects if isinstance(e, Base)]
         if len(bases) > 1:
             raise ValueError(f"A scene takes at most one Base, got {len(bases)}.")
@@ -52,9 +47,8 @@ class Scene(AbstractFastPath):
         self.potentials = tuple(e for e in effects if isinstance(e, AbstractPotential))
         self.force_effects = tuple(e for e in effects if isinstance(e, AbstractForce))
         if not self.kinetic:
-            raise ValueError(
-                "A scene needs at least one kinetic term (Chain, Particles or SharedSphere)."
-            )
+            what = "at least one kinetic term (Chain, Particles or SharedSphere)"
+            raise ValueError(f"A scene needs {what}.")
 
     def __check_init__(self):
         for e in self.effects:
@@ -158,8 +152,7 @@ class Scene(AbstractFastPath):
         pairs = [(i + a, j + a) for k, a, _ in self._blocks() for i, j in k.bends()]
         return np.asarray(pairs, dtype=int).reshape(-1, 2).T
 
-    def kinetic_energy(self, q, qdot, args=None):
-        # T = 1/2 sum_i m_i |xdot_i|^2 over every point mass, O(n).
+    def kinetic_energy(self, q, qdot, args=None):  # 1/2 sum_i m_i |xdot_i|^2, O(n)
         xdot = jax.jvp(self.points, (q,), (qdot,))[1]
         T = 0.5 * jnp.sum(self.point_masses() * jnp.sum(xdot**2, axis=-1))
         return T.astype(xdot.dtype)
@@ -198,9 +191,8 @@ def chain_pendulum(masses, lengths, g=9.81, *, torque=None, tip_force=None) -> S
 
     **Returns:** the `Scene` (state `(q, qdot)`, Corollary-1 fast path).
     """
-    masses = jnp.asarray(masses)
-    dtype = jnp.result_type(masses, float)
-    chain = Chain(masses.astype(dtype), jnp.asarray(lengths, dtype))
+    dtype = jnp.result_type(jnp.asarray(masses), float)
+    chain = Chain(jnp.asarray(masses, dtype), jnp.asarray(lengths, dtype))
     effects = [chain, Gravity(jnp.asarray(g, dtype))]
     effects += [] if torque is None else [BaseTorque(torque)]
     effects += [] if tip_force is None else [TipForce(tip_force)]
