@@ -268,3 +268,111 @@ def test_a_body_with_a_position_and_an_attitude(angular):
     expected = (f * R0[0] @ e3 / m - g * e3) * TS[:, None] ** 2 / 2
     assert float(jnp.max(jnp.abs(sol.ys[0]["base"] - expected))) < 1e-10
     assert float(jnp.max(jnp.abs(sol.ys[0]["attitude"] - R0))) < 1e-13
+
+
+def test_rigid_body_carrying_a_pendulum_against_a_cartesian_quaternion_dae():
+    """A free body (position, attitude) carrying a pendulum hung from a point `d` off its
+    centre of mass, on `{"base": Euclidean(3), "attitude": Rotations(1), "pendulum":
+    Spheres(1)}` in forms 1 and 2, against the same system in Cartesian coordinates (body
+    position, unit quaternion, body rate, bob position) with the rod held by a Lagrange
+    multiplier, solved by scipy."""
+    M, m, rod, g = 2.0, 0.5, 0.7, 9.81
+    d = np.array([0.1, 0.2, -0.3])
+    e3 = np.array([0.0, 0.0, 1.0])
+    Jn = np.asarray(J)
+    space = {"base": sm.Euclidean(3), "attitude": SPACE, "pendulum": sm.Spheres(1)}
+
+    def L(angular):
+        def lagrangian(t, q, v, args):
+            R, p = q["attitude"][0], q["pendulum"][0]
+            W = v["attitude"][0] if angular else body(q["attitude"], v["attitude"])[0]
+            pdot = jnp.cross(v["pendulum"][0], p) if angular else v["pendulum"][0]
+            bob = v["base"] + R @ jnp.cross(W, jnp.asarray(d)) + rod * pdot
+            kinetic = 0.5 * M * v["base"] @ v["base"] + 0.5 * jnp.sum(J * W**2)
+            kinetic = kinetic + 0.5 * m * bob @ bob
+            height = M * q["base"][2] + m * (q["base"] + R @ jnp.asarray(d) + rod * p)[2]
+            return kinetic - g * height
+
+        return lagrangian
+
+    p0 = sm.normalize(jnp.array([[0.3, -0.4, -1.0]]))
+    W0_ = jnp.array([[0.5, -0.3, 0.9]])
+    x0, xdot0 = jnp.zeros(3), jnp.array([0.2, 0.0, 1.0])
+    omega_p0 = jnp.array([[0.0, 1.2, 0.0]])
+    omega_p0 = omega_p0 - (omega_p0 @ p0[0]) * p0  # tangent to the pendulum's sphere
+
+    # The reference: y = (x, quaternion, Omega, bob position, bob velocity).
+    def matrix(qt):
+        w, a, b, c = qt / np.linalg.norm(qt)
+        return np.array(
+            [
+                [1 - 2 * (b * b + c * c), 2 * (a * b - w * c), 2 * (a * c + w * b)],
+                [2 * (a * b + w * c), 1 - 2 * (a * a + c * c), 2 * (b * c - w * a)],
+                [2 * (a * c - w * b), 2 * (b * c + w * a), 1 - 2 * (a * a + b * b)],
+            ]
+        )
+
+    def rhs(t, y):
+        x, xd, qt, W, yb, yd = y[:3], y[3:6], y[6:10], y[10:13], y[13:16], y[16:19]
+        R = matrix(qt)
+        c = yb - x - R @ d
+        cdot = yd - xd - R @ np.cross(W, d)
+        # accelerations as a + lam b (lam: the rod's tension per unit length)
+        a_x, b_x = -g * e3, c / M
+        a_y, b_y = -g * e3, -c / m
+        a_W = np.cross(Jn * W, W) / Jn
+        b_W = np.cross(d, R.T @ c) / Jn
+        # c . cddot + |cdot|^2 = 0, cddot = yddot - xddot - R (Wdot x d + W x (W x d))
+        a_c = a_y - a_x - R @ (np.cross(a_W, d) + np.cross(W, np.cross(W, d)))
+        b_c = b_y - b_x - R @ np.cross(b_W, d)
+        lam = -(c @ a_c + cdot @ cdot) / (c @ b_c)
+        qw = 0.5 * np.array(
+            [
+                -qt[1] * W[0] - qt[2] * W[1] - qt[3] * W[2],
+                qt[0] * W[0] + qt[2] * W[2] - qt[3] * W[1],
+                qt[0] * W[1] - qt[1] * W[2] + qt[3] * W[0],
+                qt[0] * W[2] + qt[1] * W[1] - qt[2] * W[0],
+            ]
+        )
+        return np.concatenate([xd, a_x + lam * b_x, qw, a_W + lam * b_W, yd, a_y + lam * b_y])
+
+    angle = np.array([0.3, -0.2, 0.5])
+    theta = np.linalg.norm(angle)
+    qt0 = np.concatenate([[np.cos(theta / 2)], np.sin(theta / 2) * angle / theta])
+    R0n = matrix(qt0)
+    bob0 = np.asarray(x0) + R0n @ d + rod * np.asarray(p0[0])
+    bobdot0 = (
+        np.asarray(xdot0)
+        + R0n @ np.cross(np.asarray(W0_[0]), d)
+        + rod * np.cross(np.asarray(omega_p0[0]), np.asarray(p0[0]))
+    )
+    y0 = np.concatenate([x0, xdot0, qt0, np.asarray(W0_[0]), bob0, bobdot0])
+    ts = np.asarray(TS[:4])  # 0 .. 1.5 s
+    ref = solve_ivp(rhs, (0, ts[-1]), y0, method="DOP853", rtol=1e-13, atol=1e-13, t_eval=ts).y.T
+
+    q0 = {"base": x0, "attitude": R0, "pendulum": p0}
+    for angular in (False, True):
+        if angular:
+            v0 = {"base": xdot0, "attitude": W0_, "pendulum": omega_p0}
+        else:
+            pdot0 = jnp.cross(omega_p0, p0)
+            v0 = {"base": xdot0, "attitude": R0 @ sm.hat(W0_), "pendulum": pdot0}
+        system = (sm.AngularLagrangian if angular else sm.Lagrangian)(L(angular), space=space)
+        saveat = diffrax.SaveAt(ts=TS[:4])
+        sol = sm.simulate(
+            system,
+            (q0, v0),
+            ts[-1],
+            solver=sm.LieRK(diffrax.Dopri8()),
+            rtol=1e-12,
+            atol=1e-12,
+            saveat=saveat,
+        )
+        q = sol.ys[0]
+        bob = (
+            q["base"] + jnp.einsum("tij,j->ti", q["attitude"][:, 0], d) + rod * q["pendulum"][:, 0]
+        )
+        assert np.max(np.abs(np.asarray(q["base"]) - ref[:, :3])) < 1e-9
+        assert np.max(np.abs(np.asarray(bob) - ref[:, 13:16])) < 1e-9
+        R_ref = np.stack([matrix(qt) for qt in ref[:, 6:10]])
+        assert np.max(np.abs(np.asarray(q["attitude"][:, 0]) - R_ref)) < 1e-9
