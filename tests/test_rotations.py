@@ -376,3 +376,38 @@ def test_rigid_body_carrying_a_pendulum_against_a_cartesian_quaternion_dae():
         assert np.max(np.abs(np.asarray(bob) - ref[:, 13:16])) < 1e-9
         R_ref = np.stack([matrix(qt) for qt in ref[:, 6:10]])
         assert np.max(np.abs(np.asarray(q["attitude"][:, 0]) - R_ref)) < 1e-9
+
+
+@pytest.mark.parametrize("segments", [1, 3], ids=["single", "multiple shooting"])
+def test_fit_a_3d_pendulum_from_its_attitude(segments):
+    """Recover `m g` and `J3` from the centre of mass's observed path (form 2, body
+    `Omega`); with multiple shooting the segment states are rotations in the tangent
+    chart of `Rotations`."""
+
+    def model(p):
+        Jp = jnp.array([1.0, 2.0, p["J3"]])
+        L = lambda t, R, W, a: 0.5 * jnp.sum(Jp * W**2) - p["mg"] * (R[0] @ RHO)[2]
+        return sm.AngularLagrangian(L, space=SPACE)
+
+    truth = {"mg": jnp.asarray(M_G), "J3": jnp.asarray(3.0)}
+    ts = jnp.linspace(0.0, 0.6, 13)
+    observe = lambda system, t, R, W: R[0] @ RHO
+    options = dict(solver=sm.LieRK4(), dt0=0.005, stepsize_controller=FIXED)
+    sol = sm.simulate(model(truth), (R0, W0), 0.6, saveat=diffrax.SaveAt(ts=ts), **options)
+    obs = jnp.einsum("tij,j->ti", sol.ys[0][:, 0], RHO)
+    start = {"mg": jnp.asarray(80.0), "J3": jnp.asarray(2.5)}
+    result = sm.fit(
+        model,
+        start,
+        ts,
+        obs,
+        observe,
+        y0=(R0, W0),
+        segments=segments,
+        positive=True,
+        simulate_options=options,
+    )
+    assert bool(result.converged)
+    for k in truth:
+        assert abs(float(result.params[k] / truth[k]) - 1) < 1e-6, result.params
+    assert all(bool(jnp.isfinite(result.stderr[k])) for k in truth)

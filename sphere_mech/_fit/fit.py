@@ -171,10 +171,10 @@ def _initial_unknown_states(guess, system, args, segment_t0, y0, fit_initial_sta
     return with_first(y0, guess) if fit_initial_state else guess
 
 
-def _tangent_size(space: AbstractSpace, state_tree):
+def _tangent_size(space: AbstractSpace, states):
     """`d`, the tangent coordinates of one point (`2n` on (S^2)^n), of states `(B, K, ...)`."""
-    q = jtu.tree_map(lambda x: x[0, 0], state_tree)
-    return jax.eval_shape(lambda q: space.to_tangent(space.tangent_basis(q), q), q).shape[0]
+    q, v = jtu.tree_map(lambda x: x[0, 0], states)
+    return jax.eval_shape(lambda q, v: space.to_tangent(space.tangent_basis(q), v), q, v).shape[0]
 
 
 def _degrees_of_freedom(space, observations, unknowns0, segments):
@@ -184,28 +184,30 @@ def _degrees_of_freedom(space, observations, unknowns0, segments):
     if z is None:
         return observations.size - num_params
     num_records, num_states = jtu.tree_leaves(z[0])[0].shape[:2]
-    size = 2 * _tangent_size(space, z[0])
+    size = 2 * _tangent_size(space, z)
     return observations.size + size * num_records * (segments - 1 - num_states) - num_params
 
 
-def _tangent_chart(space: AbstractSpace, z):
+def _tangent_chart(space: AbstractSpace, to_linear, z):
     """`(w0, chart)`: the segment states as a function of tangent coordinates `w (B, K, 2,
-    d)` (`dq`, `dv` in the tangent basis at `q`) around the retracted states (`w0 = 0`)."""
+    d)` (`dq`, `dv` in the state space's tangent basis at `q`, `dq` turned into a move of
+    `q` by the system's `to_linear`) around the retracted states (`w0 = 0`)."""
     if z is None:
         return jnp.zeros((0,)), lambda w: None
     q, v = over_states(space.retract)(*z)
     basis = over_states(space.tangent_basis)(q)
-    move = over_states(lambda T, x, dx: tree_add(x, space.from_tangent(T, dx)))
-    chart = lambda w: (move(basis, q, w[..., 0, :]), move(basis, v, w[..., 1, :]))
-    shape = jtu.tree_leaves(q)[0].shape[:2] + (2, _tangent_size(space, q))
+    move_q = over_states(lambda T, x, dx: tree_add(x, to_linear(x, space.from_tangent(T, dx))))
+    move_v = over_states(lambda T, x, dx: tree_add(x, space.from_tangent(T, dx)))
+    chart = lambda w: (move_q(basis, q, w[..., 0, :]), move_v(basis, v, w[..., 1, :]))
+    shape = jtu.tree_leaves(q)[0].shape[:2] + (2, _tangent_size(space, (q, v)))
     return jnp.zeros(shape, tree_dtype(q)), chart
 
 
-def _linearize(residuals, unknowns, data, loss, dof):
+def _linearize(residuals, unknowns, data, loss, dof, to_linear):
     """The Jacobian, the parameters' covariance and `s^2`, as `FitResult` describes them."""
     u, z = unknowns
     u_flat, unravel_u = ravel_pytree(u)
-    w0, chart = _tangent_chart(residuals.space, z)
+    w0, chart = _tangent_chart(residuals.space, to_linear, z)
     w_flat, unravel_w = ravel_pytree(w0)
 
     def flat_residuals(x):
@@ -233,7 +235,7 @@ def _stderr(covariance, u, positive):
 
 
 @eqx.filter_jit
-def _solve(residuals, solver, unknowns0, data, max_steps, dof):
+def _solve(residuals, solver, unknowns0, data, max_steps, dof, to_linear):
     sol = optx.least_squares(
         residuals, solver, unknowns0, data, {"jac": "fwd"}, max_steps=max_steps, throw=False
     )
@@ -243,7 +245,7 @@ def _solve(residuals, solver, unknowns0, data, max_steps, dof):
     loss, initial_loss = 0.5 * sum(
         jnp.sum(x**2, axis=tuple(range(1, x.ndim))) for x in jtu.tree_leaves(r)
     )
-    linear = _linearize(residuals, sol.value, data, loss, dof)
+    linear = _linearize(residuals, sol.value, data, loss, dof, to_linear)
     return sol.value, loss, initial_loss, sol.stats["num_steps"], sol.result, linear
 
 
@@ -319,7 +321,7 @@ def fit(
     flags = _positive_flags(params0, positive)
     dynamic, static = eqx.partition(params0, eqx.is_inexact_array)
     system0, args0 = model_output(model, params0)
-    space = system0.space
+    space = system0.state_space
     ts, observations, y0, batched = _as_batch(space, ts, observations, y0)
     segment_data = split_segments(ts, observations, segments)
     _check_observe(observe, system0, ts, observations, y0)
@@ -333,7 +335,7 @@ def fit(
     unknowns0 = (map_flagged(jnp.log, dynamic, flags), z0)
     dof = _degrees_of_freedom(space, observations, unknowns0, segments)
     (u, z), loss, initial_loss, num_steps, result, linear = _solve(
-        residuals, solver, unknowns0, (segment_data, y0), max_steps, dof
+        residuals, solver, unknowns0, (segment_data, y0), max_steps, dof, system0.to_linear
     )
     jacobian, covariance, variance = linear
     states = jtu.tree_map(lambda s: s if batched else s[0], residuals.states(z, y0))
