@@ -38,7 +38,12 @@ def check_shapes(q, v, v_name: str = "v", q_name: str = "q") -> None:
             f"({q_name} and the velocity or momentum must describe the same number of "
             "spheres)."
         )
-    for name, x in ((q_name, q), (v_name, v)):
+    check_floating((q_name, q), (v_name, v))
+
+
+def check_floating(*named) -> None:
+    """Static check: each `(name, x)` of `named` is a floating-point array."""
+    for name, x in named:
         if not jnp.issubdtype(jnp.result_type(x), jnp.floating):
             raise ValueError(f"{name} must be a floating-point array, got {jnp.result_type(x)}.")
 

@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 
 from ._checks import (
+    check_floating,
     check_shapes,
     nonfinite,
     off_rotation,
@@ -327,10 +328,7 @@ class Euclidean(AbstractFactor):
                 raise ValueError(
                     f"{name} must have shape ({self.m},) (Euclidean({self.m})), got {jnp.shape(x)}."
                 )
-            if not jnp.issubdtype(jnp.result_type(x), jnp.floating):
-                raise ValueError(
-                    f"{name} must be a floating-point array, got {jnp.result_type(x)}."
-                )
+        check_floating((q_name, q), (v_name, v))
 
     def problems(self, q, v, v_name="v", q_name="q"):
         return [nonfinite(q, q_name), nonfinite(v, v_name)]
@@ -439,19 +437,16 @@ class Rotations(_AbstractBlockFactor):
             raise ValueError(f"Rotations(k): k must be a positive int, got {self.k!r}.")
 
     def check_shapes(self, q, v, v_name="v", q_name="q"):
-        k = jnp.shape(q)[0] if self.k is None and jnp.ndim(q) == 3 else self.k
-        shapes = {q_name: (q, (k, 3, 3)), v_name: (v, (k, 3) if self.body else (k, 3, 3))}
-        for name, (x, shape) in shapes.items():
+        k = self.k or (jnp.shape(q)[0] if jnp.ndim(q) == 3 else "k")
+        velocity = (k, 3) if self.body else (k, 3, 3)
+        for name, x, shape in ((q_name, q, (k, 3, 3)), (v_name, v, velocity)):
             if jnp.shape(x) != shape:
-                what = f"({self.k if self.k else 'k'}, 3{', 3' * (len(shape) - 2)})"
+                spelled = f"({', '.join(map(str, shape))})"
                 raise ValueError(
-                    f"{name} must have shape {what} (Rotations({self.k or ''})), "
+                    f"{name} must have shape {spelled} (Rotations({self.k or ''})), "
                     f"got {jnp.shape(x)}."
                 )
-            if not jnp.issubdtype(jnp.result_type(x), jnp.floating):
-                raise ValueError(
-                    f"{name} must be a floating-point array, got {jnp.result_type(x)}."
-                )
+        check_floating((q_name, q), (v_name, v))
 
     def problems(self, q, v, v_name="v", q_name="q"):
         found = [nonfinite(q, q_name), off_rotation(q, q_name), nonfinite(v, v_name)]
