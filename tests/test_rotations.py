@@ -24,6 +24,36 @@ SPACE = sm.Rotations(1)
 FIXED = diffrax.ConstantStepSize()
 
 
+def quaternion_matrix(qt):
+    """The rotation matrix of a quaternion `(w, x, y, z)` (normalized first)."""
+    w, x, y, z = qt / np.linalg.norm(qt)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def quaternion_rate(qt, w):
+    """`qdot = q (0, w) / 2` for the body angular velocity `w`."""
+    return 0.5 * np.array(
+        [
+            -qt[1] * w[0] - qt[2] * w[1] - qt[3] * w[2],
+            qt[0] * w[0] + qt[2] * w[2] - qt[3] * w[1],
+            qt[0] * w[1] - qt[1] * w[2] + qt[3] * w[0],
+            qt[0] * w[2] + qt[1] * w[1] - qt[2] * w[0],
+        ]
+    )
+
+
+def quaternion(angle):
+    """The unit quaternion of the rotation vector `angle`."""
+    theta = np.linalg.norm(angle)
+    return np.concatenate([[np.cos(theta / 2)], np.sin(theta / 2) * angle / theta])
+
+
 def body(R, Rdot):
     return sm.vee(jnp.swapaxes(R, -1, -2) @ Rdot)
 
@@ -47,34 +77,14 @@ def pendulum_reference():
     """`R(t)` of the 3-D pendulum from a unit-quaternion ODE solved by scipy:
     `qdot = q (0, Omega) / 2`, `J Omegadot = J Omega x Omega + m g (R^T e3) x rho`."""
 
-    def matrix(q):
-        w, x, y, z = q / np.linalg.norm(q)
-        return np.array(
-            [
-                [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-            ]
-        )
-
     def rhs(t, y):
         q, w = y[:4], y[4:]
-        qw = np.array(
-            [
-                -q[1] * w[0] - q[2] * w[1] - q[3] * w[2],
-                q[0] * w[0] + q[2] * w[2] - q[3] * w[1],
-                q[0] * w[1] - q[1] * w[2] + q[3] * w[0],
-                q[0] * w[2] + q[1] * w[1] - q[2] * w[0],
-            ]
-        )
-        e3_body = matrix(q).T @ np.array([0.0, 0.0, 1.0])
+        e3_body = quaternion_matrix(q).T @ np.array([0.0, 0.0, 1.0])
         Jn, rho = np.asarray(J), np.asarray(RHO)
         wdot = (np.cross(Jn * w, w) + M_G * np.cross(e3_body, rho)) / Jn
-        return np.concatenate([0.5 * qw, wdot])
+        return np.concatenate([quaternion_rate(q, w), wdot])
 
-    angle = np.array([0.3, -0.2, 0.5])
-    theta = np.linalg.norm(angle)
-    q0 = np.concatenate([[np.cos(theta / 2)], np.sin(theta / 2) * angle / theta])
+    q0 = quaternion(np.array([0.3, -0.2, 0.5]))
     sol = solve_ivp(
         rhs,
         (0, 3),
@@ -84,7 +94,7 @@ def pendulum_reference():
         atol=1e-13,
         t_eval=np.asarray(TS),
     )
-    return np.stack([matrix(q) for q in sol.y[:4].T]), sol.y[4:].T
+    return np.stack([quaternion_matrix(q) for q in sol.y[:4].T]), sol.y[4:].T
 
 
 def test_torque_free_body_against_jacobi_elliptic_closed_form():
@@ -302,19 +312,9 @@ def test_rigid_body_carrying_a_pendulum_against_a_cartesian_quaternion_dae():
     omega_p0 = omega_p0 - (omega_p0 @ p0[0]) * p0  # tangent to the pendulum's sphere
 
     # The reference: y = (x, quaternion, Omega, bob position, bob velocity).
-    def matrix(qt):
-        w, a, b, c = qt / np.linalg.norm(qt)
-        return np.array(
-            [
-                [1 - 2 * (b * b + c * c), 2 * (a * b - w * c), 2 * (a * c + w * b)],
-                [2 * (a * b + w * c), 1 - 2 * (a * a + c * c), 2 * (b * c - w * a)],
-                [2 * (a * c - w * b), 2 * (b * c + w * a), 1 - 2 * (a * a + b * b)],
-            ]
-        )
-
     def rhs(t, y):
         x, xd, qt, W, yb, yd = y[:3], y[3:6], y[6:10], y[10:13], y[13:16], y[16:19]
-        R = matrix(qt)
+        R = quaternion_matrix(qt)
         c = yb - x - R @ d
         cdot = yd - xd - R @ np.cross(W, d)
         # accelerations as a + lam b (lam: the rod's tension per unit length)
@@ -326,20 +326,11 @@ def test_rigid_body_carrying_a_pendulum_against_a_cartesian_quaternion_dae():
         a_c = a_y - a_x - R @ (np.cross(a_W, d) + np.cross(W, np.cross(W, d)))
         b_c = b_y - b_x - R @ np.cross(b_W, d)
         lam = -(c @ a_c + cdot @ cdot) / (c @ b_c)
-        qw = 0.5 * np.array(
-            [
-                -qt[1] * W[0] - qt[2] * W[1] - qt[3] * W[2],
-                qt[0] * W[0] + qt[2] * W[2] - qt[3] * W[1],
-                qt[0] * W[1] - qt[1] * W[2] + qt[3] * W[0],
-                qt[0] * W[2] + qt[1] * W[1] - qt[2] * W[0],
-            ]
-        )
-        return np.concatenate([xd, a_x + lam * b_x, qw, a_W + lam * b_W, yd, a_y + lam * b_y])
+        qdot = quaternion_rate(qt, W)
+        return np.concatenate([xd, a_x + lam * b_x, qdot, a_W + lam * b_W, yd, a_y + lam * b_y])
 
-    angle = np.array([0.3, -0.2, 0.5])
-    theta = np.linalg.norm(angle)
-    qt0 = np.concatenate([[np.cos(theta / 2)], np.sin(theta / 2) * angle / theta])
-    R0n = matrix(qt0)
+    qt0 = quaternion(np.array([0.3, -0.2, 0.5]))
+    R0n = quaternion_matrix(qt0)
     bob0 = np.asarray(x0) + R0n @ d + rod * np.asarray(p0[0])
     bobdot0 = (
         np.asarray(xdot0)
@@ -374,7 +365,7 @@ def test_rigid_body_carrying_a_pendulum_against_a_cartesian_quaternion_dae():
         )
         assert np.max(np.abs(np.asarray(q["base"]) - ref[:, :3])) < 1e-9
         assert np.max(np.abs(np.asarray(bob) - ref[:, 13:16])) < 1e-9
-        R_ref = np.stack([matrix(qt) for qt in ref[:, 6:10]])
+        R_ref = np.stack([quaternion_matrix(qt) for qt in ref[:, 6:10]])
         assert np.max(np.abs(np.asarray(q["attitude"][:, 0]) - R_ref)) < 1e-9
 
 
