@@ -1,5 +1,6 @@
 """`simulate_batch`: many trajectories at once, vmapped, chunked and sharded over devices."""
 
+import dataclasses
 import math
 
 import diffrax
@@ -130,11 +131,12 @@ def simulate_batch(
         _leading(args, size, "args")
     if batch_system:
         _leading(eqx.filter(system, eqx.is_array), size, "system")
-    inputs = (run.system, run.args, run.t0, run.t1, run.dt0, run.opts)
+    devices = (jax.devices() if devices is None else list(devices))[:size]
+    opts = dataclasses.replace(run.opts, sharded=len(devices) > 1)  # forward-mode gradients
+    inputs = (run.system, run.args, run.t0, run.t1, run.dt0, opts)
     dynamic, static = eqx.partition(inputs, eqx.is_array)
     mask = (batch_system, batch_args) + jax.tree.map(lambda _: False, dynamic[2:])  # prefixes
     batched, shared = eqx.partition(dynamic, mask)
-    devices = (jax.devices() if devices is None else list(devices))[:size]
     mesh = Mesh(np.array(devices), (BATCH_AXIS,)) if len(devices) > 1 else None
     n_rows = system.space.rows(jax.tree.map(lambda x: x[0], run.y0[0]))
     chunk = _chunk_size(chunk_size, n_rows, -(-size // len(devices)), devices[0].platform)

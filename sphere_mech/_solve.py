@@ -42,6 +42,7 @@ class Options(eqx.Module):
     event: diffrax.Event | None
     max_steps: int | None = eqx.field(static=True)
     batched: bool = eqx.field(static=True)  # one trajectory of `simulate_batch`'s vmap
+    sharded: bool = eqx.field(static=True, default=False)  # ... over several devices
 
 
 def options(
