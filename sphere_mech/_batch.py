@@ -8,7 +8,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import Mesh, PartitionSpec
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ._adjoint import forward_mode_hint
 from ._misc import rows
@@ -68,6 +68,13 @@ def _solve_batch(static, chunk, mesh, shared, batched, y0, valid, size, padded):
     stats = jax.tree.map(discard(0), sol.stats)
     fields = lambda s: (s.result, s.ts, s.ys, s.stats)
     return eqx.tree_at(fields, sol, (result, ts, ys, stats), is_leaf=lambda x: x is None)
+
+
+def _on_mesh(tree, mesh):
+    """Arrays that span several processes (each passed its slice) split along `mesh`."""
+    sharding = NamedSharding(mesh, PartitionSpec(BATCH_AXIS))
+    spans = lambda x: isinstance(x, jax.Array) and not x.is_fully_addressable
+    return jax.tree.map(lambda x: jax.device_put(x, sharding) if spans(x) else x, tree)
 
 
 def _chunk_size(chunk_size, n, local, platform):
@@ -141,8 +148,11 @@ def simulate_batch(
     n_rows = system.space.rows(jax.tree.map(lambda x: x[0], run.y0[0]))
     chunk = _chunk_size(chunk_size, n_rows, -(-size // len(devices)), devices[0].platform)
     padded = -(-size // (chunk * len(devices))) * chunk * len(devices)
+    y0 = run.y0
+    if mesh is not None:  # each process's slices (global arrays), laid on the batch's mesh
+        batched, y0 = _on_mesh((batched, y0), mesh)
     with forward_mode_hint():
-        sol = _solve_batch(static, chunk, mesh, shared, batched, run.y0, run.valid, size, padded)
+        sol = _solve_batch(static, chunk, mesh, shared, batched, y0, run.valid, size, padded)
     return raise_on_failure(sol, run.opts.max_steps, "simulate_batch") if run.throw else sol
 
 
