@@ -125,8 +125,11 @@ def simulate_batch(
     - `chunk_size`: trajectories per `vmap` on a device (default: about `512 / n` on CPU,
       keeping the working set in cache; the whole batch elsewhere); results do not change.
     - `devices`: devices to shard the batch over with `shard_map` (default: all of JAX's
-      default backend; at most one per trajectory); the batch is padded to a multiple of
-      their count and the padding stripped.
+      default backend, of every process after `jax.distributed.initialize`; at most one
+      per trajectory); the batch is padded to a multiple of their count and the padding
+      stripped. Across processes every process passes the whole batch, or its slice as
+      global arrays; `throw=True` raises the same message on every process. On several
+      devices gradients take forward mode (docs/distributed.md).
 
     **Returns:** a `diffrax.Solution` whose every array has a leading batch axis:
     `sol.ys = (q, v)` of shape `(batch, times, n, 3)`, `sol.result` and
