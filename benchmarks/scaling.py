@@ -164,7 +164,7 @@ def main(opts):
             row.append(f"{res['grad']:.3f}")
             row.append(f"{base['grad'] / (share * res['grad']):.2f}")
         rows.append(row)
-    columns = ["devices", "processes", "run (s)", "steps/s", "efficiency", "max |diff|"]
+    columns = ["devices", "processes", "run (s)", "steps/s", "efficiency", "max diff from 1 device"]
     columns += ["grad (s)", "grad efficiency"] if opts.grad else []
     what = (
         f"`simulate_batch`: {opts.batch} chain pendulums of {opts.n} links, {opts.steps} "

@@ -73,7 +73,11 @@ def _solve_batch(static, chunk, mesh, shared, batched, y0, valid, size, padded):
 def _on_mesh(tree, mesh):
     """Arrays that span several processes (each passed its slice) split along `mesh`."""
     sharding = NamedSharding(mesh, PartitionSpec(BATCH_AXIS))
-    spans = lambda x: isinstance(x, jax.Array) and not x.is_fully_addressable
+    spans = lambda x: (
+        isinstance(x, jax.Array)
+        and not isinstance(x, jax.core.Tracer)
+        and not x.is_fully_addressable
+    )
     return jax.tree.map(lambda x: jax.device_put(x, sharding) if spans(x) else x, tree)
 
 
