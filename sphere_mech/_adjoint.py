@@ -16,7 +16,13 @@ scalars, else reverse mode. On a 2-core CPU forward mode measured 1.9x (float64)
 arrays cost per operation, and forward mode widens the operations instead of adding more."""
 BATCH_FORWARD_COLUMNS = 2
 """The same for a trajectory of `simulate_batch`: under `vmap` forward mode's cost grows with
-every column (at 8, reverse mode measured 3.5x faster; at 2, forward mode 1.1x to 1.6x)."""
+every column (at 8, reverse mode measured 3.5x faster; at 2, forward mode 1.1x to 1.6x).
+A batch sharded over several devices or processes (`Options.sharded`) always uses forward
+mode: reverse mode's checkpointed loop fails inside `shard_map` (equinox compares the
+types of its loop state, which inside `shard_map` carry the manual mesh only once traced:
+"Closure-converted function called with different dynamic arguments"; diffrax #765,
+equinox PR #1261). Forward mode gives the same gradient (to rounding) at a cost that grows
+with the number of differentiated scalars per trajectory."""
 
 
 @contextlib.contextmanager
@@ -43,7 +49,8 @@ def default_adjoint_run(inputs, *, opts, solve_with) -> diffrax.Solution:
     $P \times$ outputs Jacobian), times the cotangent; else
     `diffrax.RecursiveCheckpointAdjoint()` (memory: $\lfloor\sqrt{2 \cdot
     \text{max\_steps}}\rfloor$ loop-state checkpoints, 447 by default). Neither depends on
-    the number of steps. No forward mode (`jax.jvp`): pass `adjoint=diffrax.ForwardMode()`."""
+    the number of steps. A sharded batch (`opts.sharded`) always takes forward mode. No
+    forward mode (`jax.jvp`): pass `adjoint=diffrax.ForwardMode()`."""
     return solve_with(diffrax.RecursiveCheckpointAdjoint(), *inputs, opts)
 
 
@@ -51,7 +58,7 @@ def _split(perturbed, inputs, opts):
     """The differentiated leaves of `inputs`, the rest, and the adjoint for them."""
     x, rest = eqx.partition(inputs, perturbed)
     columns = sum(leaf.size for leaf in jax.tree.leaves(x))
-    return x, rest, default_adjoint(columns, opts.batched)
+    return x, rest, default_adjoint(columns, opts.batched, opts.sharded)
 
 
 @default_adjoint_run.def_fwd
@@ -86,9 +93,12 @@ def _bwd(residuals, grad_sol, perturbed, inputs, *, opts, solve_with):
     return unravel(jacobian.T @ ravel_pytree(cotangent)[0].astype(jacobian.dtype))
 
 
-def default_adjoint(columns: int, batched: bool = False) -> diffrax.AbstractAdjoint:
+def default_adjoint(
+    columns: int, batched: bool = False, sharded: bool = False
+) -> diffrax.AbstractAdjoint:
     """`diffrax.ForwardMode()` for at most `FORWARD_COLUMNS` (`BATCH_FORWARD_COLUMNS` if
-    `batched`) differentiated scalars, else `diffrax.RecursiveCheckpointAdjoint()`."""
-    if columns <= (BATCH_FORWARD_COLUMNS if batched else FORWARD_COLUMNS):
+    `batched`) differentiated scalars or if `sharded` (over several devices), else
+    `diffrax.RecursiveCheckpointAdjoint()`."""
+    if sharded or columns <= (BATCH_FORWARD_COLUMNS if batched else FORWARD_COLUMNS):
         return diffrax.ForwardMode()
     return diffrax.RecursiveCheckpointAdjoint()

@@ -1,5 +1,6 @@
 """`simulate_batch`: many trajectories at once, vmapped, chunked and sharded over devices."""
 
+import dataclasses
 import math
 
 import diffrax
@@ -7,7 +8,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import Mesh, PartitionSpec
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ._adjoint import forward_mode_hint
 from ._misc import rows
@@ -69,6 +70,17 @@ def _solve_batch(static, chunk, mesh, shared, batched, y0, valid, size, padded):
     return eqx.tree_at(fields, sol, (result, ts, ys, stats), is_leaf=lambda x: x is None)
 
 
+def _on_mesh(tree, mesh):
+    """Arrays that span several processes (each passed its slice) split along `mesh`."""
+    sharding = NamedSharding(mesh, PartitionSpec(BATCH_AXIS))
+    spans = lambda x: (
+        isinstance(x, jax.Array)
+        and not isinstance(x, jax.core.Tracer)
+        and not x.is_fully_addressable
+    )
+    return jax.tree.map(lambda x: jax.device_put(x, sharding) if spans(x) else x, tree)
+
+
 def _chunk_size(chunk_size, n, local, platform):
     if chunk_size is None:
         if platform != "cpu":
@@ -117,8 +129,11 @@ def simulate_batch(
     - `chunk_size`: trajectories per `vmap` on a device (default: about `512 / n` on CPU,
       keeping the working set in cache; the whole batch elsewhere); results do not change.
     - `devices`: devices to shard the batch over with `shard_map` (default: all of JAX's
-      default backend; at most one per trajectory); the batch is padded to a multiple of
-      their count and the padding stripped.
+      default backend, of every process after `jax.distributed.initialize`; at most one
+      per trajectory); the batch is padded to a multiple of their count and the padding
+      stripped. Across processes every process passes the whole batch, or its slice as
+      global arrays; `throw=True` raises the same message on every process. On several
+      devices gradients take forward mode (docs/distributed.md).
 
     **Returns:** a `diffrax.Solution` whose every array has a leading batch axis:
     `sol.ys = (q, v)` of shape `(batch, times, n, 3)`, `sol.result` and
@@ -130,17 +145,21 @@ def simulate_batch(
         _leading(args, size, "args")
     if batch_system:
         _leading(eqx.filter(system, eqx.is_array), size, "system")
-    inputs = (run.system, run.args, run.t0, run.t1, run.dt0, run.opts)
+    devices = (jax.devices() if devices is None else list(devices))[:size]
+    opts = dataclasses.replace(run.opts, sharded=len(devices) > 1)  # forward-mode gradients
+    inputs = (run.system, run.args, run.t0, run.t1, run.dt0, opts)
     dynamic, static = eqx.partition(inputs, eqx.is_array)
     mask = (batch_system, batch_args) + jax.tree.map(lambda _: False, dynamic[2:])  # prefixes
     batched, shared = eqx.partition(dynamic, mask)
-    devices = (jax.devices() if devices is None else list(devices))[:size]
     mesh = Mesh(np.array(devices), (BATCH_AXIS,)) if len(devices) > 1 else None
     n_rows = system.space.rows(jax.tree.map(lambda x: x[0], run.y0[0]))
     chunk = _chunk_size(chunk_size, n_rows, -(-size // len(devices)), devices[0].platform)
     padded = -(-size // (chunk * len(devices))) * chunk * len(devices)
+    y0 = run.y0
+    if mesh is not None:  # each process's slices (global arrays), laid on the batch's mesh
+        batched, y0 = _on_mesh((batched, y0), mesh)
     with forward_mode_hint():
-        sol = _solve_batch(static, chunk, mesh, shared, batched, run.y0, run.valid, size, padded)
+        sol = _solve_batch(static, chunk, mesh, shared, batched, y0, run.valid, size, padded)
     return raise_on_failure(sol, run.opts.max_steps, "simulate_batch") if run.throw else sol
 
 

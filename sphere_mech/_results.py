@@ -6,6 +6,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.experimental import multihost_utils
 
 
 class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
@@ -68,7 +69,17 @@ def code(result) -> jax.Array:
         matches = [result == item for item in ITEMS]
     if any(isinstance(m, jax.core.Tracer) for m in matches):
         return jnp.argmax(jnp.stack(matches, axis=-1), axis=-1).astype(jnp.int32)
-    return np.argmax(np.stack(matches, axis=-1), axis=-1).astype(np.int32)
+    return np.argmax(np.stack([gathered(m) for m in matches], axis=-1), axis=-1).astype(np.int32)
+
+
+def gathered(x) -> np.ndarray:
+    """A concrete array as NumPy, whole: an array that spans the devices of several processes
+    (`jax.distributed`) is gathered from all of them, a collective that every process calls
+    (each process then holds the same values, so all take the same branch and raise the same
+    message with global indices)."""
+    if isinstance(x, jax.Array) and not x.is_fully_addressable:
+        return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+    return np.asarray(x)
 
 
 def _number(item) -> int:
@@ -98,7 +109,7 @@ def raise_on_failure(sol: diffrax.Solution, max_steps, what: str) -> diffrax.Sol
     """Raise if any trajectory of `sol` failed (an event is no failure): a `RuntimeError`
     naming how many, which and why, or when traced an `eqx.branched_error_if` saying so."""
     ok = (sol.result == RESULTS.successful) | (sol.result == RESULTS.event_occurred)
-    if not isinstance(ok, jax.core.Tracer) and bool(np.all(ok)):
+    if not isinstance(ok, jax.core.Tracer) and bool(np.all(gathered(ok))):
         return sol  # the usual case, decided without numbering the codes (`code`)
     values = jnp.ravel(code(sol.result))
     if isinstance(values, jax.core.Tracer):

@@ -13,7 +13,7 @@ import numpy as np
 
 from ._adjoint import default_adjoint_run
 from ._misc import all_finite, as_arrays, rows, tree_dtype
-from ._results import RESULTS, describe_failures
+from ._results import RESULTS, describe_failures, gathered
 from ._solvers.names import as_solver
 from ._solvers.projected import Projected
 from ._term import MechanicsTerm
@@ -42,6 +42,7 @@ class Options(eqx.Module):
     event: diffrax.Event | None
     max_steps: int | None = eqx.field(static=True)
     batched: bool = eqx.field(static=True)  # one trajectory of `simulate_batch`'s vmap
+    sharded: bool = eqx.field(static=True, default=False)  # ... over several devices
 
 
 def options(
@@ -223,7 +224,7 @@ def initial_states(space, state_name: str, y0, what: str, check: bool):
     """`(y0, valid)`: batched initial states retracted, invalid ones (`space.problems`)
     replaced by the first valid one; with `check` an invalid state raises."""
     y0, problem, messages = _initial_states(space, state_name, y0, check and _traced(y0))
-    problem = problem if _traced(problem) else np.asarray(problem)
+    problem = problem if _traced(problem) else gathered(problem)
     if check and not _traced(problem):
         bad = np.flatnonzero(problem >= 0)
         if bad.size:
