@@ -1,5 +1,5 @@
 """`sm.learn` and `sm.LearnedLagrangian`: a spherical pendulum's potential recovered from
-simulated chunks (float64), float32 training, checkpoints."""
+simulated chunks (float64) with a checkpoint; float32 training (slow)."""
 
 import diffrax
 import equinox as eqx
@@ -28,11 +28,13 @@ SIM = dict(solver=sm.Projected(sm.RK4()), dt0=0.025)
 
 
 @pytest.fixture(scope="module")
-def learned():
+def learned(tmp_path_factory):
     ts, states = _chunks(256, 6, 0.05)
     model = sm.LearnedLagrangian(1, key=jax.random.PRNGKey(1), width=16, depth=2)
+    path = tmp_path_factory.mktemp("learn") / "model.eqx"
     opts = dict(steps=400, batch_size=64, learning_rate=1e-2, simulate_options=SIM)
-    return model, sm.learn(model, ts, states, **opts)
+    result = sm.learn(model, ts, states, checkpoint=path, checkpoint_every=100, **opts)
+    return model, result, path
 
 
 def _potential_error(model):
@@ -44,7 +46,7 @@ def _potential_error(model):
 
 
 def test_learn_recovers_the_pendulum_potential(learned):
-    model, result = learned
+    model, result, path = learned
     assert _potential_error(model) > 0.5  # the untrained model is far off
     assert _potential_error(result.model) < 0.03
     assert result.losses.shape == (400,) and result.losses[-1] < 1e-2 * result.losses[0]
@@ -53,9 +55,13 @@ def test_learn_recovers_the_pendulum_potential(learned):
     y0 = (q[0, 0], v[0, 0])
     sol = sm.simulate(result.model, y0, ts[-1], saveat=diffrax.SaveAt(ts=ts), **SIM)
     assert float(jnp.max(jnp.abs(sol.ys[0] - q[0]))) < 0.02
+    # the checkpoint holds the trained model
+    back = eqx.tree_deserialise_leaves(path, model)
+    assert np.array_equal(back.inertia_factor, result.model.inertia_factor)
 
 
-def test_learn_float32_and_checkpoint(tmp_path):
+@pytest.mark.slow  # a second compilation (float32): about 40 s
+def test_learn_float32(tmp_path):
     ts, states = _chunks(64, 4, 0.05, dtype=jnp.float32)
     model = sm.LearnedLagrangian(1, key=jax.random.PRNGKey(1), width=8, depth=1, dtype="float32")
     path = tmp_path / "model.eqx"
@@ -78,7 +84,9 @@ def test_learn_float32_and_checkpoint(tmp_path):
 
 
 def test_learn_rejects_bad_input():
-    ts, states = _chunks(4, 3, 0.05)
+    ts = jnp.arange(3) * 0.05
+    q = sm.normalize(jax.random.normal(jax.random.PRNGKey(0), (4, 3, 1, 3)))
+    states = (q, jnp.zeros_like(q))
     model = sm.LearnedLagrangian(1, key=jax.random.PRNGKey(1), width=4, depth=1)
     with pytest.raises(ValueError, match="ts must have shape"):
         sm.learn(model, ts[:2], states, steps=1)
