@@ -219,7 +219,9 @@ def main(argv=None):
     ts, chunks = training_chunks(tk, num_train)
     test_ts, truth = test_set(tk, num_test)
     args.out.mkdir(parents=True, exist_ok=True)
-    optimizer = optax.adam(optax.cosine_decay_schedule(args.learning_rate, steps))
+    schedule = optax.cosine_decay_schedule(args.learning_rate, steps)
+    optimizer = optax.chain(optax.clip_by_global_norm(1.0), optax.adam(schedule))
+    l1 = lambda r: jnp.mean(jnp.abs(r))  # robust to the few chunks that pass the magnets
     sim = dict(solver=sm.Projected(sm.RK4()), dt0=tk.dt / 2)
     start = time.perf_counter()
     result = sm.learn(
@@ -229,6 +231,7 @@ def main(argv=None):
         steps=steps,
         batch_size=args.batch_size,
         optimizer=optimizer,
+        loss=l1,
         simulate_options=sim,
         checkpoint=args.out / f"{args.system}.eqx",
         checkpoint_every=max(steps // 10, 1),

@@ -137,6 +137,7 @@ def learn(
     batch_size: int = 64,
     optimizer: optax.GradientTransformation | None = None,
     learning_rate: float = 1e-3,
+    loss: Callable[[Array], Array] | None = None,
     simulate_options: dict | None = None,
     seed: int = 0,
     checkpoint=None,
@@ -144,7 +145,8 @@ def learn(
     print_every: int | None = None,
 ) -> LearnResult:
     """Train the floating-point parameters of a model system on observed trajectory chunks:
-    minimizes the mean over minibatches of chunks of `|(q, v)_sim(t_j) - (q, v)_obs(t_j)|^2`,
+    minimizes (by default) the mean over minibatches of chunks of
+    `|(q, v)_sim(t_j) - (q, v)_obs(t_j)|^2`,
     each chunk simulated from its first observed state (multiple shooting: short chunks keep
     the loss smooth however chaotic the system), with an optax optimizer.
 
@@ -161,6 +163,10 @@ def learn(
     - `seed`: the seed of the minibatches' order (NumPy's `default_rng`).
     - `optimizer`: an optax `GradientTransformation`; default `optax.adam(learning_rate)`.
     - `learning_rate`: the default optimizer's step size.
+    - `loss`: `loss(r) -> scalar` of a minibatch's residuals `r`, `(batch, 1, T, d)` (the
+      raveled `(q, v)` simulated minus observed, zero at each chunk's start); default
+      `jnp.mean(r**2)` (e.g. `lambda r: jnp.mean(jnp.abs(r))` is less swayed by a few
+      chunks with fast motion).
     - `simulate_options`: keyword arguments for `simulate` (`solver`, `dt0`,
       `max_steps`, ...); default fixed steps of `Projected(RK4())` at the observation
       spacing. The adjoint is `diffrax.RecursiveCheckpointAdjoint()`.
@@ -200,9 +206,10 @@ def learn(
     optimizer = optax.adam(learning_rate) if optimizer is None else optimizer
     batch_size = min(batch_size, num_chunks)
 
+    loss = (lambda r: jnp.mean(r**2)) if loss is None else loss
+
     def loss_fn(u, batch):
-        res, _ = residuals((u, None), batch)
-        return jnp.mean(res**2)
+        return loss(residuals((u, None), batch)[0])
 
     @eqx.filter_jit
     def step(u, opt_state, index):
