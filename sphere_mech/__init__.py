@@ -12,6 +12,11 @@ if TYPE_CHECKING:  # the public names; imported on first use (see `__getattr__`)
     from ._batch import simulate_batch as simulate_batch
     from ._checks import unit_tolerance as unit_tolerance
     from ._fit.fit import FitResult as FitResult, fit as fit
+    from ._fit.learn import (
+        LearnedLagrangian as LearnedLagrangian,
+        LearnResult as LearnResult,
+        learn as learn,
+    )
     from ._geometry import (
         constraint_error as constraint_error,
         hat as hat,

@@ -1,4 +1,5 @@
-"""Multiple shooting for `fit`: segments, residuals, each segment's Jacobian built once."""
+"""Multiple shooting for `fit` and `learn`: segments, residuals, each segment's Jacobian
+built once (`fit`'s least squares) or plain reverse-mode autodiff (`learn`'s gradients)."""
 
 from collections.abc import Callable
 
@@ -79,7 +80,10 @@ class Residuals(eqx.Module):
     """The residuals `((u, z), (segment data, y0)) -> (observation residuals (B, K, W, ...),
     continuity jumps (dq, dv) with leading axes (B, K - 1))`: `u` the fitted parameters
     (`positive` ones as logarithms), `z` the ambient pairs `(a, b)` that `space.retract`
-    makes the starts of segments 2..K (1..K with `fit_initial_state`), or `None`."""
+    makes the starts of segments 2..K (1..K with `fit_initial_state`), or `None`. `jac`:
+    `"fwd"` or `"bwd"`, each segment's Jacobian built once by `jax.jacfwd` / `jax.jacrev`
+    for any tangent (least squares); `"grad"`, the segments differentiated as written
+    (reverse mode through the solver: the gradient of a scalar loss for `learn`)."""
 
     model: Callable
     space: AbstractSpace
@@ -113,14 +117,17 @@ class Residuals(eqx.Module):
     def __call__(self, unknowns, data):
         (u, z), (segment_data, y0) = unknowns, data
         states = self.states(z, y0)
-        res, ends = _segments(u, states, problem=self, data=segment_data)
+        segments = _direct_segments if self.jac == "grad" else _segments
+        res, ends = segments(u, states, problem=self, data=segment_data)
         w = jnp.sqrt(self.continuity).astype(res.dtype)
         return res, jtu.tree_map(lambda e, s: w * (e[:, :-1] - s[:, 1:]), ends, states)
 
 
-@eqx.filter_custom_jvp
-def _segments(u, states, *, problem, data):
+def _direct_segments(u, states, *, problem, data):
     return over_states(lambda s, *d: problem.segment(u, s, *d))(states, *data)
+
+
+_segments = eqx.filter_custom_jvp(_direct_segments)
 
 
 @_segments.def_jvp

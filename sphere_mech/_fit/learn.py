@@ -1,0 +1,242 @@
+"""`learn`: train a model system (an equinox Module, e.g. `LearnedLagrangian`) on many short
+observed trajectory chunks by a first-order optimizer (optax), through the multiple-shooting
+residuals of `shooting.py` (the ones `fit` minimizes), differentiated in reverse mode.
+
+A sibling of `fit`, not an extension: `fit` solves a small least-squares problem by
+Levenberg-Marquardt with each segment's Jacobian built in full (cheap for a few parameters,
+and the uncertainties come from it), whereas learning has thousands of parameters, so it
+needs gradients of a scalar loss, minibatches and an optimizer's state. Both build the
+same `Residuals`: each chunk is one record with one segment starting at its first
+observed state."""
+
+import time
+from collections.abc import Callable
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import numpy as np
+import optax
+from jax.flatten_util import ravel_pytree
+from jaxtyping import Array, PyTree
+
+from .._inertia import AbstractConstantInertiaLagrangian
+from .._misc import tree_dtype
+from .._solvers.projected import Projected
+from .._solvers.rk4 import RK4
+from .._system import AbstractSystem
+from .shooting import Residuals, split_segments
+
+
+class LearnedLagrangian(AbstractConstantInertiaLagrangian):
+    """A learnable Lagrangian on (S^2)^n, `L = 1/2 sum_jk M_jk qdot_j . qdot_k - U(q)`: a
+    constant symmetric positive-definite inertia `M = C C^T` over the links (`C` lower
+    triangular with a positive diagonal) and a potential `U` given by an MLP of the `3n`
+    coordinates of the unit vectors. It is a system like any other (`simulate`,
+    `simulate_batch`, `legendre`, ...): the library derives its equations on the fast path
+    of `AbstractConstantInertiaLagrangian`. Train it with `learn`.
+
+    `L` and `c L` have the same motion, so `M` and `U` are learned up to one common factor:
+    compare `U / M_00` or rollouts, not `M` alone.
+
+    **Arguments:**
+    - `n`: the number of unit vectors (links).
+    - `key`: a `jax.random` key for the MLP's initial weights.
+    - `width`, `depth`: the MLP's hidden width and number of hidden layers.
+    - `inertia`: the initial `(n, n)` SPD inertia (default the identity).
+    - `activation`: the MLP's activation, smooth (the equations differentiate `U` and
+      training differentiates them again); default `jax.nn.softplus`.
+    - `dtype`: the parameters' floating dtype (default JAX's default float): `learn`
+      trains in this dtype.
+    """
+
+    inertia_factor: Array
+    potential_net: eqx.nn.MLP
+    forces: None = None
+
+    def __init__(
+        self,
+        n: int,
+        *,
+        key,
+        width: int = 64,
+        depth: int = 2,
+        inertia=None,
+        activation: Callable = jax.nn.softplus,
+        dtype=None,
+    ):
+        dtype = jnp.zeros(()).dtype if dtype is None else jnp.dtype(dtype)
+        M = np.eye(n) if inertia is None else np.asarray(inertia, dtype=float)
+        if M.shape != (n, n):
+            raise ValueError(f"inertia must have shape ({n}, {n}), got {M.shape}.")
+        C = np.linalg.cholesky(M)  # raises for a matrix that is not SPD
+        factor = np.tril(C, -1) + np.diag(np.log(np.diag(C)))
+        self.inertia_factor = jnp.asarray(factor, dtype=dtype)
+        self.potential_net = eqx.nn.MLP(
+            3 * n, "scalar", width, depth, activation=activation, dtype=dtype, key=key
+        )
+        self.forces = None
+
+    def inertia(self, args):
+        F = self.inertia_factor
+        C = jnp.tril(F, -1) + jnp.diag(jnp.exp(jnp.diag(F)))
+        return C @ C.T
+
+    def potential(self, t, q, args):
+        return self.potential_net(jnp.reshape(q, (-1,)).astype(self.inertia_factor.dtype))
+
+
+class LearnResult(eqx.Module):
+    """What `learn` returns.
+
+    **Attributes:**
+    - `model`: the trained model (same structure as the model given).
+    - `losses`: `(steps,)`, the minibatch loss at each step (before its update).
+    - `wall_time`: seconds spent training (compilation included).
+    """
+
+    model: PyTree
+    losses: np.ndarray
+    wall_time: float
+
+
+def _state_vector(system, t, q, v):
+    """One observation: the state `(q, v)` raveled (any space's structure)."""
+    return jnp.concatenate([ravel_pytree(q)[0], ravel_pytree(v)[0]])
+
+
+def _identity(model):
+    return model
+
+
+def _default_sim(ts, simulate_options):
+    """`simulate`'s options: `Projected(RK4())` at the observations' first spacing unless
+    given, at most the fixed steps the longest chunk needs, reverse-mode adjoint."""
+    sim = dict(simulate_options or {})
+    for key in ("saveat", "t0", "args", "adjoint", "throw"):
+        if key in sim:
+            raise ValueError(f"simulate_options may not set {key!r}; learn sets it.")
+    ts = np.asarray(ts)
+    if "dt0" not in sim:
+        sim.setdefault("solver", Projected(RK4()))
+        sim["dt0"] = float(np.min(ts[:, 1] - ts[:, 0]))
+        span = float(np.max(ts[:, -1] - ts[:, 0]))
+        sim.setdefault("max_steps", int(np.ceil(span / sim["dt0"] - 1e-9)) + 1)
+    sim["adjoint"] = diffrax.RecursiveCheckpointAdjoint()
+    return sim
+
+
+def learn(
+    model: AbstractSystem,
+    ts,
+    states,
+    *,
+    steps: int = 1000,
+    batch_size: int = 64,
+    optimizer: optax.GradientTransformation | None = None,
+    learning_rate: float = 1e-3,
+    loss: Callable[[Array], Array] | None = None,
+    simulate_options: dict | None = None,
+    seed: int = 0,
+    checkpoint=None,
+    checkpoint_every: int | None = None,
+    print_every: int | None = None,
+) -> LearnResult:
+    """Train the floating-point parameters of a model system on observed trajectory chunks:
+    minimizes (by default) the mean over minibatches of chunks of
+    `|(q, v)_sim(t_j) - (q, v)_obs(t_j)|^2`,
+    each chunk simulated from its first observed state (multiple shooting: short chunks keep
+    the loss smooth however chaotic the system), with an optax optimizer.
+
+    **Arguments:**
+    - `model`: a sphere_mech system that is an equinox Module with the parameters as its
+      floating-point array leaves, e.g. `LearnedLagrangian` (or any system: its other
+      leaves are kept).
+    - `ts`: observation times `(T,)` shared by every chunk, or `(B, T)`.
+    - `states`: the observed chunks `(q, v)`, each of shape `(B, T, n, 3)` (the system's
+      state variable `v`; dicts of such arrays on a mixed space); `(q, v)[:, 0]` starts
+      each chunk. Cast to the model's floating dtype (float32 or float64).
+    - `steps`: optimizer steps, each on one minibatch.
+    - `batch_size`: chunks per minibatch, drawn without replacement each epoch.
+    - `seed`: the seed of the minibatches' order (NumPy's `default_rng`).
+    - `optimizer`: an optax `GradientTransformation`; default `optax.adam(learning_rate)`.
+    - `learning_rate`: the default optimizer's step size.
+    - `loss`: `loss(r) -> scalar` of a minibatch's residuals `r`, `(batch, 1, T, d)` (the
+      raveled `(q, v)` simulated minus observed, zero at each chunk's start); default
+      `jnp.mean(r**2)` (e.g. `lambda r: jnp.mean(jnp.abs(r))` is less swayed by a few
+      chunks with fast motion).
+    - `simulate_options`: keyword arguments for `simulate` (`solver`, `dt0`,
+      `max_steps`, ...); default fixed steps of `Projected(RK4())` at the observation
+      spacing. The adjoint is `diffrax.RecursiveCheckpointAdjoint()`.
+    - `checkpoint`: a path: the model is written there with `eqx.tree_serialise_leaves`
+      at the end; read it back with `eqx.tree_deserialise_leaves(path, like)`, `like` a
+      model of the same structure.
+    - `checkpoint_every`: also write it every so many steps.
+    - `print_every`: print a progress line (step, loss, seconds) every so many steps.
+
+    **Returns:** a `LearnResult` (the trained model, the losses, the wall time).
+    """
+    start = time.perf_counter()
+    if not isinstance(model, AbstractSystem):
+        raise ValueError(f"model must be a sphere_mech system, got {type(model).__name__}.")
+    if steps < 1 or batch_size < 1:
+        raise ValueError(f"steps and batch_size must be positive, got {steps}, {batch_size}.")
+    dtype = tree_dtype(eqx.filter(model, eqx.is_inexact_array))
+    q, v = jtu.tree_map(lambda x: jnp.asarray(x, dtype), tuple(states))
+    num_chunks, num_times = jtu.tree_leaves(q)[0].shape[:2]
+    ts = jnp.asarray(ts, dtype)
+    if ts.shape == (num_times,):
+        ts = jnp.broadcast_to(ts, (num_chunks, num_times))
+    if ts.shape != (num_chunks, num_times) or num_times < 2:
+        raise ValueError(
+            f"ts must have shape (T,) or (B, T) with T >= 2 matching states' (B, T) = "
+            f"{(num_chunks, num_times)}, got {ts.shape}."
+        )
+    y0 = jtu.tree_map(lambda x: x[:, 0], (q, v))
+    observed = jax.vmap(jax.vmap(lambda q_, v_: _state_vector(None, None, q_, v_)))(q, v)
+    data = (split_segments(ts, observed, 1), y0)
+    u0, static = eqx.partition(model, eqx.is_inexact_array)
+    flags = (False,) * len(jtu.tree_leaves(u0))
+    sim = _default_sim(ts, simulate_options)
+    residuals = Residuals(
+        _identity, model.space, _state_vector, flags, static, False, jnp.ones(()), sim, "grad"
+    )
+    optimizer = optax.adam(learning_rate) if optimizer is None else optimizer
+    batch_size = min(batch_size, num_chunks)
+
+    loss = (lambda r: jnp.mean(r**2)) if loss is None else loss
+
+    def loss_fn(u, batch):
+        return loss(residuals((u, None), batch)[0])
+
+    @eqx.filter_jit
+    def step(u, opt_state, index):
+        batch = jtu.tree_map(lambda x: x[index], data)
+        loss, grad = jax.value_and_grad(loss_fn)(u, batch)
+        updates, opt_state = optimizer.update(grad, opt_state, u)
+        return optax.apply_updates(u, updates), opt_state, loss
+
+    def save(u):
+        if checkpoint is not None:
+            eqx.tree_serialise_leaves(checkpoint, eqx.combine(u, static))
+
+    rng = np.random.default_rng(seed)
+    order, position = rng.permutation(num_chunks), 0
+    u, opt_state, losses = u0, optimizer.init(u0), []
+    for i in range(steps):
+        if position + batch_size > num_chunks:
+            order, position = rng.permutation(num_chunks), 0
+        index = jnp.asarray(order[position : position + batch_size])
+        position += batch_size
+        u, opt_state, loss = step(u, opt_state, index)
+        losses.append(loss)
+        if print_every and ((i + 1) % print_every == 0 or i + 1 == steps):
+            elapsed = time.perf_counter() - start
+            print(f"learn: step {i + 1}/{steps}  loss {float(loss):.3e}  {elapsed:.1f} s")
+        if checkpoint_every and (i + 1) % checkpoint_every == 0:
+            save(u)
+    save(u)
+    losses = np.asarray(jnp.stack(losses))
+    return LearnResult(eqx.combine(u, static), losses, time.perf_counter() - start)

@@ -1,0 +1,96 @@
+"""`sm.learn` and `sm.LearnedLagrangian`: a spherical pendulum's potential recovered from
+simulated chunks (float64) with a checkpoint; float32 training (slow)."""
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import sphere_mech as sm
+
+G_OVER_L = 9.81
+
+
+def _chunks(num, times, dt, dtype=jnp.float64, seed=0):
+    """`num` chunks of a spherical pendulum (`L = 1/2 |qdot|^2 - (g/l) q_z`)."""
+    true = sm.ConstantInertiaLagrangian(jnp.eye(1), lambda t, q, a: G_OVER_L * q[0, 2])
+    k1, k2 = jax.random.split(jax.random.PRNGKey(seed))
+    q0 = sm.normalize(jax.random.normal(k1, (num, 1, 3), dtype))
+    v0 = jnp.cross(2.0 * jax.random.normal(k2, (num, 1, 3), dtype), q0)
+    ts = jnp.arange(times, dtype=dtype) * dt
+    opts = dict(solver=sm.Projected(sm.RK4()), dt0=dt / 4, saveat=diffrax.SaveAt(ts=ts))
+    return ts, sm.simulate_batch(true, (q0, v0), ts[-1], **opts).ys
+
+
+SIM = dict(solver=sm.Projected(sm.RK4()), dt0=0.025)
+
+
+@pytest.fixture(scope="module")
+def learned(tmp_path_factory):
+    ts, states = _chunks(256, 6, 0.05)
+    model = sm.LearnedLagrangian(1, key=jax.random.PRNGKey(1), width=16, depth=2)
+    path = tmp_path_factory.mktemp("learn") / "model.eqx"
+    opts = dict(steps=400, batch_size=64, learning_rate=1e-2, simulate_options=SIM)
+    result = sm.learn(model, ts, states, checkpoint=path, checkpoint_every=100, **opts)
+    return model, result, path
+
+
+def _potential_error(model):
+    """`U / M` against the true `(g / l) q_z` (both up to a constant), relative."""
+    pts = sm.normalize(jax.random.normal(jax.random.PRNGKey(5), (64, 1, 3)))
+    U = jax.vmap(lambda p: model.potential(0.0, p, None))(pts) / model.inertia(None)[0, 0]
+    true = G_OVER_L * pts[:, 0, 2]
+    return float(jnp.std((U - U.mean()) - (true - true.mean())) / jnp.std(true))
+
+
+def test_learn_recovers_the_pendulum_potential(learned):
+    model, result, path = learned
+    assert _potential_error(model) > 0.5  # the untrained model is far off
+    assert _potential_error(result.model) < 0.03
+    assert result.losses.shape == (400,) and result.losses[-1] < 1e-2 * result.losses[0]
+    # the learned model is a library system: rolled out by sm.simulate
+    ts, (q, v) = _chunks(4, 21, 0.05, seed=3)
+    y0 = (q[0, 0], v[0, 0])
+    sol = sm.simulate(result.model, y0, ts[-1], saveat=diffrax.SaveAt(ts=ts), **SIM)
+    assert float(jnp.max(jnp.abs(sol.ys[0] - q[0]))) < 0.02
+    # the checkpoint holds the trained model
+    back = eqx.tree_deserialise_leaves(path, model)
+    assert np.array_equal(back.inertia_factor, result.model.inertia_factor)
+
+
+@pytest.mark.slow  # a second compilation (float32): about 40 s
+def test_learn_float32(tmp_path):
+    ts, states = _chunks(64, 4, 0.05, dtype=jnp.float32)
+    model = sm.LearnedLagrangian(1, key=jax.random.PRNGKey(1), width=8, depth=1, dtype="float32")
+    path = tmp_path / "model.eqx"
+    sim = dict(solver=sm.Projected(sm.RK4()), dt0=0.05)
+    result = sm.learn(
+        model,
+        ts,
+        states,
+        steps=30,
+        batch_size=32,
+        simulate_options=sim,
+        learning_rate=1e-2,
+        checkpoint=path,
+        checkpoint_every=10,
+    )
+    assert result.model.inertia_factor.dtype == jnp.float32
+    assert np.all(np.isfinite(result.losses)) and result.losses[-1] < result.losses[0]
+    back = eqx.tree_deserialise_leaves(path, model)
+    assert np.array_equal(back.inertia_factor, result.model.inertia_factor)
+
+
+def test_learn_rejects_bad_input():
+    ts = jnp.arange(3) * 0.05
+    q = sm.normalize(jax.random.normal(jax.random.PRNGKey(0), (4, 3, 1, 3)))
+    states = (q, jnp.zeros_like(q))
+    model = sm.LearnedLagrangian(1, key=jax.random.PRNGKey(1), width=4, depth=1)
+    with pytest.raises(ValueError, match="ts must have shape"):
+        sm.learn(model, ts[:2], states, steps=1)
+    with pytest.raises(ValueError, match="may not set 'adjoint'"):
+        sm.learn(model, ts, states, steps=1, simulate_options={"adjoint": None})
+    with pytest.raises(ValueError, match="inertia must have shape"):
+        sm.LearnedLagrangian(2, key=jax.random.PRNGKey(1), inertia=jnp.eye(1))
