@@ -369,7 +369,9 @@ def test_rigid_body_carrying_a_pendulum_against_a_cartesian_quaternion_dae():
         assert np.max(np.abs(np.asarray(q["attitude"][:, 0]) - R_ref)) < 1e-9
 
 
-@pytest.mark.parametrize("segments", [1, 3], ids=["single", "multiple shooting"])
+@pytest.mark.parametrize(
+    "segments", [1, pytest.param(3, marks=pytest.mark.slow)], ids=["single", "multiple shooting"]
+)
 def test_fit_a_3d_pendulum_from_its_attitude(segments):
     """Recover `m g` and `J3` from the centre of mass's observed path (form 2, body
     `Omega`); with multiple shooting the segment states are rotations in the tangent
