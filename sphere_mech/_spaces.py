@@ -346,20 +346,9 @@ class Euclidean(AbstractFactor):
     def project(self, q, v):
         return v
 
-    def to_linear(self, q, w):
-        return w
-
-    def from_linear(self, q, x):
-        return x
-
-    def from_covector(self, q, x):
-        return x
-
-    def to_covector(self, q, p):
-        return p
-
-    def force_covector(self, q, f):
-        return f
+    # A flat factor: its vectors, covectors and tangent coordinates are its arrays.
+    to_linear = from_linear = from_covector = to_covector = force_covector = project
+    to_tangent = from_tangent = project
 
     def bracket(self, a, b):
         return jnp.zeros_like(b)
@@ -384,12 +373,6 @@ class Euclidean(AbstractFactor):
 
     def tangent_basis(self, q):
         return jnp.eye(self.m, dtype=jnp.result_type(q))
-
-    def to_tangent(self, T, v):
-        return v
-
-    def from_tangent(self, T, a):
-        return a
 
     def reduced_matrix(self, hvp, T):
         return jax.vmap(hvp, out_axes=1)(T)
