@@ -21,6 +21,7 @@ from .shooting import (
     map_flagged,
     model_output,
     over_states,
+    own_options,
     simulate_at,
     split_segments,
     with_first,
@@ -311,10 +312,7 @@ def fit(
     """
     if jac not in ("fwd", "bwd"):
         raise ValueError(f"jac must be 'fwd' or 'bwd', got {jac!r}.")
-    sim = dict(simulate_options or {})
-    for key in ("saveat", "t0", "args", "adjoint", "throw"):
-        if key in sim:
-            raise ValueError(f"simulate_options may not set {key!r}; fit sets it.")
+    sim = own_options(simulate_options, "fit")
     default = diffrax.ForwardMode() if jac == "fwd" else diffrax.RecursiveCheckpointAdjoint()
     sim["adjoint"] = default if adjoint is None else adjoint
     params0 = as_arrays(params0)

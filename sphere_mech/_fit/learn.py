@@ -27,7 +27,7 @@ from .._misc import tree_dtype
 from .._solvers.projected import Projected
 from .._solvers.rk4 import RK4
 from .._system import AbstractSystem
-from .shooting import Residuals, split_segments
+from .shooting import Residuals, own_options, split_segments
 
 
 class LearnedLagrangian(AbstractConstantInertiaLagrangian):
@@ -114,10 +114,7 @@ def _identity(model):
 def _default_sim(ts, simulate_options):
     """`simulate`'s options: `Projected(RK4())` at the observations' first spacing unless
     given, at most the fixed steps the longest chunk needs, reverse-mode adjoint."""
-    sim = dict(simulate_options or {})
-    for key in ("saveat", "t0", "args", "adjoint", "throw"):
-        if key in sim:
-            raise ValueError(f"simulate_options may not set {key!r}; learn sets it.")
+    sim = own_options(simulate_options, "learn")
     ts = np.asarray(ts)
     if "dt0" not in sim:
         sim.setdefault("solver", Projected(RK4()))
@@ -201,7 +198,7 @@ def learn(
     flags = (False,) * len(jtu.tree_leaves(u0))
     sim = _default_sim(ts, simulate_options)
     residuals = Residuals(
-        _identity, model.space, _state_vector, flags, static, False, jnp.ones(()), sim, "grad"
+        _identity, model.state_space, _state_vector, flags, static, False, jnp.ones(()), sim, "grad"
     )
     optimizer = optax.adam(learning_rate) if optimizer is None else optimizer
     batch_size = min(batch_size, num_chunks)

@@ -56,6 +56,15 @@ def simulate_at(system, args, state, t0, t1, ts, sim: dict):
     return simulate(system, state, t1, t0=t0, args=args, saveat=saveat, throw=False, **sim).ys
 
 
+def own_options(simulate_options, caller: str) -> dict:
+    """A copy of the caller's `simulate_options`, refusing those the caller sets itself."""
+    sim = dict(simulate_options or {})
+    for key in ("saveat", "t0", "args", "adjoint", "throw"):
+        if key in sim:
+            raise ValueError(f"simulate_options may not set {key!r}; {caller} sets it.")
+    return sim
+
+
 def map_flagged(fn: Callable, tree: PyTree, flags: tuple[bool, ...]) -> PyTree:
     """`fn` applied to the leaves of `tree` whose flag is True."""
     leaves, treedef = jtu.tree_flatten(tree)
