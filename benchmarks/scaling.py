@@ -4,18 +4,20 @@ The same batch of chain pendulums (RK4, fixed step dt = 1e-3, float64 on CPU, fl
 GPU) is integrated by one worker process per configuration:
 
 - 1 device in 1 process (the baseline);
-- k devices in 1 process (`--xla_force_host_platform_device_count=k` on CPU; the GPUs of
-  the machine with `--device gpu`);
-- k processes of 1 device each, joined by `jax.distributed.initialize` on localhost (gloo
-  collectives on CPU), every process passing the whole batch and integrating its slice.
+- for each k of `--k`: k devices in 1 process (`--xla_force_host_platform_device_count=k`
+  on CPU; the GPUs of the machine with `--device gpu`), and k processes of 1 device each,
+  joined by `jax.distributed.initialize` on localhost (gloo collectives on CPU), every
+  process passing the whole batch and integrating its slice.
 
 Each worker times the run with `_harness.timing` (first call apart, median of repeats, no
 recompilation) and checks its states against the baseline's; the reported time is the
 slowest process's. Throughput: pendulum-steps per second; parallel efficiency: t1 / (k tk).
 On a machine with fewer free cores than k the workers share cores and the efficiency
-shows that, not the method (the table records the load average).
+shows that, not the method (the table records the load average). Writes
+benchmarks/results/scaling_<device>.{md,png} (or under `--out`).
 
-    python benchmarks/scaling.py [--quick] [--device cpu|gpu] [--k 2] [--batch B] [--n N]
+    python benchmarks/scaling.py [--quick] [--device cpu|gpu] [--k 2 4 ...] [--batch B]
+        [--n N] [--steps S] [--grad] [--out DIR]
 """
 
 import argparse
@@ -34,11 +36,14 @@ def options(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="a small batch, few steps")
     parser.add_argument("--device", choices=("cpu", "gpu"), default="cpu")
-    parser.add_argument("--k", type=int, default=2, help="devices / processes (default 2)")
+    parser.add_argument(
+        "--k", type=int, nargs="+", default=[2], help="devices / processes (default 2)"
+    )
     parser.add_argument("--batch", type=int, help="trajectories (default 1024, quick 64)")
     parser.add_argument("--n", type=int, default=4, help="links per pendulum (default 4)")
     parser.add_argument("--steps", type=int, help="RK4 steps (default 1000, quick 200)")
     parser.add_argument("--grad", action="store_true", help="also time jax.grad")
+    parser.add_argument("--out", help="folder for the results (default benchmarks/results)")
     parser.add_argument("--worker", nargs=4, metavar=("RANK", "PROCS", "PORT", "OUT"))
     opts = parser.parse_args(argv)
     opts.batch = opts.batch or (64 if opts.quick else 1024)
@@ -135,10 +140,10 @@ def configuration(opts, devices, procs, out):
 def main(opts):
     import tempfile
 
-    from _harness import load, machine, publish, table
+    from _harness import RESULTS, load, machine, publish, pyplot, save_figure, table
 
-    k, loads, rows = opts.k, [], []
-    configs = [(1, 1), (k, 1), (k, k)]  # (devices, processes)
+    loads, rows = [], []
+    configs = [(1, 1)] + [(d, p) for k in opts.k for d, p in ((k, 1), (k, k))]
     with tempfile.TemporaryDirectory() as tmp:
         results = []
         for i, (devices, procs) in enumerate(configs):
@@ -146,23 +151,17 @@ def main(opts):
             start = time.perf_counter()
             res, states = configuration(opts, devices, procs, f"{tmp}/c{i}")
             res["wall"] = time.perf_counter() - start
+            print(f"{devices} devices, {procs} processes: {res}", flush=True)
             results.append((res, states))
     base, base_states = results[0]
     work = opts.batch * opts.steps
+    efficiency = lambda res, key: base[key] / (res["devices"] * res[key])
     for res, states in results:
-        share = res["devices"]
         agree = float(abs(states - base_states).max())
-        row = [
-            res["devices"],
-            res["processes"],
-            f"{res['run']:.3f}",
-            f"{work / res['run']:.3g}",
-            f"{base['run'] / (share * res['run']):.2f}",
-            f"{agree:.1e}",
-        ]
+        row = [res["devices"], res["processes"], f"{res['run']:.3f}", f"{work / res['run']:.3g}"]
+        row += [f"{efficiency(res, 'run'):.2f}", f"{agree:.1e}"]
         if opts.grad:
-            row.append(f"{res['grad']:.3f}")
-            row.append(f"{base['grad'] / (share * res['grad']):.2f}")
+            row += [f"{res['grad']:.3f}", f"{efficiency(res, 'grad'):.2f}"]
         rows.append(row)
     columns = ["devices", "processes", "run (s)", "steps/s", "efficiency", "max diff from 1 device"]
     columns += ["grad (s)", "grad efficiency"] if opts.grad else []
@@ -170,8 +169,27 @@ def main(opts):
         f"`simulate_batch`: {opts.batch} chain pendulums of {opts.n} links, {opts.steps} "
         f"RK4 steps, {opts.device}; {machine(loads)}.\n\n"
     )
-    name = None if opts.quick else f"scaling_{opts.device}.md"
-    publish(what + table(columns, rows, "rrrrrr" + "rr" * opts.grad), name)
+    out = opts.out or RESULTS
+    name = None if opts.quick else f"scaling_{opts.device}"
+    publish(what + table(columns, rows, "rrrrrr" + "rr" * opts.grad), name and name + ".md", out)
+    if name is None:
+        return
+    plt = pyplot()
+    keys = ["run"] + ["grad"] * opts.grad
+    fig, axes = plt.subplots(1, len(keys), figsize=(5 * len(keys), 3.8), squeeze=False)
+    by_config = {(r["devices"], r["processes"]): r for r, _ in results}
+    ks = [1] + list(opts.k)
+    for ax, key in zip(axes[0], keys, strict=True):
+        for procs, label in ((lambda k: 1, "k devices, 1 process"), (lambda k: k, "k processes")):
+            picked = [by_config[k, procs(k)] for k in ks]
+            ax.plot(ks, [efficiency(r, key) for r in picked], "o-", label=label)
+        ax.axhline(1.0, color="0.6", lw=0.8)
+        ax.set(
+            xlabel="k", ylabel="parallel efficiency t1 / (k tk)", title=f"simulate_batch ({key})"
+        )
+        ax.set_xscale("log", base=2)
+        ax.legend()
+    save_figure(fig, name + ".png", out)
 
 
 if __name__ == "__main__":

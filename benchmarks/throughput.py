@@ -176,6 +176,8 @@ def methods():
     """The methods this run compares; the first is the peer that ratios divide by."""
     if OPTS.device == "gpu":
         return [MJX, SphereMech, BareScan] if HAVE_MJX else [SphereMech, BareScan]
+    if OPTS.mjx and not HAVE_MJX:
+        raise SystemExit("--mjx needs the mujoco-mjx package (pip install mujoco-mjx).")
     return [MuJoCo, SphereMech, BareScan, Angles] + ([MJX] if OPTS.mjx else [])
 
 
