@@ -39,6 +39,38 @@ def _pad(tree, size):
     return jax.tree.map(pad, tree)
 
 
+def batch_devices(devices, size: int) -> list:
+    """`devices` (default: all of JAX's default backend, of every process), at most `size`."""
+    return (jax.devices() if devices is None else list(devices))[:size]
+
+
+def batch_mesh(devices: list) -> Mesh | None:
+    """The 1-D mesh of the batch axis over `devices`, or `None` for a single device."""
+    return Mesh(np.array(devices), (BATCH_AXIS,)) if len(devices) > 1 else None
+
+
+def on_devices(fn, mesh: Mesh | None, shared, *batched):
+    """`fn(shared, *batched)`, with `batched` split along axis 0 over `mesh` (its length a
+    multiple of the device count) and `shared` replicated: each device applies `fn` to its
+    slice (`jax.shard_map`); with no mesh, one call on the whole batch."""
+    if mesh is None:
+        return fn(shared, *batched)
+    spec = PartitionSpec(BATCH_AXIS)
+    specs = dict(in_specs=(PartitionSpec(),) + (spec,) * len(batched), out_specs=spec)
+    return jax.shard_map(fn, mesh=mesh, check_vma=False, **specs)(shared, *batched)
+
+
+def map_on_devices(fn, mesh: Mesh | None, *batched):
+    """`jax.vmap(fn)(*batched)`, split over `mesh`: padded to a multiple of its device count
+    with copies of entry 0, the padding stripped."""
+    if mesh is None:
+        return jax.vmap(fn)(*batched)
+    size = jax.tree.leaves(batched)[0].shape[0]
+    padded = -(-size // mesh.size) * mesh.size
+    out = on_devices(lambda _, *b: jax.vmap(fn)(*b), mesh, None, *_pad(batched, padded))
+    return jax.tree.map(lambda x: x[:size], out)
+
+
 def _local_solve(static, chunk, shared, batched, y0):
     """The trajectories held by one device: `lax.map` over chunks of `vmap`."""
 
@@ -55,11 +87,7 @@ def _local_solve(static, chunk, shared, batched, y0):
 def _solve_batch(static, chunk, mesh, shared, batched, y0, valid, size, padded):
     batched, y0 = _pad((batched, y0), padded)
     solve = lambda s, b, y: _local_solve(static, chunk, s, b, y)
-    if mesh is not None:
-        spec = PartitionSpec(BATCH_AXIS)
-        specs = dict(in_specs=(PartitionSpec(), spec, spec), out_specs=spec)
-        solve = jax.shard_map(solve, mesh=mesh, check_vma=False, **specs)
-    sol = jax.tree.map(lambda x: x[:size], solve(shared, batched, y0))
+    sol = jax.tree.map(lambda x: x[:size], on_devices(solve, mesh, shared, batched, y0))
     # invalid initial states ran a stand-in: their own code, no steps, nothing saved (inf)
     invalid = lambda ok, r: RESULTS.where(ok, r, RESULTS.invalid_initial)
     result = jax.vmap(invalid)(valid, sol.result)
@@ -145,13 +173,13 @@ def simulate_batch(
         _leading(args, size, "args")
     if batch_system:
         _leading(eqx.filter(system, eqx.is_array), size, "system")
-    devices = (jax.devices() if devices is None else list(devices))[:size]
-    opts = dataclasses.replace(run.opts, sharded=len(devices) > 1)  # forward-mode gradients
+    devices = batch_devices(devices, size)
+    mesh = batch_mesh(devices)
+    opts = dataclasses.replace(run.opts, sharded=mesh is not None)  # forward-mode gradients
     inputs = (run.system, run.args, run.t0, run.t1, run.dt0, opts)
     dynamic, static = eqx.partition(inputs, eqx.is_array)
     mask = (batch_system, batch_args) + jax.tree.map(lambda _: False, dynamic[2:])  # prefixes
     batched, shared = eqx.partition(dynamic, mask)
-    mesh = Mesh(np.array(devices), (BATCH_AXIS,)) if len(devices) > 1 else None
     n_rows = system.space.rows(jax.tree.map(lambda x: x[0], run.y0[0]))
     chunk = _chunk_size(chunk_size, n_rows, -(-size // len(devices)), devices[0].platform)
     padded = -(-size // (chunk * len(devices))) * chunk * len(devices)

@@ -1,6 +1,7 @@
 """simulate_batch beyond one device: a gradient through a batch sharded over two CPU devices
 (one process), and two processes joined by `jax.distributed` on localhost (`throw=True`
-raising the same message on both, a `jax.grad`), each compared with one device."""
+raising the same message on both, a `jax.grad`), each compared with one device; in the slow
+set, `sm.fit` split over two devices and over two processes."""
 
 import os
 import socket
@@ -14,6 +15,7 @@ COMMON = """
 import os, sys
 import diffrax, equinox as eqx, jax, jax.numpy as jnp, numpy as np
 jax.config.update("jax_enable_x64", True)
+jax.config.update("jax_disable_most_optimizations", True)  # as in conftest.py
 import sphere_mech as sm
 if len(sys.argv) > 1:  # rank and port: join the other process first
     jax.distributed.initialize(f"localhost:{sys.argv[2]}", 2, process_id=int(sys.argv[1]))
@@ -31,9 +33,10 @@ def loss(p, y0, devices):
     return jnp.sum(W * sol.ys[1] ** 2) + jnp.sum(W * sol.ys[0] * y0[0][:, None])
 
 
-def close(a, b):
+def close(a, b, tol=1e-12):
     for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
-        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=tol, atol=tol)
+
 """
 
 TWO_DEVICES = (
@@ -86,6 +89,40 @@ print("ok")
 )
 
 
+FIT = (
+    COMMON
+    + """TS = jnp.linspace(0.0, 0.4, 9)
+model = lambda m: sm.chain_pendulum(jnp.stack([1.0, m]), P[2:])
+observe = lambda system, t, q, v: q
+obs = sm.simulate_batch(model(P[1]), y0, TS[-1], saveat=diffrax.SaveAt(ts=TS),
+                        devices=jax.local_devices()[:1], **KW).ys[0]
+obs = obs + 1e-3 * jnp.sin(jnp.arange(obs.size)).reshape(obs.shape)  # "noise"
+
+
+def fitted(devices):  # the second mass from 5 records of 2 segments: 10 solves over devices
+    r = sm.fit(model, jnp.array(1.5), TS, obs, observe, y0=y0, segments=2, simulate_options=KW,
+               devices=devices)
+    assert r.converged and abs(r.params - P[1]) < 3 * r.stderr, (r.params, r.stderr)
+    return r.params, r.stderr, r.loss
+
+
+if len(sys.argv) == 1:  # two devices of one process
+    assert len(jax.devices()) == 2
+    close(fitted(jax.devices()[:1]), fitted(None), 1e-9)
+    try:
+        sm.fit(model, jnp.array(1.5), TS, obs, observe, y0=y0, jac="bwd", simulate_options=KW)
+    except ValueError as error:
+        assert "jac='bwd' (reverse mode) fails through a solve split" in str(error)
+    else:
+        raise AssertionError("jac='bwd' was accepted on two devices")
+else:  # across two processes
+    assert len(jax.devices()) == 2 and len(jax.local_devices()) == 1
+    close(fitted(jax.local_devices()), fitted(None), 1e-9)
+print("ok")
+"""
+)
+
+
 def _run(script, *argv, env=None):
     env = dict(os.environ, **(env or {}))
     cmd = [sys.executable, "-c", textwrap.dedent(script), *map(str, argv)]
@@ -124,3 +161,13 @@ def test_two_processes_on_localhost():
     assert len(messages) == 2 and messages[0] == messages[1]
     assert "1 of 4 trajectories failed (indices 3); trajectory 3:" in messages[0]
     assert "not finite at the initial state" in messages[0]
+
+
+@pytest.mark.slow
+def test_fit_split_over_two_devices_and_over_two_processes():
+    flags = "--xla_force_host_platform_device_count=2"
+    _finish(_run(FIT, env=dict(XLA_FLAGS=flags, JAX_PLATFORMS="cpu")), timeout=900)
+    port = _free_port()
+    env = dict(JAX_PLATFORMS="cpu", XLA_FLAGS="--xla_force_host_platform_device_count=1")
+    for proc in [_run(FIT, rank, port, env=env) for rank in (0, 1)]:
+        _finish(proc, timeout=900)

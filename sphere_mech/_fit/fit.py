@@ -13,6 +13,7 @@ import optimistix as optx
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, PyTree
 
+from .._batch import batch_devices, batch_mesh
 from .._misc import as_arrays, tree_add, tree_dtype
 from .._solve import state_pair
 from .._spaces import AbstractSpace
@@ -268,6 +269,7 @@ def fit(
     jac: str = "fwd",
     adjoint: diffrax.AbstractAdjoint | None = None,
     simulate_options: dict | None = None,
+    devices=None,
 ) -> FitResult:
     """Fit parameters of a system to observed trajectories by least squares through
     `simulate`: minimizes `1/2 sum_{b, j} |observe(system, t_j, q_bj, v_bj) -
@@ -306,6 +308,11 @@ def fit(
     - `adjoint`: override the diffrax adjoint chosen from `jac`.
     - `simulate_options`: keyword arguments for `simulate` (`solver`, `rtol`, `atol`,
       `dt0`, `stepsize_controller`, `max_steps`).
+    - `devices`: devices to split the `B K` segment solves over, as `simulate_batch` does
+      (default: all of JAX's default backend, of every process after
+      `jax.distributed.initialize`; at most one per segment); the fit is that of one
+      device (docs/distributed.md). Every process passes the same arguments. On several
+      devices `jac` must be `"fwd"`.
 
     **Returns:** a `FitResult` with the uncertainties of the fit. Failures of the solve
     (e.g. `max_steps` reached) are reported in `result` and `converged`, never raised.
@@ -326,8 +333,23 @@ def fit(
     z0 = _initial_unknown_states(
         segment_states, system0, args0, segment_data[2], y0, fit_initial_state, batched, sim
     )
+    mesh = batch_mesh(batch_devices(devices, segment_data[2].size))
+    if mesh is not None and jac == "bwd":
+        raise ValueError(
+            "fit: jac='bwd' (reverse mode) fails through a solve split over several devices "
+            "(diffrax #765); use jac='fwd' (default) or devices=jax.devices()[:1]."
+        )
     residuals = Residuals(
-        model, space, observe, flags, static, fit_initial_state, jnp.asarray(continuity), sim, jac
+        model,
+        space,
+        observe,
+        flags,
+        static,
+        fit_initial_state,
+        jnp.asarray(continuity),
+        sim,
+        jac,
+        mesh,
     )
     solver = optx.LevenbergMarquardt(rtol=1e-6, atol=1e-9) if solver is None else solver
     unknowns0 = (map_flagged(jnp.log, dynamic, flags), z0)

@@ -10,8 +10,10 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
 from jax.flatten_util import ravel_pytree
+from jax.sharding import Mesh
 from jaxtyping import Array, PyTree
 
+from .._batch import map_on_devices
 from .._misc import fill_zeros
 from .._simulate import simulate
 from .._spaces import AbstractSpace
@@ -72,9 +74,19 @@ def map_flagged(fn: Callable, tree: PyTree, flags: tuple[bool, ...]) -> PyTree:
     return jtu.tree_unflatten(treedef, mapped)
 
 
-def over_states(fn: Callable) -> Callable:
-    """`fn` of one state mapped over the leading axes `(B, K)` (records, segments)."""
-    return jax.vmap(jax.vmap(fn))
+def over_states(fn: Callable, mesh: Mesh | None = None) -> Callable:
+    """`fn` of one state mapped over the leading axes `(B, K)` (records, segments), the
+    `B K` calls split over the devices of `mesh` if one is given."""
+    if mesh is None:
+        return jax.vmap(jax.vmap(fn))
+
+    def mapped(*trees):
+        B, K = jtu.tree_leaves(trees)[0].shape[:2]
+        flat = jtu.tree_map(lambda x: x.reshape((B * K,) + x.shape[2:]), trees)
+        out = map_on_devices(fn, mesh, *flat)
+        return jtu.tree_map(lambda x: x.reshape((B, K) + x.shape[1:]), out)
+
+    return mapped
 
 
 def with_first(y0, rest):
@@ -103,6 +115,7 @@ class Residuals(eqx.Module):
     continuity: Array
     sim: dict
     jac: str = eqx.field(static=True)
+    mesh: Mesh | None = eqx.field(static=True, default=None)
 
     def params(self, u):
         return eqx.combine(map_flagged(jnp.exp, u, self.positive), self.static_params)
@@ -133,7 +146,7 @@ class Residuals(eqx.Module):
 
 
 def _direct_segments(u, states, *, problem, data):
-    return over_states(lambda s, *d: problem.segment(u, s, *d))(states, *data)
+    return over_states(lambda s, *d: problem.segment(u, s, *d), problem.mesh)(states, *data)
 
 
 _segments = eqx.filter_custom_jvp(_direct_segments)
@@ -155,7 +168,8 @@ def _segments_jvp(primals, tangents, *, problem, data):
 
     jacobian = jax.jacfwd if problem.jac == "fwd" else jax.jacrev
     block = jacobian(flat, argnums=(0, 1), has_aux=True)
-    (J_u, J_s), out = over_states(lambda s, *d: block(u_flat, s, *d))(s_flat, *data)
+    blocks = over_states(lambda s, *d: block(u_flat, s, *d), problem.mesh)
+    (J_u, J_s), out = blocks(s_flat, *data)
     ds_flat = _ravel_segments(dstates)[0]
     t_out = J_u @ ravel_pytree(du)[0] + jnp.einsum("bkrs,bks->bkr", J_s, ds_flat)
     return out, over_states(_ravel_segments(out)[1])(t_out)
