@@ -215,6 +215,21 @@ def test_float32_rigid_body():
     assert float(jnp.max(jnp.abs(R.T @ R - jnp.eye(3)))) < 1e-5
 
 
+def test_inverse_legendre_on_rotations_from_any_guess():
+    """Form 1's inverse Legendre map `Rdot(mu)` by one linear solve around a guess: exact
+    from any guess (the factor's tangent basis is orthonormal, so a guess's coordinates
+    are its own), and the tangent basis `R hat(e_a) / sqrt(2)` is orthonormal."""
+    system = sm.Lagrangian(pendulum_L1, space=SPACE)
+    Rdot = R0 @ sm.hat(W0)
+    mu = system.momentum(0.0, R0, Rdot)
+    guess = R0 @ sm.hat(jnp.array([[0.3, 0.1, -0.2]]))
+    v, _ = system.velocity_from_momentum(0.0, R0, mu, guess=guess, quadratic=True)
+    assert float(jnp.max(jnp.abs(v - Rdot))) < 1e-14
+    T = SPACE.tangent_basis(R0)[0]
+    gram = jnp.einsum("ija,ijb->ab", T, T)
+    assert float(jnp.max(jnp.abs(gram - jnp.eye(3)))) < 1e-15
+
+
 def test_nearest_rotation_is_the_polar_factor():
     A = np.asarray(R0[0]) + 0.05 * np.random.default_rng(0).standard_normal((3, 3))
     U, _, Vt = np.linalg.svd(A)
