@@ -404,7 +404,10 @@ class Rotations(_AbstractBlockFactor):
     angular forms (2, 4) the body angular velocity `Omega` (`(k, 3)`, `Rdot = R
     hat(Omega)`) and `Pi = dL/dOmega`. Its generalized force is a body torque `(k, 3)`
     (virtual work `tau . eta` for `delta R = R hat(eta)`), in every form. `Projected`
-    retracts to the nearest rotation, `LieRK` multiplies by `expm` on the right.
+    retracts to the nearest rotation, `LieRK` multiplies by `expm` on the right, and
+    `Variational` is the Lie group variational integrator (`R1 = R0 F`, Newton on the
+    rotation vector of `F`). Its tangent basis `R hat(e_a) / sqrt(2)` is orthonormal in the
+    Frobenius product its projection and covectors use.
 
     **Arguments:**
     - `k`: the number of rotations (a positive int), or `None` (default) for any number.
@@ -491,7 +494,9 @@ class Rotations(_AbstractBlockFactor):
     def tangent_basis(self, q):
         if self.body:
             return jnp.broadcast_to(jnp.eye(3, dtype=q.dtype), q.shape)
-        return jnp.einsum("kij,ajl->kila", q, hat(jnp.eye(3, dtype=q.dtype)))
+        # R hat(e_a) / sqrt(2): orthonormal in the Frobenius product (|hat(e_a)|^2 = 2).
+        E = hat(jnp.eye(3, dtype=q.dtype)) / jnp.sqrt(jnp.asarray(2.0, q.dtype))
+        return jnp.einsum("kij,ajl->kila", q, E)
 
     def lie_action(self, kind, angular):
         return RotateRight(self.body)

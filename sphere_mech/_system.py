@@ -145,6 +145,17 @@ class AbstractSystem(eqx.Module):
         **Returns:** `q x x` for angular forms, `x` otherwise."""
         return self.space.from_linear(q, x) if self.angular else x
 
+    def from_covector(self, q: Points, x: Tangents) -> Tangents:
+        """The momentum variable of the state (`mu` or `pi`) of a linear covector `x`
+        (one that pairs with `qdot`, such as `mu = P dL/dqdot`).
+
+        **Arguments:**
+        - `q`, `x`: `(n, 3)` unit vectors and the covector, tangent at `q`.
+
+        **Returns:** `q x x` for angular forms (`2 vee(R^T x)` on rotations), `x`
+        otherwise."""
+        return self.space.from_covector(q, x) if self.angular else x
+
 
 class AbstractLagrangianSystem(AbstractSystem):
     """A system given by a Lagrangian `L(t, q, v, args)` (`v`: `qdot`, form 1, or `omega`,

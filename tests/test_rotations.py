@@ -215,6 +215,21 @@ def test_float32_rigid_body():
     assert float(jnp.max(jnp.abs(R.T @ R - jnp.eye(3)))) < 1e-5
 
 
+def test_inverse_legendre_on_rotations_from_any_guess():
+    """Form 1's inverse Legendre map `Rdot(mu)` by one linear solve around a guess: exact
+    from any guess (the factor's tangent basis is orthonormal, so a guess's coordinates
+    are its own), and the tangent basis `R hat(e_a) / sqrt(2)` is orthonormal."""
+    system = sm.Lagrangian(pendulum_L1, space=SPACE)
+    Rdot = R0 @ sm.hat(W0)
+    mu = system.momentum(0.0, R0, Rdot)
+    guess = R0 @ sm.hat(jnp.array([[0.3, 0.1, -0.2]]))
+    v, _ = system.velocity_from_momentum(0.0, R0, mu, guess=guess, quadratic=True)
+    assert float(jnp.max(jnp.abs(v - Rdot))) < 1e-14
+    T = SPACE.tangent_basis(R0)[0]
+    gram = jnp.einsum("ija,ijb->ab", T, T)
+    assert float(jnp.max(jnp.abs(gram - jnp.eye(3)))) < 1e-15
+
+
 def test_nearest_rotation_is_the_polar_factor():
     A = np.asarray(R0[0]) + 0.05 * np.random.default_rng(0).standard_normal((3, 3))
     U, _, Vt = np.linalg.svd(A)
@@ -239,8 +254,6 @@ def test_bad_rotation_input_is_named():
         sm.simulate(torque, (R0, W0), 1.0)
     with pytest.raises(ValueError, match="Rotations\\(k\\): k must be a positive int"):
         sm.Rotations(0)
-    with pytest.raises(ValueError, match="not Rotations yet: use LieRK or Projected"):
-        sm.simulate(system, (R0, W0), 1.0, solver=sm.Variational(), dt0=0.01)
 
 
 def test_batch_of_rigid_bodies_equals_one_by_one():
@@ -280,36 +293,81 @@ def test_a_body_with_a_position_and_an_attitude(angular):
     assert float(jnp.max(jnp.abs(sol.ys[0]["attitude"] - R0))) < 1e-13
 
 
-def test_rigid_body_carrying_a_pendulum_against_a_cartesian_quaternion_dae():
-    """A free body (position, attitude) carrying a pendulum hung from a point `d` off its
-    centre of mass, on `{"base": Euclidean(3), "attitude": Rotations(1), "pendulum":
-    Spheres(1)}` in forms 1 and 2, against the same system in Cartesian coordinates (body
-    position, unit quaternion, body rate, bob position) with the rod held by a Lagrange
-    multiplier, solved by scipy."""
-    M, m, rod, g = 2.0, 0.5, 0.7, 9.81
-    d = np.array([0.1, 0.2, -0.3])
-    e3 = np.array([0.0, 0.0, 1.0])
-    Jn = np.asarray(J)
-    space = {"base": sm.Euclidean(3), "attitude": SPACE, "pendulum": sm.Spheres(1)}
+# A free body (position, attitude) carrying a pendulum hung from a point `d` off its centre
+# of mass, on {"base": Euclidean(3), "attitude": Rotations(1), "pendulum": Spheres(1)}.
+CARRIER = dict(M=2.0, m=0.5, rod=0.7, g=9.81, d=np.array([0.1, 0.2, -0.3]))
+CARRIER_SPACE = {"base": sm.Euclidean(3), "attitude": SPACE, "pendulum": sm.Spheres(1)}
 
-    def L(angular):
-        def lagrangian(t, q, v, args):
-            R, p = q["attitude"][0], q["pendulum"][0]
-            W = v["attitude"][0] if angular else body(q["attitude"], v["attitude"])[0]
-            pdot = jnp.cross(v["pendulum"][0], p) if angular else v["pendulum"][0]
-            bob = v["base"] + R @ jnp.cross(W, jnp.asarray(d)) + rod * pdot
-            kinetic = 0.5 * M * v["base"] @ v["base"] + 0.5 * jnp.sum(J * W**2)
-            kinetic = kinetic + 0.5 * m * bob @ bob
-            height = M * q["base"][2] + m * (q["base"] + R @ jnp.asarray(d) + rod * p)[2]
-            return kinetic - g * height
 
-        return lagrangian
+def carrier_L(angular):
+    """The carrier's Lagrangian in form 2 (`angular`) or 1."""
+    M, m, rod, g, d = (CARRIER[k] for k in "M m rod g d".split())
 
+    def lagrangian(t, q, v, args):
+        R, p = q["attitude"][0], q["pendulum"][0]
+        W = v["attitude"][0] if angular else body(q["attitude"], v["attitude"])[0]
+        pdot = jnp.cross(v["pendulum"][0], p) if angular else v["pendulum"][0]
+        bob = v["base"] + R @ jnp.cross(W, jnp.asarray(d)) + rod * pdot
+        kinetic = 0.5 * M * v["base"] @ v["base"] + 0.5 * jnp.sum(J * W**2)
+        kinetic = kinetic + 0.5 * m * bob @ bob
+        height = M * q["base"][2] + m * (q["base"] + R @ jnp.asarray(d) + rod * p)[2]
+        return kinetic - g * height
+
+    return lagrangian
+
+
+def carrier_state(angular):
+    """The carrier's initial state `(q0, v0)` in form 2 (`angular`) or 1."""
     p0 = sm.normalize(jnp.array([[0.3, -0.4, -1.0]]))
     W0_ = jnp.array([[0.5, -0.3, 0.9]])
     x0, xdot0 = jnp.zeros(3), jnp.array([0.2, 0.0, 1.0])
     omega_p0 = jnp.array([[0.0, 1.2, 0.0]])
     omega_p0 = omega_p0 - (omega_p0 @ p0[0]) * p0  # tangent to the pendulum's sphere
+    q0 = {"base": x0, "attitude": R0, "pendulum": p0}
+    if angular:
+        return q0, {"base": xdot0, "attitude": W0_, "pendulum": omega_p0}
+    pdot0 = jnp.cross(omega_p0, p0)
+    return q0, {"base": xdot0, "attitude": R0 @ sm.hat(W0_), "pendulum": pdot0}
+
+
+CARRIER_SYSTEMS = {
+    angular: (sm.AngularLagrangian if angular else sm.Lagrangian)(
+        carrier_L(angular), space=CARRIER_SPACE
+    )
+    for angular in (False, True)
+}
+
+
+@pytest.fixture(scope="module")
+def carrier_lierk():
+    """The carrier in forms 1 and 2 (`angular`) by `LieRK(Dopri8())` at tolerance 1e-12,
+    saved at `TS[:4]` (0 .. 1.5 s)."""
+    return {
+        angular: sm.simulate(
+            system,
+            carrier_state(angular),
+            TS[3],
+            solver=sm.LieRK(diffrax.Dopri8()),
+            rtol=1e-12,
+            atol=1e-12,
+            saveat=diffrax.SaveAt(ts=TS[:4]),
+        )
+        for angular, system in CARRIER_SYSTEMS.items()
+    }
+
+
+def test_rigid_body_carrying_a_pendulum_against_a_cartesian_quaternion_dae(carrier_lierk):
+    """A free body (position, attitude) carrying a pendulum hung from a point `d` off its
+    centre of mass, on `{"base": Euclidean(3), "attitude": Rotations(1), "pendulum":
+    Spheres(1)}` in forms 1 and 2, against the same system in Cartesian coordinates (body
+    position, unit quaternion, body rate, bob position) with the rod held by a Lagrange
+    multiplier, solved by scipy."""
+    M, m, rod, g, d = (CARRIER[k] for k in "M m rod g d".split())
+    e3 = np.array([0.0, 0.0, 1.0])
+    Jn = np.asarray(J)
+    q0, v0 = carrier_state(True)
+    x0, xdot0, p0 = q0["base"], v0["base"], q0["pendulum"]
+    W0_, omega_p0 = v0["attitude"], v0["pendulum"]
 
     # The reference: y = (x, quaternion, Omega, bob position, bob velocity).
     def rhs(t, y):
@@ -341,24 +399,7 @@ def test_rigid_body_carrying_a_pendulum_against_a_cartesian_quaternion_dae():
     ts = np.asarray(TS[:4])  # 0 .. 1.5 s
     ref = solve_ivp(rhs, (0, ts[-1]), y0, method="DOP853", rtol=1e-13, atol=1e-13, t_eval=ts).y.T
 
-    q0 = {"base": x0, "attitude": R0, "pendulum": p0}
-    for angular in (False, True):
-        if angular:
-            v0 = {"base": xdot0, "attitude": W0_, "pendulum": omega_p0}
-        else:
-            pdot0 = jnp.cross(omega_p0, p0)
-            v0 = {"base": xdot0, "attitude": R0 @ sm.hat(W0_), "pendulum": pdot0}
-        system = (sm.AngularLagrangian if angular else sm.Lagrangian)(L(angular), space=space)
-        saveat = diffrax.SaveAt(ts=TS[:4])
-        sol = sm.simulate(
-            system,
-            (q0, v0),
-            ts[-1],
-            solver=sm.LieRK(diffrax.Dopri8()),
-            rtol=1e-12,
-            atol=1e-12,
-            saveat=saveat,
-        )
+    for sol in carrier_lierk.values():
         q = sol.ys[0]
         bob = (
             q["base"] + jnp.einsum("tij,j->ti", q["attitude"][:, 0], d) + rod * q["pendulum"][:, 0]
@@ -367,6 +408,144 @@ def test_rigid_body_carrying_a_pendulum_against_a_cartesian_quaternion_dae():
         assert np.max(np.abs(np.asarray(bob) - ref[:, 13:16])) < 1e-9
         R_ref = np.stack([quaternion_matrix(qt) for qt in ref[:, 6:10]])
         assert np.max(np.abs(np.asarray(q["attitude"][:, 0]) - R_ref)) < 1e-9
+
+
+# The Lie group variational integrator (`Variational` on a rotation factor). The tests share
+# one system per kind and one set of simulate options, so compilations are shared too.
+
+PENDULUM = sm.AngularLagrangian(pendulum_L2, space=SPACE)
+
+
+def fixed_run(system, solver, dt, y0, *, t0=0.0, t1=1.0, args=None):
+    """Fixed steps, saving each; times as arrays: every step size and direction shares
+    one compilation. Returns `(ts, (q, v))` over the steps taken."""
+    sol = sm.simulate(
+        system,
+        y0,
+        jnp.asarray(t1),
+        t0=jnp.asarray(t0),
+        args=args,
+        solver=solver,
+        dt0=jnp.asarray(dt),
+        stepsize_controller=FIXED,
+        saveat=diffrax.SaveAt(steps=True),
+        max_steps=4096,
+    )
+    k = int(sol.stats["num_steps"])
+    return sol.ts[:k], jax.tree_util.tree_map(lambda x: x[:k], sol.ys)
+
+
+def fixed_final(*arguments, **options):
+    """The state at the end of `fixed_run`."""
+    return jax.tree_util.tree_map(lambda x: x[-1], fixed_run(*arguments, **options)[1])
+
+
+def orthogonality_error(R):
+    return float(jnp.max(jnp.abs(jnp.swapaxes(R, -1, -2) @ R - jnp.eye(3))))
+
+
+@pytest.mark.parametrize("order, dts", [(2, (0.01, 0.005, 0.0025)), (4, (0.02, 0.01, 0.005))])
+def test_variational_orders_on_rotations(order, dts, pendulum_reference):
+    """The 3-D pendulum over 1 s against the quaternion ODE: orders 2 and 4 measured, and
+    `R^T R = I` to rounding (the step renormalizes with the factor's nearest rotation)."""
+    R_ref = pendulum_reference[0][2]  # t = 1
+    errors = []
+    for dt in dts:
+        R = fixed_final(PENDULUM, sm.Variational(order), dt, (R0, W0))[0][0]
+        errors.append(float(jnp.max(jnp.abs(R - R_ref))))
+        assert orthogonality_error(R) < 1e-15
+    assert abs(fitted_order(dts, errors) - order) < 0.3, errors
+    assert errors[-1] < (2e-3 if order == 2 else 1e-5), errors
+
+
+def test_variational_energy_bounded_on_rotations():
+    """3000 steps (h = 0.01, |Omega| up to 19 rad/s) of the 3-D pendulum: the energy error
+    oscillates, O(h^2) and bounded, with no drift (the largest error of the last tenth of
+    the run is that of the first); `R^T R = I` to rounding all along."""
+    t, (R, W) = fixed_run(PENDULUM, sm.Variational(), 0.01, (R0, W0), t1=30.0)
+    assert len(t) == 3000
+    E0 = PENDULUM.energy(0.0, R0, W0)
+    error = np.asarray(jax.vmap(lambda R_, W_: PENDULUM.energy(0.0, R_, W_))(R, W) - E0)
+    first, *_, last = (np.max(np.abs(e)) for e in np.array_split(error, 10))
+    assert last < 1.5 * first
+    slope = np.polyfit(np.asarray(t), error, 1)[0]
+    assert abs(slope * float(t[-1] - t[0])) < 0.1 * np.max(np.abs(error))
+    assert np.max(np.abs(error)) < 0.05 * float(jnp.abs(E0))
+    assert orthogonality_error(R) < 1e-15
+
+
+@pytest.mark.parametrize("order", [2, 4])
+def test_variational_time_reversible_on_rotations(order):
+    """Forward over [0, 0.5] then back with -h returns `(R0, Omega0)` to rounding."""
+    solver = sm.Variational(order)
+    forward = fixed_final(PENDULUM, solver, 0.02, (R0, W0), t1=0.5)
+    back = fixed_final(PENDULUM, solver, -0.02, forward, t0=0.5, t1=0.0)
+    assert float(jnp.max(jnp.abs(forward[0] - R0))) > 0.1  # it did move
+    assert float(jnp.max(jnp.abs(back[0] - R0))) < 1e-13
+    assert float(jnp.max(jnp.abs(back[1] - W0))) < 1e-12
+
+
+def test_variational_body_torque_in_forms_1_and_2():
+    """A constant body torque (forced Lagrange-d'Alembert step, `h/2 tau` at both ends) on
+    the free body: order 2 against scipy's `J Omegadot = J Omega x Omega + tau`, the same
+    steps in form 1 (`Rdot`) and form 2 (`Omega`)."""
+    tau = jnp.array([0.3, -0.5, 0.2])
+    forces = lambda t, R, v, args: tau[None]
+    Jn = np.asarray(J)
+    ref = solve_ivp(
+        lambda t, w: (np.cross(Jn * w, w) + np.asarray(tau)) / Jn,
+        (0, 1),
+        np.asarray(W0[0]),
+        rtol=1e-13,
+        atol=1e-13,
+    ).y.T[-1]
+    two = sm.AngularLagrangian(free_L2, forces, space=SPACE)
+    one = sm.Lagrangian(lambda t, R, Rd, a: free_L2(t, R, body(R, Rd), a), forces, space=SPACE)
+    dts, errors = (0.04, 0.02, 0.01), []
+    for dt in dts:
+        R2, W2 = fixed_final(two, sm.Variational(), dt, (R0, W0))
+        R1, Rdot1 = fixed_final(one, sm.Variational(), dt, (R0, R0 @ sm.hat(W0)))
+        assert float(jnp.max(jnp.abs(R1 - R2))) < 1e-12
+        assert float(jnp.max(jnp.abs(body(R1, Rdot1) - W2))) < 1e-12
+        errors.append(float(np.max(np.abs(np.asarray(W2[0]) - ref))))
+    assert abs(fitted_order(dts, errors) - 2) < 0.3, errors
+
+
+def test_variational_on_a_product_with_rotations_agrees_with_lierk(carrier_lierk):
+    """The carrier (`Euclidean(3) x Rotations(1) x Spheres(1)`, form 2) over 1.5 s: the
+    order-4 variational step at h = 0.0025 against `LieRK(Dopri8())` at tolerance 1e-12."""
+    q, v = fixed_final(
+        CARRIER_SYSTEMS[True], sm.Variational(4), 0.0025, carrier_state(True), t1=1.5
+    )
+    tight = carrier_lierk[True].ys
+    for k in CARRIER_SPACE:
+        assert float(jnp.max(jnp.abs(q[k] - tight[0][k][-1]))) < 1e-8, k
+        assert float(jnp.max(jnp.abs(v[k] - tight[1][k][-1]))) < 1e-8, k
+    assert orthogonality_error(q["attitude"]) < 1e-15
+
+
+def test_variational_gradient_on_rotations_matches_central_differences():
+    """`jax.jacrev` through the Newton solves of the Lie group variational step (implicit
+    differentiation) against central differences, in the initial body angular velocity."""
+
+    def final_spin(w):
+        return fixed_final(PENDULUM, sm.Variational(), 0.02, (R0, w[None]), t1=0.2)[1][0]
+
+    grad = jax.jacrev(final_spin)(W0[0])
+    fd = central_differences(final_spin, W0[0], 1e-6)
+    assert jnp.allclose(grad, fd, rtol=1e-6, atol=1e-8)
+    assert float(jnp.max(jnp.abs(grad - jnp.eye(3)))) > 0.1  # not the identity
+
+
+def test_variational_float32_on_rotations():
+    """float32 states step in float32 (Newton to `eps ** 0.75`), `R^T R = I` to its
+    rounding, and follow the float64 steps."""
+    y0 = (R0.astype(jnp.float32), W0.astype(jnp.float32))
+    R = fixed_final(PENDULUM, sm.Variational(), jnp.float32(0.01), y0)[0][0]
+    R64 = fixed_final(PENDULUM, sm.Variational(), 0.01, (R0, W0))[0][0]
+    assert R.dtype == jnp.float32
+    assert orthogonality_error(R) < 1e-6
+    assert float(jnp.max(jnp.abs(R - R64))) < 1e-3
 
 
 @pytest.mark.parametrize(

@@ -1,12 +1,19 @@
-"""One step of the constrained variational (RATTLE-type) integrator on (S^2)^n: with the
-trapezoidal `L_d` (`discrete_lagrangian`), `mu = P dL/dqdot` and the discrete forces
-`f0, f1` (`discrete_forces`), the projected discrete Euler-Lagrange equations
+"""One step of the constrained variational (RATTLE-type) integrator on spheres, rotations
+and Euclidean factors: with the trapezoidal `L_d` (`discrete_lagrangian`), `mu = P
+dL/dqdot` and the discrete forces `f0, f1` (`discrete_forces`), the projected discrete
+Euler-Lagrange equations
 
-    P(q0) [mu0 + D1 L_d(q0, q1) + f0] = 0,   |q1_i| = 1       (solved for q1)
+    P(q0) [mu0 + D1 L_d(q0, q1) + f0] = 0,   q1 = exp_q0(h v), v tangent   (solved for v)
     mu1 = P(q1) [D2 L_d(q0, q1) + f1]
 
 `L_d` is symmetric: the map is time-reversible, of order 2 and, without forces,
-symplectic on T*(S^2)^n. Velocities come from momenta by the inverse Legendre map.
+symplectic on the cotangent bundle. Velocities come from momenta by the inverse Legendre
+map. Everything is the space's: its projection `P` (Frobenius-orthogonal onto the tangent
+space, so the multipliers of the constraints drop out), exponential, orthonormal tangent
+basis and covectors. On `SO(3)` this is the Lie group variational integrator of Lee, Leok
+and McClamroch: `q1 = R0 F`, `F = expm(h hat(v))`, the chord `R0 (F - I) / h` projected
+on either end has body velocity `vee(F - F^T) / (2 h)`, so `L_d` is a function of `(R0,
+F)` and the implicit equation for `F` is Newton's on its rotation vector `h v`.
 """
 
 import jax
@@ -18,7 +25,6 @@ from .._anderson import Anderson
 from .._inertia import AbstractFastPath
 from .._misc import tree_add, tree_scale
 from .._momentum import newton, residual_scale
-from .._spaces import Product, Rotations
 from .._system import AbstractLagrangianSystem
 
 
@@ -31,20 +37,14 @@ def check_lagrangian(system) -> AbstractLagrangianSystem:
             f"action is built from L. Got {type(system).__name__}; simulate the Lagrangian "
             "form of the system, or use another solver for a Hamiltonian."
         )
-    space = system.space
-    factors = space.factors.values() if isinstance(space, Product) else (space,)
-    if any(isinstance(f, Rotations) for f in factors):
-        raise ValueError(
-            "The variational integrator steps spheres and Euclidean factors only, not "
-            "Rotations yet: use LieRK or Projected for rigid bodies."
-        )
     return system
 
 
 def discrete_lagrangian(system, t0, h, q0, q1, args):
     """The trapezoidal `L_d(q0, q1) = h/2 [L(t0, q0, P0 c) + L(t0 + h, q1, P1 c)]`, `c` the
-    chord velocity, `P = I - q q^T`: `L` only on the tangent bundle, so forms 1 and 2 step
-    alike. On a mixed space only the sphere factors are projected."""
+    chord velocity, `P` the space's projection (`I - q q^T` on a sphere, `R skew(R^T .)` on a
+    rotation): `L` only on the tangent bundle, so forms 1 and 2 step alike. On a mixed
+    space Euclidean factors are not projected."""
     c = chord(q0, q1, h)
     L = lambda t, q: system.lagrangian_qdot(t, q, system.space.project(q, c), args)
     return 0.5 * h * (L(t0, q0) + L(t0 + h, q1))
@@ -70,7 +70,8 @@ def discrete_forces(system, t0, h, q0, q1, args):
 
 def solve_position(system, t0, h, q0, mu0, scale, guess, args, tol, max_steps, fast_path=True):
     """Solve `P(q0) [mu0 + D1 L_d(q0, q1) + f0] = 0` for `q1 = exp_q0(h T0 a)` (`|q1_i| = 1`
-    by construction; on a mixed space `x1 = x0 + h a_x`), from the tangent velocity `guess`:
+    by construction, `R1 = R0 expm(h hat(omega))` on rotations; on a mixed space `x1 = x0 +
+    h a_x`), from the tangent velocity `guess`:
     Newton's method on `T0^T [...] / scale` (dense `2n x 2n` Jacobian), or for an
     `AbstractFastPath` (if `fast_path`), as `D1 L_d = -(P0 M P0) c` up to relative
     `h |qdot|`, the chord iteration `a <- a + T0^T x`, `P0 M x = P0 [mu0 + D1 L_d + f0]`,
@@ -125,7 +126,8 @@ def substep(system, t0, h, q0, v0, rates0, args, tol, max_steps, fast_path=True)
         d2 = tree_add(d2, forces[1])
     t1 = t0 + h
     c1 = space.project(q1, chord(q0, q1, h))
-    mu1, guess1 = system.from_linear(q1, space.project(q1, d2)), system.from_linear(q1, c1)
+    # mu1 is a covector (it pairs with qdot): pi1 = 2 vee(R1^T mu1) on rotations, not vee.
+    mu1, guess1 = system.from_covector(q1, space.project(q1, d2)), system.from_linear(q1, c1)
     v1, vel_result = system.velocity_from_momentum(
         t1, q1, mu1, args, guess=guess1, tol=tol, max_steps=max_steps
     )

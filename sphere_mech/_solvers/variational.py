@@ -1,5 +1,5 @@
-"""The variational (RATTLE-type) integrator on (S^2)^n as a diffrax solver, and its
-symmetric composition of order 4."""
+"""The variational (RATTLE-type) integrator on spheres, rotations and Euclidean factors as
+a diffrax solver, and its symmetric composition of order 4."""
 
 from collections.abc import Callable
 from typing import ClassVar
@@ -35,12 +35,19 @@ def composition_coefficients(order: int, composition: str) -> tuple[float, ...]:
 
 
 class Variational(AbstractSolver):
-    """The variational integrator for Lagrangian systems on (S^2)^n: the discrete
-    Euler-Lagrange (RATTLE-type) equations of the trapezoidal discrete Lagrangian, with
-    `|q_i| = 1` imposed by Lagrange multipliers. Symplectic, time-reversible (stepping
-    back with `-h` returns the initial state to rounding), `|q_i| = 1` to rounding, and
-    for conservative systems an energy error bounded over millions of steps. Order 2;
-    `order=4` composes the same step symmetrically (still symplectic and reversible).
+    """The variational integrator for Lagrangian systems on (S^2)^n, SO(3)^k and their
+    products with Euclidean factors: the discrete Euler-Lagrange (RATTLE-type) equations
+    of the trapezoidal discrete Lagrangian, with `|q_i| = 1` imposed by Lagrange
+    multipliers. Symplectic, time-reversible (stepping back with `-h` returns the initial
+    state to rounding), `|q_i| = 1` and `R^T R = I` to rounding, and for conservative
+    systems an energy error bounded over millions of steps. Order 2; `order=4` composes
+    the same step symmetrically (still symplectic and reversible).
+
+    On a rotation factor (`Rotations`) it is the Lie group variational integrator of
+    Lee, Leok and McClamroch: `R1 = R0 F`, `F = expm(h hat(xi))`, the discrete
+    Lagrangian a function of `(R0, F)` (the chord's body velocity on both ends is
+    `vee(F - F^T) / (2h)`), Newton's method on the rotation vector of `F`, and `R1`
+    renormalized to the nearest rotation; body torques enter as on the spheres.
 
     For any `Lagrangian`, `AngularLagrangian`, `ConstantInertiaLagrangian` or `Scene`
     (Hamiltonian systems are refused with a `ValueError`): each (sub)step solves `2n`
@@ -52,7 +59,8 @@ class Variational(AbstractSolver):
     tangent plane, so forms 1 and 2 give the same steps. Time-dependent `L` is supported
     (still symplectic). With forces it is the forced Lagrange-d'Alembert integrator
     (`h/2 f` at both ends): reversible in form, of the same order, not symplectic. On a
-    mixed space a Euclidean factor steps by `x1 = x0 + h a` (tests/test_mixed.py).
+    mixed space a Euclidean factor steps by `x1 = x0 + h a` (tests/test_mixed.py), a
+    rotation factor as above (tests/test_rotations.py).
 
     Fixed steps only (no error estimate): `sphere_mech.simulate(system, y0, t1,
     solver=Variational(), dt0=h)`, or `diffrax.diffeqsolve(sphere_mech.MechanicsTerm(
