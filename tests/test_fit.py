@@ -171,6 +171,7 @@ def _check_shooting(multiple, single):
     assert single.loss > 100 * multiple.loss
 
 
+@pytest.mark.slow  # 72 s; multiple shooting stays in test_fit_models and test_mixed
 def test_multiple_shooting_chaotic(getkey):
     multiple, single = _shooting(8.0, 16, getkey(), single_steps=12)
     _check_shooting(multiple, single)

@@ -39,6 +39,7 @@ def neural_lagrangian(mlp):
     return sm.ConstantInertiaLagrangian(CHAIN.inertia(), NeuralPotential(mlp))
 
 
+@pytest.mark.slow  # 39 s; sm.learn's own test recovers a potential in the default suite
 def test_learned_potential(getkey):
     truth = sm.ConstantInertiaLagrangian(CHAIN.inertia(), stiff_joint)
     y0 = chain_initial_states(3)
