@@ -149,29 +149,38 @@ def test_four_forms_of_the_3d_pendulum_against_a_quaternion_ode(form, pendulum_r
     assert float(jnp.max(jnp.abs(energy - energy[0]))) < 1e-10 * float(jnp.abs(energy[0]))
 
 
+TAU = jnp.array([0.3, -0.5, 0.2])
+TORQUED = (
+    sm.AngularLagrangian(free_L2, lambda t, R, v, args: TAU[None], space=SPACE),
+    sm.Lagrangian(
+        lambda t, R, Rd, a: free_L2(t, R, body(R, Rd), a),
+        lambda t, R, v, args: TAU[None],
+        space=SPACE,
+    ),
+)
+"""The free body under a constant body torque `TAU`, in forms 2 and 1."""
+
+
+def torqued_body_reference(ts):
+    """`Omega(ts)` of `J Omegadot = J Omega x Omega + TAU` from `W0`, by scipy."""
+    Jn = np.asarray(J)
+    rhs = lambda t, w: (np.cross(Jn * w, w) + np.asarray(TAU)) / Jn
+    ref = solve_ivp(rhs, (0, ts[-1]), np.asarray(W0[0]), rtol=1e-13, atol=1e-13, t_eval=ts)
+    return ref.y.T
+
+
 def test_body_torque_is_the_generalized_force_of_a_rotation():
     """A constant body torque `tau` on a free body: `J Omegadot = J Omega x Omega + tau`
     (scipy), in form 2 and (as `R hat(tau) / 2` against `Rdot`) in form 1."""
-    tau = jnp.array([0.3, -0.5, 0.2])
-    forces = lambda t, R, v, args: tau[None]
-    Jn = np.asarray(J)
-    ref = solve_ivp(
-        lambda t, w: (np.cross(Jn * w, w) + np.asarray(tau)) / Jn,
-        (0, 3),
-        np.asarray(W0[0]),
-        rtol=1e-13,
-        atol=1e-13,
-        t_eval=np.asarray(TS),
-    ).y.T
-    two = sm.AngularLagrangian(free_L2, forces, space=SPACE)
-    one = sm.Lagrangian(lambda t, R, Rd, a: free_L2(t, R, body(R, Rd), a), forces, space=SPACE)
+    ref = torqued_body_reference(np.asarray(TS))
+    two, one = TORQUED
     for system, v0 in ((two, W0), (one, R0 @ sm.hat(W0))):
         sol = sm.simulate(system, (R0, v0), 3.0, solver=sm.Projected(diffrax.Dopri8()), **TIGHT)
         W = jax.vmap(lambda R, v, s=system: body(R, s.velocity(0.0, R, v)))(*sol.ys)[:, 0]
         assert np.max(np.abs(np.asarray(W) - ref)) < 1e-9
         # the power of the torque is tau . Omega
         power = system.power(0.0, R0, v0)
-        assert abs(float(power) - float(tau @ W0[0])) < 1e-14
+        assert abs(float(power) - float(TAU @ W0[0])) < 1e-14
 
 
 @pytest.mark.parametrize(
@@ -489,18 +498,8 @@ def test_variational_body_torque_in_forms_1_and_2():
     """A constant body torque (forced Lagrange-d'Alembert step, `h/2 tau` at both ends) on
     the free body: order 2 against scipy's `J Omegadot = J Omega x Omega + tau`, the same
     steps in form 1 (`Rdot`) and form 2 (`Omega`)."""
-    tau = jnp.array([0.3, -0.5, 0.2])
-    forces = lambda t, R, v, args: tau[None]
-    Jn = np.asarray(J)
-    ref = solve_ivp(
-        lambda t, w: (np.cross(Jn * w, w) + np.asarray(tau)) / Jn,
-        (0, 1),
-        np.asarray(W0[0]),
-        rtol=1e-13,
-        atol=1e-13,
-    ).y.T[-1]
-    two = sm.AngularLagrangian(free_L2, forces, space=SPACE)
-    one = sm.Lagrangian(lambda t, R, Rd, a: free_L2(t, R, body(R, Rd), a), forces, space=SPACE)
+    ref = torqued_body_reference(np.array([1.0]))[-1]
+    two, one = TORQUED
     dts, errors = (0.04, 0.02, 0.01), []
     for dt in dts:
         R2, W2 = fixed_final(two, sm.Variational(), dt, (R0, W0))
