@@ -147,20 +147,20 @@ def test_choice_and_memory_of_the_default_adjoint(value_and_grad_default):
     assert temp(value_and_grad_default) == temp(_compiled_value_and_grad(100))
 
 
-def test_stagewise_step_matches_the_step_transposed_whole():
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_stagewise_step_matches_the_step_transposed_whole(dtype):
     """`RK4(stagewise_reverse=True)`: the same step, and the same reverse-mode derivatives
     of its end state and its slopes (the Hermite output's `k`) with respect to the
     state, the times and the system, as JAX's transpose of the whole step."""
-    y0 = _states(1)
-    y0 = jax.tree.map(lambda x: x[0], y0)
+    y0 = jax.tree.map(lambda x: x[0].astype(dtype), _states(1))
 
     def step(stagewise, t0, t1, y0, lengths):
-        term = sm.MechanicsTerm(sm.chain_pendulum(jnp.ones(N), lengths, 9.81))
+        term = sm.MechanicsTerm(sm.chain_pendulum(jnp.ones(N, dtype), lengths, 9.81))
         solver = sm.RK4(stagewise_reverse=stagewise)
         y1, _, dense, _, _ = solver.step(term, t0, t1, y0, None, None, False)
         return y1, dense["k"]
 
-    inputs = (jnp.array(0.1), jnp.array(0.15), y0, LENGTHS)
+    inputs = (jnp.array(0.1, dtype), jnp.array(0.15, dtype), y0, LENGTHS.astype(dtype))
     out, pull = jax.vjp(lambda *a: step(False, *a), *inputs)
     out_s, pull_s = jax.vjp(lambda *a: step(True, *a), *inputs)
     for a, b in zip(jax.tree.leaves(out), jax.tree.leaves(out_s), strict=True):
@@ -168,11 +168,13 @@ def test_stagewise_step_matches_the_step_transposed_whole():
     keys = jax.random.split(jax.random.PRNGKey(2), len(jax.tree.leaves(out)))
     leaves, tree = jax.tree.flatten(out)
     cotangent = jax.tree.unflatten(
-        tree, [jax.random.normal(k, x.shape) for k, x in zip(keys, leaves, strict=True)]
+        tree, [jax.random.normal(k, x.shape, dtype) for k, x in zip(keys, leaves, strict=True)]
     )
+    tol = 1e-13 if dtype == jnp.float64 else 1e-5
     grads = jax.tree.leaves(pull(cotangent)), jax.tree.leaves(pull_s(cotangent))
     for a, b in zip(*grads, strict=True):
-        np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-13)
+        assert a.dtype == b.dtype == dtype
+        np.testing.assert_allclose(a, b, rtol=tol, atol=tol)
 
 
 def test_default_reverse_mode_is_stagewise_and_matches_the_old_path():

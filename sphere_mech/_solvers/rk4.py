@@ -127,9 +127,14 @@ def _stagewise_bwd(stages, grad_out, perturbed, inputs):
     terms, t0, t1, y0, args = inputs
     zero_state = jtu.tree_map(jnp.zeros_like, y0)
     g_y1, g_k1, g_k4 = (zero_state if g is None else fill_zeros(g, y0) for g in grad_out)
-    # The stages' cotangents, before the stages after them add theirs.
+    # The stages' cotangents, before the stages after them add theirs (Python floats: no
+    # promotion of float32).
+    weights = [float(b) for b in _B]
+    ends = lambda g1, g4: (g1, 0.0, 0.0, g4)
     g_k = jtu.tree_map(
-        lambda g, g1, g4: jnp.stack([g * _B[0] + g1, g * _B[1], g * _B[2], g * _B[3] + g4]),
+        lambda g, g1, g4: jnp.stack(
+            [g * b + c for b, c in zip(weights, ends(g1, g4), strict=True)]
+        ),
         g_y1,
         g_k1,
         g_k4,
