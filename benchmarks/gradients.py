@@ -14,7 +14,15 @@ from other processes hits all three); the ratios are value_and_grad time / forwa
 all measured in the same run.
 Prints a markdown table and writes benchmarks/results/gradients.{md,png}.
 
-    python benchmarks/gradients.py [--quick]
+`--rk4-batch`: only the batched fixed-step rows (RK4, n = 2 with B = 256 and n = 8 with
+B = 64, float32 and float64), before and after `RK4(stagewise_reverse=True)` became the
+default adjoint's reverse mode: checkpointed reverse mode with the whole step transposed
+(`RecursiveCheckpointAdjoint()`, the default's reverse mode before), stage by stage
+(`RK4(stagewise_reverse=True)`, its reverse mode now) and the default (forward mode
+at n = 2, 2 differentiated scalars; reverse mode at n = 8); writes
+benchmarks/results/gradients_rk4_batch.md.
+
+    python benchmarks/gradients.py [--quick | --rk4-batch]
 """
 
 import argparse
@@ -40,9 +48,11 @@ SOLVERS = {  # name: (solver, dt0, t1)
 BATCH = {2: 256, 8: 64}
 
 
-def loss_fn(n, dtype, solver_name, batch):
-    """`loss(lengths, adjoint)` of one case, and its initial lengths."""
-    solver, dt0, t1 = SOLVERS[solver_name]
+def loss_fn(n, dtype, solver_name, batch, solver=None):
+    """`loss(lengths, adjoint)` of one case (with `solver` in place of the case's), and
+    its initial lengths."""
+    default_solver, dt0, t1 = SOLVERS[solver_name]
+    solver = solver or default_solver
     keys = jax.random.split(jax.random.PRNGKey(0), batch or 1)
     q, v = jax.vmap(lambda k: sm.random_state(k, n, speed=0.5))(keys)
     q, v = q.astype(dtype), v.astype(dtype)
@@ -71,10 +81,76 @@ def measure(n, dtype, solver_name, batch, repeats):
     return timings([lambda f=f: f(lengths) for f in (forward, old, new)], repeats)
 
 
+def rk4_batch_row(n, dtype, repeats):
+    """Forward, whole-step reverse, stage-by-stage reverse and the default."""
+    name = "RK4 (fixed, dt 1e-3)"
+    loss, lengths = loss_fn(n, dtype, name, BATCH[n])
+    stagewise = sm.Projected(sm.RK4(stagewise_reverse=True))
+    loss_s, _ = loss_fn(n, dtype, name, BATCH[n], stagewise)
+    programs = [
+        eqx.filter_jit(lambda x: loss(x, None)),
+        eqx.filter_jit(jax.value_and_grad(lambda x: loss(x, OLD))),
+        eqx.filter_jit(jax.value_and_grad(lambda x: loss_s(x, OLD))),
+        eqx.filter_jit(jax.value_and_grad(lambda x: loss(x, None))),
+    ]
+    grads = [p(lengths)[1] for p in programs[1:]]
+    tol = 1e-10 if dtype == jnp.float64 else 2e-2
+    for g in grads[1:]:
+        assert np.allclose(g, grads[0], rtol=tol, atol=tol), (g, grads[0])
+    return timings([lambda f=f: f(lengths) for f in programs], repeats)
+
+
+def rk4_batch(repeats=7):
+    """The batched RK4 rows, before and after the stage-by-stage reverse mode."""
+    rows, loads = [], [load()]
+    for n in BATCH:
+        for dtype in (jnp.float32, jnp.float64):
+            times = rk4_batch_row(n, dtype, repeats)
+            loads.append(load())
+            rows.append((n, BATCH[n], jnp.dtype(dtype).name, *times))
+            print(f"  {rows[-1][:3]}: {times[0].median * 1e3:.2f} ms", flush=True)
+    text = table(
+        [
+            "n",
+            "B",
+            "dtype",
+            "forward [ms]",
+            "reverse, whole step (before)",
+            "reverse, stage by stage (now)",
+            "default (forward mode at n = 2; reverse, stage by stage, at n = 8)",
+            "min over repeats: whole step / stage by stage / default",
+        ],
+        [
+            (
+                n,
+                b,
+                dt,
+                f"{f.median * 1e3:.2f}",
+                *(f"{t.median / f.median:.1f}" for t in (old, staged, new)),
+                " / ".join(f"{t.min / f.min:.1f}" for t in (old, staged, new)),
+            )
+            for n, b, dt, f, old, staged, new in rows
+        ],
+    )
+    machine = f"{platform.processor() or platform.machine()}, {jax.devices()[0].platform}"
+    publish(
+        "value_and_grad time / forward time of `simulate_batch` with `Projected(RK4())` at "
+        "dt0 = 1e-3 over 0.3 s (300 steps), medians of 7 repeats.\n\n"
+        f"Machine: {machine} (2-core CPU shared with other processes), `python "
+        f"benchmarks/gradients.py --rk4-batch`; load average (1 min) {min(loads):.1f} to "
+        f"{max(loads):.1f} during the run.\n\n" + text + "\n",
+        "gradients_rk4_batch.md",
+    )
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="n = 2, float64 only")
-    quick = parser.parse_args().quick
+    parser.add_argument("--rk4-batch", action="store_true", help="the batched RK4 rows only")
+    parsed = parser.parse_args()
+    if parsed.rk4_batch:
+        return rk4_batch()
+    quick = parsed.quick
     ns, dtypes = ((2,), (jnp.float64,)) if quick else ((2, 8), (jnp.float32, jnp.float64))
     rows, loads = [], [load()]
     for n in ns:

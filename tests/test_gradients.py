@@ -12,7 +12,12 @@ import pytest
 from helpers import central_differences
 
 import sphere_mech as sm
-from sphere_mech._adjoint import BATCH_FORWARD_COLUMNS, FORWARD_COLUMNS, default_adjoint
+from sphere_mech._adjoint import (
+    BATCH_FORWARD_COLUMNS,
+    FORWARD_COLUMNS,
+    default_adjoint,
+    stagewise_reverse,
+)
 from sphere_mech._linalg import spd_solve, tridiagonal_spd_solve
 
 N, T1 = 2, 0.3
@@ -140,6 +145,64 @@ def test_choice_and_memory_of_the_default_adjoint(value_and_grad_default):
     assert reverse.checkpoints is None  # diffrax's choice from max_steps
     temp = lambda compiled: compiled.memory_analysis().temp_size_in_bytes
     assert temp(value_and_grad_default) == temp(_compiled_value_and_grad(100))
+
+
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_stagewise_step_matches_the_step_transposed_whole(dtype):
+    """`RK4(stagewise_reverse=True)`: the same step, and the same reverse-mode derivatives
+    of its end state and its slopes (the Hermite output's `k`) with respect to the
+    state, the times and the system, as JAX's transpose of the whole step."""
+    y0 = jax.tree.map(lambda x: x[0].astype(dtype), _states(1))
+
+    def step(stagewise, t0, t1, y0, lengths):
+        term = sm.MechanicsTerm(sm.chain_pendulum(jnp.ones(N, dtype), lengths, 9.81))
+        solver = sm.RK4(stagewise_reverse=stagewise)
+        y1, _, dense, _, _ = solver.step(term, t0, t1, y0, None, None, False)
+        return y1, dense["k"]
+
+    inputs = (jnp.array(0.1, dtype), jnp.array(0.15, dtype), y0, LENGTHS.astype(dtype))
+    out, pull = jax.vjp(lambda *a: step(False, *a), *inputs)
+    out_s, pull_s = jax.vjp(lambda *a: step(True, *a), *inputs)
+    for a, b in zip(jax.tree.leaves(out), jax.tree.leaves(out_s), strict=True):
+        np.testing.assert_array_equal(a, b)
+    keys = jax.random.split(jax.random.PRNGKey(2), len(jax.tree.leaves(out)))
+    leaves, tree = jax.tree.flatten(out)
+    cotangent = jax.tree.unflatten(
+        tree, [jax.random.normal(k, x.shape, dtype) for k, x in zip(keys, leaves, strict=True)]
+    )
+    tol = 1e-13 if dtype == jnp.float64 else 1e-5
+    grads = jax.tree.leaves(pull(cotangent)), jax.tree.leaves(pull_s(cotangent))
+    for a, b in zip(*grads, strict=True):
+        assert a.dtype == b.dtype == dtype
+        np.testing.assert_allclose(a, b, rtol=tol, atol=tol)
+
+
+def test_default_reverse_mode_is_stagewise_and_matches_the_old_path():
+    """The default adjoint's reverse mode (here 4 scalars per trajectory of a batch)
+    differentiates `RK4` stage by stage (`stagewise_reverse`, inside `Projected`): the
+    gradient of the old path (`RK4()` under an explicit `RecursiveCheckpointAdjoint`) to
+    rounding, and central differences; save times between the steps go through the
+    Hermite output's slopes."""
+    solver = GRADIENT_RUNS["fixed"]["solver"]
+    inside = stagewise_reverse(solver)
+    assert type(inside) is sm.Projected and inside.solver.stagewise_reverse
+    assert not solver.solver.stagewise_reverse
+    q, v = _states(2)
+    saveat = diffrax.SaveAt(ts=jnp.array([0.105, 0.2, T1]))
+
+    def loss(x, adjoint):
+        chain = sm.chain_pendulum(x[:N], x[N:], 9.81)
+        opts = dict(adjoint=adjoint, saveat=saveat, **GRADIENT_RUNS["fixed"])
+        sol = sm.simulate_batch(chain, (q, v), T1, **opts)
+        return jnp.sum(sol.ys[0] @ WEIGHTS) + jnp.sum(sol.ys[1] ** 2)
+
+    x = jnp.concatenate([jnp.array([1.0, 1.5]), LENGTHS])
+    new = eqx.filter_jit(jax.grad(lambda x: loss(x, None)))(x)
+    old = eqx.filter_jit(jax.grad(lambda x: loss(x, diffrax.RecursiveCheckpointAdjoint())))(x)
+    np.testing.assert_allclose(new, old, rtol=1e-12, atol=1e-12)
+    fd = central_differences(eqx.filter_jit(lambda x: loss(x, None)), x)
+    np.testing.assert_allclose(new, fd, rtol=1e-6, atol=1e-8)
+    assert np.all(np.abs(new) > 1e-3)  # a gradient that could be wrong
 
 
 @pytest.mark.parametrize("kind", ["tridiagonal", "dense"])
