@@ -10,20 +10,24 @@ with F = exp(hat(2 pi/3 e1)) diag(5, 5, 5) (sampled here by rejection from an an
 central Gaussian on unit quaternions, Kent, Ganeiber and Mardia 2013) and the body
 angular velocity Gaussian, mean 0, standard deviation 2 rad/s a component (their
 `Sigma = (2 tscale)^2 I` in scaled time). Their damping and process noise are left
-out: every method integrates the same deterministic dynamics, over T = 1 s (their
-horizon) unless `--steps` says otherwise. Methods:
+out: every method integrates the same deterministic dynamics, 50 steps (T = 0.5 s; their
+horizon is 1 s, `--steps 100`: 50 keeps the default run under about 5 minutes on a loaded
+2-core machine). Methods:
 
 - sphere_mech: `sm.simulate_batch` of `sm.AngularLagrangian(L)` on `sm.Rotations(1)`,
   `L = 1/2 Omega.J Omega - m g e3.(R rho)`, fixed step dt; `--solver variational`
   (default: `sm.Variational()`, Lee, Leok and McClamroch's Lie group variational
-  integrator), `variational4` (`sm.Variational(4)`) or `lierk` (`sm.LieRK(sm.RK4())`);
+  integrator), `variational4` (`sm.Variational(4)`) or `lierk` (`sm.LieRK(sm.RK4())`),
+  `chunk_size` 50000 (`--chunk`; the library's CPU default, about 512 rows, measured 4x
+  slower here), sharded over all of JAX's devices (`--devices`);
 - MuJoCo (C, `mujoco.rollout` on all cores): a body on a ball joint with its RK4
-  integrator at the same step and number of steps. MuJoCo's inertia must be positive
-  about the centre of mass, and m = 10 at |rho| = 1 with J = diag(5, 4, 3) about the
-  pivot leaves diag(-5, -6, 3) there. The dynamics on a fixed pivot depend only on the
-  inertia about the pivot J and the first moment m rho, so the model carries the same
-  J and the same m rho with mass m' = 100 at rho' = rho / 10 (inertia diag(4, 3, 3) about
-  its centre of mass): the same equation of motion, all in MuJoCo's C loop (no
+  integrator at the same step and number of steps (the peer of the ratios), and with its
+  default semi-implicit Euler integrator (cheaper, less accurate). MuJoCo's inertia must
+  be positive about the centre of mass, and m = 10 at |rho| = 1 with J = diag(5, 4, 3)
+  about the pivot leaves diag(-5, -6, 3) there. The dynamics on a fixed pivot depend only
+  on the inertia about the pivot J and the first moment m rho, so the model carries the
+  same J and the same m rho with mass m' = 100 at rho' = rho / 10 (inertia diag(4, 3, 3)
+  about its centre of mass): the same equation of motion, all in MuJoCo's C loop (no
   per-step callback). Its ball joint's `qvel` is the body angular velocity Omega;
 - scipy: `solve_ivp` (DOP853, `--scipy-rtol`) on the unit-quaternion ODE, one sample
   after another, on a small subset; its time for all samples is extrapolated.
@@ -32,8 +36,9 @@ First the methods are checked against a tight reference (the same quaternion ODE
 DOP853 at rtol = atol = 1e-13) on a subset: the attitude error angle at the final time
 is the accuracy at which they are compared. Then the whole batch is timed (compiled
 first; MuJoCo warmed up on a few samples), and throughput is reported as
-samples x steps per second with the ratios to MuJoCo. The load average of the machine
-is recorded. Writes benchmarks/results/pendulum_monte_carlo{,_quick}.{md,png}: the throughput and
+samples x steps per second with the ratios to MuJoCo's RK4. The load average of the
+machine is recorded (a loaded machine slows the methods unevenly). Writes
+benchmarks/results/pendulum_monte_carlo{,_quick}.{md,png}: the table, the throughput and
 the Monte Carlo's spread (the distribution of e3.(R rho), the height of the centre of
 mass over the pivot, at a few times, and of the direction R rho).
 
@@ -49,7 +54,10 @@ def add_arguments(parser):
     parser.add_argument("--samples", type=int, help="Monte Carlo samples (default 1e5)")
     parser.add_argument("--steps", type=int, help="steps of dt = 0.01 (default 100, T = 1 s)")
     parser.add_argument("--solver", choices=SOLVERS, default="variational")
-    parser.add_argument("--chunk", type=int, help="simulate_batch's chunk_size (default: ours)")
+    parser.add_argument(
+        "--chunk", type=int, default=50_000, help="simulate_batch's chunk_size (default 50000)"
+    )
+    parser.add_argument("--devices", type=int, help="JAX devices to shard over (default: all)")
     parser.add_argument("--scipy-samples", type=int, help="samples in the scipy loop")
     parser.add_argument("--scipy-rtol", type=float, default=1e-8, help="scipy's rtol = atol")
     parser.add_argument("--check-samples", type=int, help="samples checked against the reference")
@@ -58,6 +66,7 @@ def add_arguments(parser):
 
 OPTS = parse_options(__doc__.splitlines()[0], add_arguments)
 
+import functools  # noqa: E402
 import time  # noqa: E402
 
 import diffrax  # noqa: E402
@@ -84,6 +93,8 @@ F_SINGULAR = np.array([5.0, 5.0, 5.0])
 OMEGA_STD = 2.0  # rad/s, each component of the body angular velocity
 SPREAD_TIMES = (0.0, 0.25, 0.5, 1.0)  # fractions of T at which the spread is shown
 REFERENCE_TOL = 1e-13
+MUJOCO_INTEGRATORS = ("RK4", "Euler")  # RK4 the peer; Euler (semi-implicit) MuJoCo's default
+PEER = "MuJoCo RK4"
 STEM = "pendulum_monte_carlo_quick" if OPTS.quick else "pendulum_monte_carlo"
 
 
@@ -190,6 +201,7 @@ def sphere_mech_run(quats, omega, steps, times=None):
         saveat=diffrax.SaveAt(ts=ts),
         max_steps=steps + 1,
         chunk_size=OPTS.chunk,
+        devices=jax.devices()[: OPTS.devices],
     )
     return sol.ys[0][:, :, 0], sol.ys[1][:, :, 0]
 
@@ -216,11 +228,12 @@ def mujoco_xml(integrator="RK4"):
 
 
 class MuJoCo:
-    """The model stepped by `mujoco.rollout` on `CORES` threads, `chunk` samples a call
-    (its output holds every step's state: this bounds the memory)."""
+    """The model with `integrator` stepped by `mujoco.rollout` on `CORES` threads, `chunk`
+    samples a call (its output holds every step's state: this bounds the memory)."""
 
-    def __init__(self, chunk=20_000):
-        self.model = mujoco.MjModel.from_xml_string(mujoco_xml())
+    def __init__(self, integrator="RK4", chunk=20_000):
+        self.name = f"MuJoCo {integrator}"
+        self.model = mujoco.MjModel.from_xml_string(mujoco_xml(integrator))
         self.data = [mujoco.MjData(self.model) for _ in range(CORES)]
         self.spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
         self.chunk = chunk
@@ -273,17 +286,21 @@ def check_accuracy(quats, omega, steps):
     T = steps * DT
     reference = quaternion_matrix(scipy_run(quats, omega, T, REFERENCE_TOL))
     R_ours = np.asarray(sphere_mech_run(quats, omega, steps)[0][:, -1])
-    mj = MuJoCo()
-    R_mujoco = quaternion_matrix(mj.run(mj.states(quats, omega), steps))
+    R_mujoco = {}
+    for integrator in MUJOCO_INTEGRATORS:
+        mj = MuJoCo(integrator)
+        R_mujoco[mj.name] = quaternion_matrix(mj.run(mj.states(quats, omega), steps))
     R_scipy = quaternion_matrix(scipy_run(quats, omega, T, OPTS.scipy_rtol))
     errors = {
         f"sphere_mech {SOLVER_NAME}": angle_between(R_ours, reference),
-        "MuJoCo RK4": angle_between(R_mujoco, reference),
+        **{name: angle_between(R, reference) for name, R in R_mujoco.items()},
         f"scipy DOP853 (rtol {OPTS.scipy_rtol:g})": angle_between(R_scipy, reference),
     }
-    between = float(np.max(angle_between(R_ours, R_mujoco)))
-    # A wrong model (frame of Omega, inertia, sign of gravity) is off by O(1) rad.
-    assert all(float(np.max(e)) < 1e-2 for e in errors.values()), errors
+    between = float(np.max(angle_between(R_ours, R_mujoco[PEER])))
+    # A wrong model (frame of Omega, inertia, sign of gravity) is off by O(1) rad; MuJoCo's
+    # first-order Euler is only reported.
+    checked = (f"sphere_mech {SOLVER_NAME}", PEER)
+    assert all(float(np.max(errors[name])) < 1e-2 for name in checked), errors
     return errors, between
 
 
@@ -301,12 +318,16 @@ def measure(quats, omega, steps, scipy_samples):
     loads.append(load())
     results[f"sphere_mech {SOLVER_NAME}"] = (ours.median, batch * steps / ours.median, "")
 
-    mj = MuJoCo()
-    states = mj.states(quats, omega)
-    few = states[: 4 * CORES]
-    mujoco_t = timing(lambda: mj.run(states, steps), repeats=1, warmup=lambda: mj.run(few, steps))
-    loads.append(load())
-    results["MuJoCo RK4"] = (mujoco_t.median, batch * steps / mujoco_t.median, "")
+    final_mujoco = None
+    for integrator in MUJOCO_INTEGRATORS:
+        mj = MuJoCo(integrator)
+        states = mj.states(quats, omega)
+        run = functools.partial(mj.run, states, steps)
+        warmup = functools.partial(mj.run, states[: 4 * CORES], steps)
+        t = timing(run, repeats=1, warmup=warmup, what=mj.name)
+        loads.append(load())
+        results[mj.name] = (t.median, batch * steps / t.median, "")
+        final_mujoco = quaternion_matrix(t.result) if mj.name == PEER else final_mujoco
 
     start = time.perf_counter()
     scipy_run(quats[:scipy_samples], omega[:scipy_samples], T, OPTS.scipy_rtol)
@@ -317,11 +338,11 @@ def measure(quats, omega, steps, scipy_samples):
         batch * steps / seconds,
         f"{scipy_samples} samples, extrapolated",
     )
-    return results, loads, ours, quaternion_matrix(mujoco_t.result)
+    return results, loads, ours, final_mujoco
 
 
 def report(results, loads, errors, between, spread, R_mujoco, batch, steps, compile_s):
-    peer = "MuJoCo RK4"
+    peer = PEER
     base = results[peer][1]
     rows = [
         (
@@ -366,7 +387,7 @@ def report(results, loads, errors, between, spread, R_mujoco, batch, steps, comp
     plt = pyplot()
     fig, (ax0, ax1, ax2) = plt.subplots(1, 3, figsize=(15, 4.4))
     names = list(results)
-    ax0.barh(names, [results[n][1] for n in names], color=["C0", "C3", "C2"])
+    ax0.barh(names, [results[n][1] for n in names], color=["C0", "C3", "C1", "C2"][: len(names)])
     ax0.set(xscale="log", xlabel="samples x steps per second", title="Throughput")
     bins = np.linspace(-1, 1, 61)
     T = steps * DT
@@ -409,7 +430,7 @@ def main():
         raise SystemExit("--mjx: this comparison has no MJX run")
     quick = OPTS.quick
     batch = OPTS.samples or (2000 if quick else 100_000)
-    steps = OPTS.steps or (20 if quick else 100)
+    steps = OPTS.steps or (20 if quick else 50)
     check = OPTS.check_samples or (8 if quick else 32)
     scipy_samples = OPTS.scipy_samples or (5 if quick else 40)
     print(f"devices: {jax.devices()}; {batch} samples, {steps} steps, solver {SOLVER_NAME}")
