@@ -19,7 +19,8 @@ horizon is 1 s, `--steps 100`: 50 keeps the default run under about 5 minutes on
   (default: `sm.Variational()`, Lee, Leok and McClamroch's Lie group variational
   integrator), `variational4` (`sm.Variational(4)`) or `lierk` (`sm.LieRK(sm.RK4())`),
   `chunk_size` 50000 (`--chunk`; the library's CPU default, about 512 rows, measured 4x
-  slower here), sharded over all of JAX's devices (`--devices`);
+  slower here), timed on one device and sharded over all of them (`--devices`: XLA is
+  asked for one CPU device per core; on the loaded machine one device was 3x faster);
 - MuJoCo (C, `mujoco.rollout` on all cores): a body on a ball joint with its RK4
   integrator at the same step and number of steps (the peer of the ratios), and with its
   default semi-implicit Euler integrator (cheaper, less accurate). MuJoCo's inertia must
@@ -57,7 +58,9 @@ def add_arguments(parser):
     parser.add_argument(
         "--chunk", type=int, default=50_000, help="simulate_batch's chunk_size (default 50000)"
     )
-    parser.add_argument("--devices", type=int, help="JAX devices to shard over (default: all)")
+    parser.add_argument(
+        "--devices", type=int, nargs="+", help="JAX device counts to time (default: 1 and all)"
+    )
     parser.add_argument("--scipy-samples", type=int, help="samples in the scipy loop")
     parser.add_argument("--scipy-rtol", type=float, default=1e-8, help="scipy's rtol = atol")
     parser.add_argument("--check-samples", type=int, help="samples checked against the reference")
@@ -95,6 +98,7 @@ SPREAD_TIMES = (0.0, 0.25, 0.5, 1.0)  # fractions of T at which the spread is sh
 REFERENCE_TOL = 1e-13
 MUJOCO_INTEGRATORS = ("RK4", "Euler")  # RK4 the peer; Euler (semi-implicit) MuJoCo's default
 PEER = "MuJoCo RK4"
+SCIPY = f"scipy DOP853 (rtol {OPTS.scipy_rtol:g})"
 STEM = "pendulum_monte_carlo_quick" if OPTS.quick else "pendulum_monte_carlo"
 
 
@@ -183,11 +187,13 @@ SOLVER_NAME = {
     "variational4": "Variational(4)",
     "lierk": "LieRK(RK4())",
 }[OPTS.solver]
+OURS = f"sphere_mech {SOLVER_NAME}"
 
 
-def sphere_mech_run(quats, omega, steps, times=None):
+def sphere_mech_run(quats, omega, steps, times=None, devices=1):
     """`(R (batch, len(times), 3, 3), Omega (batch, len(times), 3))` at `times` (default:
-    the final time) from `simulate_batch` with the fixed step DT."""
+    the final time) from `simulate_batch` with the fixed step DT on the first `devices`
+    of JAX's devices."""
     T = steps * DT
     ts = jnp.asarray([T] if times is None else times)
     y0 = (jnp.asarray(quaternion_matrix(quats))[:, None], jnp.asarray(omega)[:, None])
@@ -201,7 +207,7 @@ def sphere_mech_run(quats, omega, steps, times=None):
         saveat=diffrax.SaveAt(ts=ts),
         max_steps=steps + 1,
         chunk_size=OPTS.chunk,
-        devices=jax.devices()[: OPTS.devices],
+        devices=jax.devices()[:devices],
     )
     return sol.ys[0][:, :, 0], sol.ys[1][:, :, 0]
 
@@ -292,14 +298,14 @@ def check_accuracy(quats, omega, steps):
         R_mujoco[mj.name] = quaternion_matrix(mj.run(mj.states(quats, omega), steps))
     R_scipy = quaternion_matrix(scipy_run(quats, omega, T, OPTS.scipy_rtol))
     errors = {
-        f"sphere_mech {SOLVER_NAME}": angle_between(R_ours, reference),
+        OURS: angle_between(R_ours, reference),
         **{name: angle_between(R, reference) for name, R in R_mujoco.items()},
-        f"scipy DOP853 (rtol {OPTS.scipy_rtol:g})": angle_between(R_scipy, reference),
+        SCIPY: angle_between(R_scipy, reference),
     }
     between = float(np.max(angle_between(R_ours, R_mujoco[PEER])))
     # A wrong model (frame of Omega, inertia, sign of gravity) is off by O(1) rad; MuJoCo's
     # first-order Euler is only reported.
-    checked = (f"sphere_mech {SOLVER_NAME}", PEER)
+    checked = (OURS, PEER)
     assert all(float(np.max(errors[name])) < 1e-2 for name in checked), errors
     return errors, between
 
@@ -312,11 +318,15 @@ def measure(quats, omega, steps, scipy_samples):
     loads, results = [load()], {}
     times = [f * T for f in SPREAD_TIMES]
 
-    ours = timing(
-        lambda: sphere_mech_run(quats, omega, steps, times), repeats=2, slow=30.0, what="ours"
-    )
-    loads.append(load())
-    results[f"sphere_mech {SOLVER_NAME}"] = (ours.median, batch * steps / ours.median, "")
+    ours = None
+    for count in OPTS.devices or sorted({1, jax.device_count()}):
+        run = functools.partial(sphere_mech_run, quats, omega, steps, times, count)
+        t = timing(run, repeats=2, slow=30.0, what=OURS)
+        loads.append(load())
+        name = f"{OURS}, {count} device{'s' * (count > 1)}"
+        note = f"compiled in {t.compile:.1f} s (first call, not counted)"
+        results[name] = (t.median, batch * steps / t.median, note, OURS)
+        ours = ours or t
 
     final_mujoco = None
     for integrator in MUJOCO_INTEGRATORS:
@@ -326,22 +336,23 @@ def measure(quats, omega, steps, scipy_samples):
         warmup = functools.partial(mj.run, states[: 4 * CORES], steps)
         t = timing(run, repeats=1, warmup=warmup, what=mj.name)
         loads.append(load())
-        results[mj.name] = (t.median, batch * steps / t.median, "")
+        results[mj.name] = (t.median, batch * steps / t.median, "", mj.name)
         final_mujoco = quaternion_matrix(t.result) if mj.name == PEER else final_mujoco
 
     start = time.perf_counter()
     scipy_run(quats[:scipy_samples], omega[:scipy_samples], T, OPTS.scipy_rtol)
     seconds = (time.perf_counter() - start) * batch / scipy_samples
     loads.append(load())
-    results[f"scipy DOP853 (rtol {OPTS.scipy_rtol:g})"] = (
+    results[SCIPY] = (
         seconds,
         batch * steps / seconds,
         f"{scipy_samples} samples, extrapolated",
+        SCIPY,
     )
     return results, loads, ours, final_mujoco
 
 
-def report(results, loads, errors, between, spread, R_mujoco, batch, steps, compile_s):
+def report(results, loads, errors, between, spread, R_mujoco, batch, steps):
     peer = PEER
     base = results[peer][1]
     rows = [
@@ -350,11 +361,11 @@ def report(results, loads, errors, between, spread, R_mujoco, batch, steps, comp
             f"{seconds:.3g}",
             f"{rate:.3g}",
             f"{rate / base:.2f}",
-            f"{np.max(errors[name]):.1e}",
-            f"{np.median(errors[name]):.1e}",
+            f"{np.max(errors[key]):.1e}",
+            f"{np.median(errors[key]):.1e}",
             note,
         )
-        for name, (seconds, rate, note) in results.items()
+        for name, (seconds, rate, note, key) in results.items()
     ]
     setting = f"{machine(loads)}, {OPTS.dtype}"
     text = (
@@ -375,9 +386,9 @@ def report(results, loads, errors, between, spread, R_mujoco, batch, steps, comp
         )
         + f"\n\nErrors: the attitude error angle at T against scipy DOP853 at rtol = atol = "
         f"{REFERENCE_TOL:g} on {len(next(iter(errors.values())))} samples; sphere_mech and "
-        f"MuJoCo differ by {between:.1e} rad at most there. sphere_mech's time excludes its "
-        f"compilation ({compile_s:.1f} s, first call); MuJoCo's excludes a warm-up on a few "
-        "samples.\n"
+        f"MuJoCo differ by {between:.1e} rad at most there. Times: sphere_mech's median of "
+        "repeats after the first call (which compiles), MuJoCo's one call after a warm-up on a "
+        "few samples.\n"
     )
     publish(text, f"{STEM}.md")
 
@@ -387,7 +398,14 @@ def report(results, loads, errors, between, spread, R_mujoco, batch, steps, comp
     plt = pyplot()
     fig, (ax0, ax1, ax2) = plt.subplots(1, 3, figsize=(15, 4.4))
     names = list(results)
-    ax0.barh(names, [results[n][1] for n in names], color=["C0", "C3", "C1", "C2"][: len(names)])
+    ax0.barh(
+        names,
+        [results[n][1] for n in names],
+        color=[
+            "C0" if n.startswith(OURS) else "C3" if n == PEER else "C2" if n == SCIPY else "C1"
+            for n in names
+        ],
+    )
     ax0.set(xscale="log", xlabel="samples x steps per second", title="Throughput")
     bins = np.linspace(-1, 1, 61)
     T = steps * DT
@@ -439,7 +457,7 @@ def main():
     for name, e in errors.items():
         print(f"{name}: error at T {np.max(e):.1e} rad (max of {check})", flush=True)
     results, loads, ours, R_mujoco = measure(quats, omega, steps, scipy_samples)
-    report(results, loads, errors, between, ours.result, R_mujoco, batch, steps, ours.compile)
+    report(results, loads, errors, between, ours.result, R_mujoco, batch, steps)
 
 
 if __name__ == "__main__":
