@@ -10,6 +10,7 @@ import jax.numpy as jnp
 
 from ._checks import check_function, check_scalar
 from ._custom_types import Args, ForceFn, Points, Tangents
+from ._linalg import dense_solve
 from ._misc import tree_add, tree_dtype, tree_sub, tree_zeros_like
 from ._momentum import invert_momentum, newton_tolerance
 from ._spaces import AbstractSpace, Spheres, as_space
@@ -36,7 +37,7 @@ def _tangent_solve(space, hvp, q, rhs):
     """The tangent `x` with `P H x = P rhs`, solved as `(T^T H T) a = T^T rhs` (`T` the
     space's tangent basis: `blockdiag(I_m, T_S)` on a mixed space)."""
     T = space.tangent_basis(q)
-    a = jnp.linalg.solve(space.reduced_matrix(hvp, T), space.to_tangent(T, rhs))
+    a = dense_solve(space.reduced_matrix(hvp, T), space.to_tangent(T, rhs))
     return space.from_tangent(T, a)
 
 

@@ -1,5 +1,5 @@
-"""Dense SPD (unrolled Cholesky when small) and tridiagonal (O(n)) solves, differentiated
-as linear solves."""
+"""Dense (unrolled LU with partial pivoting when small), dense SPD (unrolled Cholesky when
+small) and tridiagonal (O(n)) solves, differentiated as linear solves."""
 
 import jax
 import jax.numpy as jnp
@@ -53,6 +53,71 @@ def _cholesky(A):
         return x[:, 0] if vector else x
 
     return substitute
+
+
+def dense_solve(A: jax.Array, b: jax.Array) -> jax.Array:
+    """Solve `A x = b` for a general nonsingular `A` (`b` `(n,)`; non-finite if `A` is
+    singular): LU with partial pivoting, unrolled with elementwise operations for small
+    systems (as `spd_solve`: under `vmap` XLA on CPU then runs each over the whole batch,
+    not LAPACK once per tiny matrix), differentiated as a linear solve (the transpose
+    solve reuses the factors)."""
+    n = A.shape[-1]
+    if n > DENSE_UNROLL_MAX:
+        return jnp.linalg.solve(A, b)
+    solve, transpose_solve = _lu(A)
+    return jax.lax.custom_linear_solve(
+        lambda x: A @ x, b, lambda _, r: solve(r), lambda _, r: transpose_solve(r)
+    )
+
+
+def _lu(A):
+    """`P A = L U` by Gaussian elimination with partial pivoting, unrolled; the maps
+    `b -> A^-1 b` and `b -> A^-T b`."""
+    n = A.shape[-1]
+    idx = jnp.arange(n)
+    U, L, perm = A, jnp.zeros_like(A), idx
+    for k in range(n):
+        pivot = idx == jnp.argmax(jnp.where(idx >= k, jnp.abs(U[:, k]), -1.0))
+        U, L, perm = (_swap_rows(M, idx == k, pivot) for M in (U, L, perm))
+        col = jnp.where(idx > k, U[:, k] / U[k, k], 0.0)
+        U = U - col[:, None] * U[k][None, :]
+        L = L.at[:, k].set(col)
+    L = L + jnp.eye(n, dtype=A.dtype)
+
+    def solve(b):  # L y = P b, U x = y
+        return _back(U, _forward(L, b[perm], unit=True))
+
+    def transpose_solve(b):  # U^T y = b, L^T z = y, x = P^T z
+        z = _back(L.T, _forward(U.T, b, unit=False), unit=True)
+        return jnp.zeros_like(z).at[perm].set(z)
+
+    return solve, transpose_solve
+
+
+def _swap_rows(M, first, second):
+    """`M` with the rows flagged by the one-hot masks `first` and `second` exchanged."""
+    f, g = (m.reshape(m.shape + (1,) * (M.ndim - 1)) for m in (first, second))
+    row = lambda mask: jnp.sum(jnp.where(mask, M, 0), axis=0)
+    return jnp.where(f, row(g), jnp.where(g, row(f), M))
+
+
+def _forward(L, b, unit):
+    """`L^-1 b`, `L` lower triangular (unit diagonal if `unit`), unrolled."""
+    x = []
+    for k in range(L.shape[0]):
+        r = b[k] - sum((L[k, j] * x[j] for j in range(k)), jnp.zeros_like(b[k]))
+        x.append(r if unit else r / L[k, k])
+    return jnp.stack(x)
+
+
+def _back(U, b, unit=False):
+    """`U^-1 b`, `U` upper triangular (unit diagonal if `unit`), unrolled."""
+    n = U.shape[0]
+    x = [None] * n
+    for k in reversed(range(n)):
+        r = b[k] - sum((U[k, j] * x[j] for j in range(k + 1, n)), jnp.zeros_like(b[k]))
+        x[k] = r if unit else r / U[k, k]
+    return jnp.stack(x)
 
 
 def tridiagonal_matvec(d: jax.Array, e: jax.Array, x: jax.Array) -> jax.Array:

@@ -9,6 +9,7 @@ from diffrax import RESULTS
 from jax import lax
 
 from ._checks import check_scalar
+from ._linalg import dense_solve
 from ._misc import tree_max_abs, tree_sub, tree_vdot
 
 
@@ -38,7 +39,7 @@ def invert_momentum(L, space, t, q, p, args, *, guess, quadratic: bool, tol, max
 
     dL_dv = jax.grad(lambda v_: check_scalar(L(t, q, v_, args), "L(t, q, v, args)"))
     p_guess, hvp = jax.linearize(dL_dv, guess)
-    a = to_tangent(T, guess) + jnp.linalg.solve(
+    a = to_tangent(T, guess) + dense_solve(
         space.reduced_matrix(hvp, T), to_tangent(T, tree_sub(p, p_guess))
     )
     finite = jnp.all(jnp.isfinite(a))

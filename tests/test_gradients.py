@@ -18,7 +18,7 @@ from sphere_mech._adjoint import (
     default_adjoint,
     stagewise_reverse,
 )
-from sphere_mech._linalg import spd_solve, tridiagonal_spd_solve
+from sphere_mech._linalg import dense_solve, spd_solve, tridiagonal_spd_solve
 
 N, T1 = 2, 0.3
 LENGTHS = jnp.array([1.0, 0.7])
@@ -231,3 +231,23 @@ def test_symmetric_solves_differentiate_as_linear_solves(kind):
         for g, w in zip(got, want, strict=True):
             np.testing.assert_allclose(g, w, rtol=1e-12, atol=1e-13)
         assert np.abs(got[1]).max() > 1e-2  # a derivative that could be wrong
+
+
+@pytest.mark.parametrize("n", [1, 3, 7])
+def test_dense_solve_pivots_and_differentiates_as_a_linear_solve(n):
+    """The unrolled pivoted LU against LAPACK, batched, on matrices that need pivoting (a
+    zero leading entry), and its forward and reverse derivatives in `A` and `b`."""
+    keys = jax.random.split(jax.random.PRNGKey(n), 2)
+    A = jax.random.normal(keys[0], (16, n, n)) + 0.1 * jnp.eye(n)
+    A = A.at[:, 0, 0].set(0.0) if n > 1 else A
+    b = jax.random.normal(keys[1], (16, n))
+    want = jnp.linalg.solve(A, b[..., None])[..., 0]
+    np.testing.assert_allclose(jax.vmap(dense_solve)(A, b), want, rtol=1e-10, atol=1e-12)
+    loss = lambda solve: lambda A_, b_: jnp.sum(jnp.sin(solve(A_, b_)))
+    reference = lambda A_, b_: jnp.linalg.solve(A_, b_)
+    for jac in (jax.jacfwd, jax.jacrev):
+        got = jax.jit(jac(loss(dense_solve), argnums=(0, 1)))(A[0], b[0])
+        expected = jax.jit(jac(loss(reference), argnums=(0, 1)))(A[0], b[0])
+        for g, w in zip(got, expected, strict=True):
+            np.testing.assert_allclose(g, w, rtol=1e-9, atol=1e-11)
+    assert not np.isfinite(np.asarray(dense_solve(jnp.zeros((n, n)), jnp.ones(n)))).any()
