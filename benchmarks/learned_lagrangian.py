@@ -39,6 +39,7 @@ chain5 and the full-length runs are still to do.
 
 import argparse
 import json
+import os
 import time
 from pathlib import Path
 
@@ -55,7 +56,13 @@ import sphere_mech as sm  # noqa: E402
 
 CLNN = {"magnet": 1.03e-2, "chain3": 3.26e-4, "chain5": 9.33e-4}
 """Their published rollout errors of the constrained Lagrangian network."""
-MODEL = dict(width=128, depth=3)
+MODEL = {
+    # the magnets' potential varies over about 0.1 on the sphere: inputs scaled, silu
+    "magnet": dict(width=128, depth=3, activation=jax.nn.silu, input_scale=8.0),
+    "chain3": dict(width=128, depth=3, activation=jax.nn.silu),
+    "chain5": dict(width=128, depth=3, activation=jax.nn.silu),
+}
+"""Each task's `LearnedLagrangian` (gravity is its linear term; the MLP learns the rest)."""
 TEST_DT, TEST_POINTS, CHUNK_STARTS = 0.05, 100, 20
 
 
@@ -204,7 +211,7 @@ def rollout_rel_err(tk: Task, system, ts, truth, perturb=0.0, seed=2):
 
 def new_model(tk: Task, key=None):
     key = jax.random.PRNGKey(0) if key is None else key
-    return sm.LearnedLagrangian(tk.n, key=key, **MODEL)
+    return sm.LearnedLagrangian(tk.n, key=key, **MODEL[tk.name])
 
 
 def load(path, system: str):
@@ -220,15 +227,24 @@ def main(argv=None):
     parser.add_argument("--steps", type=int, default=None)
     parser.add_argument("--batch-size", type=int, default=100)
     parser.add_argument("--learning-rate", type=float, default=3e-3)
+    parser.add_argument("--warmup", type=int, default=100, help="steps of linear warmup")
     parser.add_argument("--floor-perturbation", type=float, default=1e-5)
+    parser.add_argument(
+        "--summary", action="store_true", help="only write DIR/learned_lagrangian.{md,png}"
+    )
     args = parser.parse_args(argv)
+    if args.summary:
+        return summary(args.out)
     tk = task(args.system)
     num_train, num_test = (80, 20) if args.quick else (800, 200)
     steps = args.steps or (50 if args.quick else 5000)
     ts, chunks = training_chunks(tk, num_train)
     test_ts, truth = test_set(tk, num_test)
     args.out.mkdir(parents=True, exist_ok=True)
-    schedule = optax.cosine_decay_schedule(args.learning_rate, steps)
+    load_before = os.getloadavg()
+    schedule = optax.warmup_cosine_decay_schedule(
+        0.0, args.learning_rate, min(args.warmup, steps // 2), steps
+    )
     optimizer = optax.chain(optax.clip_by_global_norm(1.0), optax.adam(schedule))
     l1 = lambda r: jnp.mean(jnp.abs(r))  # robust to the few chunks that pass the magnets
     sim = dict(solver=sm.Projected(sm.RK4()), dt0=tk.dt / 2)
@@ -262,10 +278,55 @@ def main(argv=None):
         "final_loss": float(np.mean(result.losses[-max(steps // 20, 1) :])),
         "quick": args.quick,
         "device": str(jax.devices()[0]),
+        "load_average_1min_before_after": [load_before[0], os.getloadavg()[0]],
+        "model": {k: getattr(v, "__name__", v) for k, v in MODEL[args.system].items()},
+        "learning_rate": args.learning_rate,
+        "batch_size": args.batch_size,
+        "losses_every_10": [float(x) for x in result.losses[::10]],
     }
     (args.out / f"{args.system}.json").write_text(json.dumps(report, indent=2))
     print(json.dumps(report, indent=2))
     return report
+
+
+def summary(out: Path):
+    """`out/learned_lagrangian.md` (table beside CLNN) and `.png` (training curves) from the
+    `<system>.json` files in `out`."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    reports = [
+        json.loads((out / f"{s}.json").read_text()) for s in CLNN if (out / f"{s}.json").exists()
+    ]
+    lines = [
+        "Learned Lagrangian (`sm.learn`, `sm.LearnedLagrangian`, float64) on the tasks of "
+        "Finzi et al. (NeurIPS 2020), their rollout metric (200 test trajectories, 5 s). "
+        "Written by `python benchmarks/learned_lagrangian.py --system S --out DIR`, "
+        "then `--summary`.",
+        "",
+        "| system | rollout_rel_err | CLNN | chaos floor (perturbation) | steps | train time (s) | "
+        "load (1 min) before / after | model |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in reports:
+        load = r.get("load_average_1min_before_after", [float("nan")] * 2)
+        lines.append(
+            f"| {r['system']} | {r['rollout_rel_err']:.2e} | {r['clnn_rollout_rel_err']:.2e} | "
+            f"{r['chaos_floor']:.2e} ({r['floor_perturbation']:g}) | {r['steps']} | "
+            f"{r['train_time_s']:.0f} | {load[0]:.1f} / {load[1]:.1f} | {r.get('model', '')} |"
+        )
+    (out / "learned_lagrangian.md").write_text("\n".join(lines) + "\n")
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for r in reports:
+        losses = np.asarray(r.get("losses_every_10", []))
+        ax.semilogy(10 * np.arange(len(losses)), losses, label=r["system"])
+    ax.set(xlabel="step", ylabel="minibatch loss (mean |residual|)", title="sm.learn")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(out / "learned_lagrangian.png", dpi=120)
+    print("\n".join(lines))
 
 
 if __name__ == "__main__":
