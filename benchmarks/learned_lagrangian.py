@@ -30,11 +30,24 @@ against their 4.45e-4).
 writes `DIR/<system>.json` and `DIR/<system>.eqx`; `load(path, system)` reads the model
 back as a library system (state `(q, qdot)`: the links' unit vectors in the task's frame).
 
-First measurements (full data, fewer steps than the default 5000, on the 2-core CPU shared
-with other jobs, load about 7): chain3, 1000 steps: 2.9e-3 (290 s); 2500 steps: 1.0e-3
-(488 s), CLNN 3.26e-4, floor 3.3e-4. magnet, 1500 steps (MSE then L1 loss tried): 0.24
-(507 s), CLNN 1.03e-2: the MLP does not yet resolve the dipoles' short-range potential.
-chain5 and the full-length runs are still to do.
+Model (`MODEL`): `sm.LearnedLagrangian` with its linear term (gravity) and a width-128,
+depth-3 silu MLP; on the magnet its inputs are scaled by 8 (the dipoles' potential varies
+over about 0.1 on the sphere). Adam with warmup then cosine decay, gradient clipping, L1
+loss, minibatches of 100 chunks, `--substeps` RK4 steps per observation in training.
+
+Their chaos floor comes from `test_rollouts` in their trainer: a perturbation
+`pert_eps * randn / |zt|`, `|zt|` the norm of the whole batch of true rollouts, added to
+the Cartesian state without projecting it on the constraints, so its size depends on
+their batch and horizon; ours is relative to each state and kept on the sphere, and
+scales linearly with its size (1e-4 gives 4.4e-3, 1e-5 5.9e-4, 1e-6 9.5e-5 on the
+magnet): their 4.45e-4 corresponds to about 7.5e-6.
+
+Results (`benchmarks/results/learned_lagrangian/`, `--summary` writes the table and the
+training curves): magnet 3.61e-2 after 1600 steps (CLNN 1.03e-2; 625 s wall, 309 s CPU,
+load 10; 1200 steps gave 5.1e-2), not learned to the goal (1e-3); chain3 1.08e-3 after
+1500 steps (CLNN 3.26e-4; 1411 s wall, 324 s CPU, load 11). On this shared 2-core CPU
+(load 8 to 11) a run gets about a fifth of a core, so the CPU time is the figure to
+compare with the 30-minute goal.
 """
 
 import argparse
@@ -228,6 +241,9 @@ def main(argv=None):
     parser.add_argument("--batch-size", type=int, default=100)
     parser.add_argument("--learning-rate", type=float, default=3e-3)
     parser.add_argument("--warmup", type=int, default=100, help="steps of linear warmup")
+    parser.add_argument(
+        "--substeps", type=int, default=2, help="RK4 steps per observation interval in training"
+    )
     parser.add_argument("--floor-perturbation", type=float, default=1e-5)
     parser.add_argument(
         "--summary", action="store_true", help="only write DIR/learned_lagrangian.{md,png}"
@@ -247,8 +263,8 @@ def main(argv=None):
     )
     optimizer = optax.chain(optax.clip_by_global_norm(1.0), optax.adam(schedule))
     l1 = lambda r: jnp.mean(jnp.abs(r))  # robust to the few chunks that pass the magnets
-    sim = dict(solver=sm.Projected(sm.RK4()), dt0=tk.dt / 2)
-    start = time.perf_counter()
+    sim = dict(solver=sm.Projected(sm.RK4()), dt0=tk.dt / args.substeps)
+    start, cpu_start = time.perf_counter(), time.process_time()
     result = sm.learn(
         new_model(tk),
         ts,
@@ -262,7 +278,7 @@ def main(argv=None):
         checkpoint_every=max(steps // 10, 1),
         print_every=max(steps // 20, 1),
     )
-    train_time = time.perf_counter() - start
+    train_time, train_cpu = time.perf_counter() - start, time.process_time() - cpu_start
     report = {
         "system": args.system,
         "rollout_rel_err": rollout_rel_err(tk, result.model, test_ts, truth),
@@ -272,6 +288,7 @@ def main(argv=None):
         "floor_perturbation": args.floor_perturbation,
         "clnn_rollout_rel_err": CLNN[args.system],
         "train_time_s": train_time,
+        "train_cpu_time_s": train_cpu,
         "steps": steps,
         "train_chunks": num_train,
         "test_trajectories": num_test,
@@ -282,6 +299,7 @@ def main(argv=None):
         "model": {k: getattr(v, "__name__", v) for k, v in MODEL[args.system].items()},
         "learning_rate": args.learning_rate,
         "batch_size": args.batch_size,
+        "substeps": args.substeps,
         "losses_every_10": [float(x) for x in result.losses[::10]],
     }
     (args.out / f"{args.system}.json").write_text(json.dumps(report, indent=2))
@@ -306,16 +324,17 @@ def summary(out: Path):
         "Written by `python benchmarks/learned_lagrangian.py --system S --out DIR`, "
         "then `--summary`.",
         "",
-        "| system | rollout_rel_err | CLNN | chaos floor (perturbation) | steps | train time (s) | "
-        "load (1 min) before / after | model |",
-        "|---|---|---|---|---|---|---|---|",
+        "| system | rollout_rel_err | CLNN | chaos floor (perturbation) | steps | "
+        "train wall time (s) | train CPU time (s) | load (1 min) before / after | model |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in reports:
         load = r.get("load_average_1min_before_after", [float("nan")] * 2)
         lines.append(
             f"| {r['system']} | {r['rollout_rel_err']:.2e} | {r['clnn_rollout_rel_err']:.2e} | "
             f"{r['chaos_floor']:.2e} ({r['floor_perturbation']:g}) | {r['steps']} | "
-            f"{r['train_time_s']:.0f} | {load[0]:.1f} / {load[1]:.1f} | {r.get('model', '')} |"
+            f"{r['train_time_s']:.0f} | {r.get('train_cpu_time_s', float('nan')):.0f} | "
+            f"{load[0]:.1f} / {load[1]:.1f} | {r.get('model', '')} |"
         )
     (out / "learned_lagrangian.md").write_text("\n".join(lines) + "\n")
     fig, ax = plt.subplots(figsize=(6, 4))
