@@ -45,9 +45,9 @@ magnet): their 4.45e-4 corresponds to about 7.5e-6.
 Results (`benchmarks/results/learned_lagrangian/`, `--summary` writes the table and the
 training curves): magnet 2.78e-2 after 2800 steps (CLNN 1.03e-2; 507 s wall, 518 s CPU,
 load 6 to 2; 1200 steps gave 5.1e-2, 1600 3.6e-2), not learned to the goal (1e-3); chain3
-1.08e-3 after 1500 steps (CLNN 3.26e-4; 1411 s wall, 324 s CPU, load 11). On this shared
-2-core CPU (load 2 to 11) a run got as little as a fifth of a core, so the CPU time is the
-figure to compare with the 30-minute goal.
+4.51e-4 after 3000 steps (CLNN 3.26e-4; 681 s wall, 596 s CPU, load 2 to 7; 1500 steps
+gave 1.08e-3). On this shared 2-core CPU (load 2 to 11) a run got as little as a fifth of
+a core, so the CPU time is the figure to compare with the 30-minute goal.
 """
 
 import argparse
