@@ -33,8 +33,10 @@ from .shooting import Residuals, own_options, split_segments
 class LearnedLagrangian(AbstractConstantInertiaLagrangian):
     """A learnable Lagrangian on (S^2)^n, `L = 1/2 sum_jk M_jk qdot_j . qdot_k - U(q)`: a
     constant symmetric positive-definite inertia `M = C C^T` over the links (`C` lower
-    triangular with a positive diagonal) and a potential `U` given by an MLP of the `3n`
-    coordinates of the unit vectors. It is a system like any other (`simulate`,
+    triangular with a positive diagonal) and a potential
+    `U(q) = sum_j g_j . q_j + MLP(input_scale * q)`: a linear term (uniform gravity, or any
+    constant field, exactly; `g` starts at zero) plus an MLP of the `3n` coordinates of the
+    unit vectors for the rest. It is a system like any other (`simulate`,
     `simulate_batch`, `legendre`, ...): the library derives its equations on the fast path
     of `AbstractConstantInertiaLagrangian`. Train it with `learn`.
 
@@ -47,13 +49,19 @@ class LearnedLagrangian(AbstractConstantInertiaLagrangian):
     - `width`, `depth`: the MLP's hidden width and number of hidden layers.
     - `inertia`: the initial `(n, n)` SPD inertia (default the identity).
     - `activation`: the MLP's activation, smooth (the equations differentiate `U` and
-      training differentiates them again); default `jax.nn.softplus`.
+      training differentiates them again); default `jax.nn.softplus` (`jax.nn.silu`
+      resolves sharp features better).
+    - `input_scale`: the factor on `q` before the MLP: a potential that varies over a
+      distance `d` on the sphere (a magnet close to the path) is learned far faster with
+      `input_scale` about `1 / d` than with the default 1.
     - `dtype`: the parameters' floating dtype (default JAX's default float): `learn`
       trains in this dtype.
     """
 
     inertia_factor: Array
+    potential_linear: Array
     potential_net: eqx.nn.MLP
+    input_scale: float = eqx.field(static=True)
     forces: None = None
 
     def __init__(
@@ -65,6 +73,7 @@ class LearnedLagrangian(AbstractConstantInertiaLagrangian):
         depth: int = 2,
         inertia=None,
         activation: Callable = jax.nn.softplus,
+        input_scale: float = 1.0,
         dtype=None,
     ):
         dtype = jnp.zeros(()).dtype if dtype is None else jnp.dtype(dtype)
@@ -73,7 +82,11 @@ class LearnedLagrangian(AbstractConstantInertiaLagrangian):
             raise ValueError(f"inertia must have shape ({n}, {n}), got {M.shape}.")
         C = np.linalg.cholesky(M)  # raises for a matrix that is not SPD
         factor = np.tril(C, -1) + np.diag(np.log(np.diag(C)))
+        if not input_scale > 0:
+            raise ValueError(f"input_scale must be positive, got {input_scale}.")
         self.inertia_factor = jnp.asarray(factor, dtype=dtype)
+        self.potential_linear = jnp.zeros((n, 3), dtype)
+        self.input_scale = float(input_scale)
         self.potential_net = eqx.nn.MLP(
             3 * n, "scalar", width, depth, activation=activation, dtype=dtype, key=key
         )
@@ -85,7 +98,9 @@ class LearnedLagrangian(AbstractConstantInertiaLagrangian):
         return C @ C.T
 
     def potential(self, t, q, args):
-        return self.potential_net(jnp.reshape(q, (-1,)).astype(self.inertia_factor.dtype))
+        q = jnp.asarray(q, self.inertia_factor.dtype)
+        linear = jnp.sum(self.potential_linear * q)
+        return linear + self.potential_net(self.input_scale * jnp.reshape(q, (-1,)))
 
 
 class LearnResult(eqx.Module):
