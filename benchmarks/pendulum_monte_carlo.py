@@ -39,7 +39,8 @@ is the accuracy at which they are compared. Then the whole batch is timed (compi
 first; MuJoCo warmed up on a few samples), and throughput is reported as
 samples x steps per second with the ratios to MuJoCo's RK4. The load average of the
 machine is recorded (a loaded machine slows the methods unevenly). Writes
-benchmarks/results/pendulum_monte_carlo{,_quick}.{md,png}: the table, the throughput and
+benchmarks/results/pendulum_monte_carlo{,_<solver>}{,_quick}.{md,png} (`_<solver>` unless
+the default variational): the table, the throughput and
 the Monte Carlo's spread (the distribution of e3.(R rho), the height of the centre of
 mass over the pivot, at a few times, and of the direction R rho).
 
@@ -99,7 +100,8 @@ REFERENCE_TOL = 1e-13
 MUJOCO_INTEGRATORS = ("RK4", "Euler")  # RK4 the peer; Euler (semi-implicit) MuJoCo's default
 PEER = "MuJoCo RK4"
 SCIPY = f"scipy DOP853 (rtol {OPTS.scipy_rtol:g})"
-STEM = "pendulum_monte_carlo_quick" if OPTS.quick else "pendulum_monte_carlo"
+STEM = "pendulum_monte_carlo" + ("" if OPTS.solver == "variational" else f"_{OPTS.solver}")
+STEM += "_quick" if OPTS.quick else ""
 
 
 # --------------------------------------------------------------------- quaternions
