@@ -15,6 +15,16 @@ jax.config.update("jax_disable_most_optimizations", True)
 os.environ["SPHERE_MECH_CACHE_DIR"] = "off"
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _drop_compiled_programs():
+    """Drop JAX's compiled programs after each test file: a worker that keeps every
+    program of the suite grew by about 1 GB a minute (two workers reached 10 GB of this
+    24 GB machine, and XLA crashed compiling). Module fixtures share programs within a
+    file, where the sharing is."""
+    yield
+    jax.clear_caches()
+
+
 @pytest.fixture
 def getkey():
     """A function returning a fresh PRNG key at each call (deterministic per test)."""

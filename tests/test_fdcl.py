@@ -64,4 +64,5 @@ def test_their_b1c_formula_has_no_effect_and_the_tolerance_sees_a_change(fdcl, c
     skew = fdcl.run("circle", "decoupled", skew_vee=True, options=OPTIONS)
     assert abs(skew["table"][0] - circle["table"][0]) > 1e-4
     both = fdcl.run("circle", "decoupled", corrected=True, skew_vee=True, options=OPTIONS)
-    assert abs(both["table"][0] - circle["table"][0]) < 1e-9  # S is skew: both reads agree
+    # S is skew: both reads agree, up to rounding amplified by the adaptive steps (rtol 1e-8)
+    assert abs(both["table"][0] - circle["table"][0]) < 1e-7
