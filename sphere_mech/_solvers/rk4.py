@@ -81,9 +81,12 @@ class RK4(AbstractSolver):
         return terms.vf(t0, y0, args)
 
 
-_A = np.array([[0, 0, 0, 0], [0.5, 0, 0, 0], [0, 0.5, 0, 0], [0, 0, 1.0, 0]])
-_B = np.array([1 / 6, 1 / 3, 1 / 3, 1 / 6])
-"""The classic tableau: stage `i` is evaluated at `y0 + sum_j _A[i, j] k_j`."""
+_A = np.zeros((4, 4))
+for _i, _row in enumerate(RK4.tableau.a_lower[:3]):
+    _A[_i + 1, : _i + 1] = _row
+_B = RK4.tableau.b_sol[:4]
+"""The classic tableau, read from `RK4.tableau` (its four stages, not the FSAL one): stage
+`i` is evaluated at `y0 + sum_j _A[i, j] k_j`, and `y1 = y0 + sum_j _B[j] k_j`."""
 
 
 def _step(terms, t0, t1, y0, args):
