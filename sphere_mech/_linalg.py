@@ -1,8 +1,13 @@
 """Dense (unrolled LU with partial pivoting when small), dense SPD (unrolled Cholesky when
 small) and tridiagonal (O(n)) solves, differentiated as linear solves."""
 
+from typing import Any
+
+import equinox as eqx
 import jax
 import jax.numpy as jnp
+import lineax as lx
+from jax.flatten_util import ravel_pytree
 
 UNROLL_MAX = 64
 """Largest tridiagonal system solved unrolled (larger ones: the same recursion in a scan)."""
@@ -57,23 +62,27 @@ def _cholesky(A):
 
 def dense_solve(A: jax.Array, b: jax.Array) -> jax.Array:
     """Solve `A x = b` for a general nonsingular `A` (`b` `(n,)`; non-finite if `A` is
-    singular): LU with partial pivoting, unrolled with elementwise operations for small
-    systems (as `spd_solve`: under `vmap` XLA on CPU then runs each over the whole batch,
-    not LAPACK once per tiny matrix), differentiated as a linear solve (the transpose
-    solve reuses the factors)."""
-    n = A.shape[-1]
-    if n > DENSE_UNROLL_MAX:
-        return jnp.linalg.solve(A, b)
-    solve, transpose_solve = _lu(A)
+    singular): LU with partial pivoting (`lu_factor`), differentiated as a linear solve (the
+    transpose solve reuses the factors)."""
+    factors = lu_factor(A)
     return jax.lax.custom_linear_solve(
-        lambda x: A @ x, b, lambda _, r: solve(r), lambda _, r: transpose_solve(r)
+        lambda x: A @ x,
+        b,
+        lambda _, r: lu_solve(factors, r),
+        lambda _, r: lu_solve(factors, r, transpose=True),
     )
 
 
-def _lu(A):
-    """`P A = L U` by Gaussian elimination with partial pivoting, unrolled; the maps
-    `b -> A^-1 b` and `b -> A^-T b`."""
+def lu_factor(A: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """`P A = L U` with partial pivoting: `(L, U, perm)`, `L` unit lower triangular, `U`
+    upper triangular, `A[perm] = L U`. Small systems (up to `DENSE_UNROLL_MAX`) by Gaussian
+    elimination unrolled with elementwise operations, so that under `vmap` XLA on CPU runs
+    each over the whole batch instead of calling LAPACK once per tiny matrix (and no LAPACK
+    call sits inside a batched loop); larger ones by LAPACK (compiling in O(1))."""
     n = A.shape[-1]
+    if n > DENSE_UNROLL_MAX:
+        lu, _, perm = jax.lax.linalg.lu(A)
+        return jnp.tril(lu, -1) + jnp.eye(n, dtype=A.dtype), jnp.triu(lu), perm
     idx = jnp.arange(n)
     U, L, perm = A, jnp.zeros_like(A), idx
     for k in range(n):
@@ -82,16 +91,60 @@ def _lu(A):
         col = jnp.where(idx > k, U[:, k] / U[k, k], 0.0)
         U = U - col[:, None] * U[k][None, :]
         L = L.at[:, k].set(col)
-    L = L + jnp.eye(n, dtype=A.dtype)
+    return L + jnp.eye(n, dtype=A.dtype), U, perm
 
-    def solve(b):  # L y = P b, U x = y
-        return _back(U, _forward(L, b[perm], unit=True))
 
-    def transpose_solve(b):  # U^T y = b, L^T z = y, x = P^T z
+def lu_solve(factors, b: jax.Array, transpose: bool = False) -> jax.Array:
+    """`A^-1 b` (or `A^-T b` if `transpose`) from `lu_factor(A)`, `b` `(n,)` or `(n, k)`."""
+    L, U, perm = factors
+    if transpose:  # U^T y = b, L^T z = y, x = P^T z
         z = _back(L.T, _forward(U.T, b, unit=False), unit=True)
         return jnp.zeros_like(z).at[perm].set(z)
+    return _back(U, _forward(L, b[perm], unit=True))  # L y = P b, U x = y
 
-    return solve, transpose_solve
+
+class DenseLU(lx.AbstractLinearSolver):
+    """lineax's `LU` solve (square, nonsingular operators) factorized by `lu_factor`: for
+    the small Jacobians of Newton's method under `vmap` (the variational integrator, the
+    momentum inversion), elementwise over the whole batch instead of LAPACK per matrix
+    inside the batched loop. Implements lineax's solver protocol (lineax 0.1)."""
+
+    def init(self, operator: lx.AbstractLinearOperator, options: dict[str, Any]):
+        del options
+        if operator.in_size() != operator.out_size():
+            raise ValueError("DenseLU needs a square operator.")
+        return lu_factor(operator.as_matrix()), _Structures(operator), False
+
+    def compute(self, state, vector, options):
+        del options
+        factors, structures, transpose = state
+        b, _ = ravel_pytree(vector)
+        x = lu_solve(factors, b, transpose=transpose)
+        unravel = structures.out_unravel if transpose else structures.in_unravel
+        return unravel(x), lx.RESULTS.successful, {}
+
+    def transpose(self, state, options):
+        factors, structures, transpose = state
+        return (factors, structures, not transpose), {}
+
+    def conj(self, state, options):
+        (L, U, perm), structures, transpose = state
+        return ((L.conj(), U.conj(), perm), structures, transpose), {}
+
+    def assume_full_rank(self):
+        return True
+
+
+class _Structures(eqx.Module):
+    """The unravelling of flat vectors into an operator's input and output structures."""
+
+    in_unravel: Any = eqx.field(static=True)
+    out_unravel: Any = eqx.field(static=True)
+
+    def __init__(self, operator):
+        zeros = lambda structure: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), structure)
+        self.in_unravel = ravel_pytree(zeros(operator.in_structure()))[1]
+        self.out_unravel = ravel_pytree(zeros(operator.out_structure()))[1]
 
 
 def _swap_rows(M, first, second):
@@ -102,17 +155,22 @@ def _swap_rows(M, first, second):
 
 
 def _forward(L, b, unit):
-    """`L^-1 b`, `L` lower triangular (unit diagonal if `unit`), unrolled."""
+    """`L^-1 b`, `L` lower triangular (unit diagonal if `unit`): unrolled when small."""
+    n = L.shape[0]
+    if n > DENSE_UNROLL_MAX:
+        return jax.scipy.linalg.solve_triangular(L, b, lower=True, unit_diagonal=unit)
     x = []
-    for k in range(L.shape[0]):
+    for k in range(n):
         r = b[k] - sum((L[k, j] * x[j] for j in range(k)), jnp.zeros_like(b[k]))
         x.append(r if unit else r / L[k, k])
     return jnp.stack(x)
 
 
 def _back(U, b, unit=False):
-    """`U^-1 b`, `U` upper triangular (unit diagonal if `unit`), unrolled."""
+    """`U^-1 b`, `U` upper triangular (unit diagonal if `unit`): unrolled when small."""
     n = U.shape[0]
+    if n > DENSE_UNROLL_MAX:
+        return jax.scipy.linalg.solve_triangular(U, b, lower=False, unit_diagonal=unit)
     x = [None] * n
     for k in reversed(range(n)):
         r = b[k] - sum((U[k, j] * x[j] for j in range(k + 1, n)), jnp.zeros_like(b[k]))

@@ -3,13 +3,12 @@
 
 import jax
 import jax.numpy as jnp
-import lineax as lx
 import optimistix as optx
 from diffrax import RESULTS
 from jax import lax
 
 from ._checks import check_scalar
-from ._linalg import dense_solve
+from ._linalg import DenseLU, dense_solve
 from ._misc import tree_max_abs, tree_sub, tree_vdot
 
 
@@ -20,7 +19,7 @@ def newton_tolerance(dtype) -> float:
 
 def newton(tol) -> optx.Newton:
     """Newton's method, stopping when the last step and the (relative) residual are `< tol`."""
-    return optx.Newton(rtol=tol, atol=tol, linear_solver=lx.LU())
+    return optx.Newton(rtol=tol, atol=tol, linear_solver=DenseLU())
 
 
 def residual_scale(*terms) -> jax.Array:

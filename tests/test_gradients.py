@@ -7,7 +7,9 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import lineax as lx
 import numpy as np
+import optimistix as optx
 import pytest
 from helpers import central_differences
 
@@ -18,7 +20,13 @@ from sphere_mech._adjoint import (
     default_adjoint,
     stagewise_reverse,
 )
-from sphere_mech._linalg import dense_solve, spd_solve, tridiagonal_spd_solve
+from sphere_mech._linalg import (
+    DENSE_UNROLL_MAX,
+    DenseLU,
+    dense_solve,
+    spd_solve,
+    tridiagonal_spd_solve,
+)
 
 N, T1 = 2, 0.3
 LENGTHS = jnp.array([1.0, 0.7])
@@ -233,9 +241,35 @@ def test_symmetric_solves_differentiate_as_linear_solves(kind):
         assert np.abs(got[1]).max() > 1e-2  # a derivative that could be wrong
 
 
-@pytest.mark.parametrize("n", [1, 3, 7])
+def test_dense_lu_is_lineax_lu_on_pytrees_and_transposes():
+    """`DenseLU` (the Newton iterations' linear solver) against lineax's `LU` on an operator
+    from a dict to a differently shaped dict, its transpose (used by implicit
+    differentiation), and Newton's root's derivative through it against the closed form."""
+    keys = jax.random.split(jax.random.PRNGKey(0), 3)
+    A = jax.random.normal(keys[0], (5, 5)).at[0, 0].set(0.0)  # needs pivoting
+    x_struct = {"a": jnp.zeros(2), "b": jnp.zeros(3)}
+    to_out = lambda y: {"c": y[:4].reshape(2, 2), "d": y[4:]}
+    matvec = lambda x: to_out(A @ jnp.concatenate([x["a"], x["b"]]))
+    operator = lx.FunctionLinearOperator(matvec, jax.eval_shape(lambda: x_struct))
+    rhs = to_out(jax.random.normal(keys[1], (5,)))
+    for op, vector in ((operator, rhs), (operator.T, x_struct | {"a": jnp.ones(2)})):
+        got = lx.linear_solve(op, vector, DenseLU()).value
+        want = lx.linear_solve(op, vector, lx.LU()).value
+        for g, w in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
+            np.testing.assert_allclose(g, w, rtol=1e-12, atol=1e-13)
+    # Root of x^3 + c x - 1 = 0 (c > 0): dx/dc = -x / (3 x^2 + c).
+    newton = optx.Newton(rtol=1e-12, atol=1e-12, linear_solver=DenseLU())
+    root = lambda c: optx.root_find(lambda x, c_: x**3 + c_ * x - 1.0, newton, jnp.ones(3), c).value
+    c = jnp.array([0.5, 1.0, 2.0])
+    x = root(c)
+    np.testing.assert_allclose(x**3 + c * x, 1.0, rtol=1e-13)
+    np.testing.assert_allclose(jnp.diag(jax.jacrev(root)(c)), -x / (3 * x**2 + c), rtol=1e-10)
+
+
+@pytest.mark.parametrize("n", [1, 3, 7, DENSE_UNROLL_MAX + 2])
 def test_dense_solve_pivots_and_differentiates_as_a_linear_solve(n):
-    """The unrolled pivoted LU against LAPACK, batched, on matrices that need pivoting (a
+    """The pivoted LU (unrolled up to DENSE_UNROLL_MAX, LAPACK's factors above) against
+    `jnp.linalg.solve`, batched, on matrices that need pivoting (a
     zero leading entry), and its forward and reverse derivatives in `A` and `b`."""
     keys = jax.random.split(jax.random.PRNGKey(n), 2)
     A = jax.random.normal(keys[0], (16, n, n)) + 0.1 * jnp.eye(n)

@@ -342,10 +342,11 @@ def test_fast_path_agrees_with_dense_newton(name):
 
 
 def test_fast_path_step_has_no_dense_solve():
-    """The jaxpr of the O(n) step has no LU, Cholesky or triangular solve, where the
-    dense Newton step of the same system has its LU; also past the size where dense
-    solves call LAPACK."""
-    dense_primitives = {"lu", "cholesky", "triangular_solve", "lu_pivots_to_permutation"}
+    """The jaxpr of the O(n) step has no LU (LAPACK's, or the unrolled one's pivot search),
+    Cholesky or triangular solve, where the dense Newton step of the same system has its
+    LU; also past the size where dense solves call LAPACK."""
+    lapack = {"lu", "cholesky", "triangular_solve", "lu_pivots_to_permutation"}
+    dense_primitives = lapack | {"argmax"}
 
     def primitives(system, solver):
         n = system.n
