@@ -1,6 +1,7 @@
 """Dense (unrolled LU with partial pivoting when small), dense SPD (unrolled Cholesky when
 small) and tridiagonal (O(n)) solves, differentiated as linear solves."""
 
+from collections.abc import Callable
 from typing import Any
 
 import equinox as eqx
@@ -113,38 +114,48 @@ class DenseLU(lx.AbstractLinearSolver):
         del options
         if operator.in_size() != operator.out_size():
             raise ValueError("DenseLU needs a square operator.")
-        return lu_factor(operator.as_matrix()), _Structures(operator), False
+        return lu_factor(operator.as_matrix()), _Layout(operator)
 
     def compute(self, state, vector, options):
         del options
-        factors, structures, transpose = state
-        b, _ = ravel_pytree(vector)
-        x = lu_solve(factors, b, transpose=transpose)
-        unravel = structures.out_unravel if transpose else structures.in_unravel
-        return unravel(x), lx.RESULTS.successful, {}
+        factors, layout = state
+        x = lu_solve(factors, ravel_pytree(vector)[0], transpose=layout.transposed)
+        return layout.unravel_solution(x), lx.RESULTS.successful, {}
 
     def transpose(self, state, options):
-        factors, structures, transpose = state
-        return (factors, structures, not transpose), {}
+        factors, layout = state
+        return (factors, layout.transpose()), {}
 
     def conj(self, state, options):
-        (L, U, perm), structures, transpose = state
-        return ((L.conj(), U.conj(), perm), structures, transpose), {}
+        (L, U, perm), layout = state
+        return ((L.conj(), U.conj(), perm), layout), {}
 
     def assume_full_rank(self):
         return True
 
 
-class _Structures(eqx.Module):
-    """The unravelling of flat vectors into an operator's input and output structures."""
+class _Layout(eqx.Module):
+    """Static facts of a `DenseLU` state (it may be carried through loops): how flat
+    solutions unravel into the operator's input structure (its output's, transposed), and
+    whether the solve is transposed."""
 
-    in_unravel: Any = eqx.field(static=True)
-    out_unravel: Any = eqx.field(static=True)
+    unravel_solution: Callable = eqx.field(static=True)
+    unravel_transposed: Callable = eqx.field(static=True)
+    transposed: bool = eqx.field(static=True, default=False)
 
-    def __init__(self, operator):
-        zeros = lambda structure: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), structure)
-        self.in_unravel = ravel_pytree(zeros(operator.in_structure()))[1]
-        self.out_unravel = ravel_pytree(zeros(operator.out_structure()))[1]
+    def __init__(self, operator=None, *, unravel=None, transposed=False):
+        if operator is not None:
+            zeros = lambda tree: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), tree)
+            unravel = (
+                ravel_pytree(zeros(operator.in_structure()))[1],
+                ravel_pytree(zeros(operator.out_structure()))[1],
+            )
+        self.unravel_solution, self.unravel_transposed = unravel
+        self.transposed = transposed
+
+    def transpose(self) -> "_Layout":
+        unravel = (self.unravel_transposed, self.unravel_solution)
+        return _Layout(unravel=unravel, transposed=not self.transposed)
 
 
 def _swap_rows(M, first, second):

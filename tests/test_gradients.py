@@ -264,6 +264,10 @@ def test_dense_lu_is_lineax_lu_on_pytrees_and_transposes():
     x = root(c)
     np.testing.assert_allclose(x**3 + c * x, 1.0, rtol=1e-13)
     np.testing.assert_allclose(jnp.diag(jax.jacrev(root)(c)), -x / (3 * x**2 + c), rtol=1e-10)
+    # The chord method carries the factorization through its loop.
+    chord = optx.Chord(rtol=1e-12, atol=1e-12, linear_solver=DenseLU())
+    f = lambda y, c_: y**3 + c_ * y - 1.0
+    np.testing.assert_allclose(optx.root_find(f, chord, x + 0.01, c).value, x, rtol=1e-11)
 
 
 @pytest.mark.parametrize("n", [1, 3, 7, DENSE_UNROLL_MAX + 2])
