@@ -67,6 +67,34 @@ SOLVERS = (sm.Projected(sm.RK4()), sm.LieRK4(), sm.Variational())
 SOLVER_IDS = ("Projected(RK4)", "LieRK4", "Variational")
 
 
+def fixed_steps(system, solver, dt, y0, *, t0=0.0, t1=1.0, args=None, **options):
+    """`sm.simulate` with fixed steps of `dt` from `t0` to `t1` (a negative `dt` steps
+    back). The times are arrays, so every step size, direction and interval shares one
+    compilation. `options` go to `sm.simulate` (`saveat`, `throw`, `max_steps`...)."""
+    return sm.simulate(
+        system,
+        y0,
+        jnp.asarray(t1),
+        t0=jnp.asarray(t0),
+        args=args,
+        solver=solver,
+        dt0=jnp.asarray(dt),
+        **options,
+    )
+
+
+def steps_taken(sol):
+    """`(ts, ys)` over the steps taken, of a run saved with `diffrax.SaveAt(steps=True)`
+    (the rest of its arrays is padding)."""
+    k = int(sol.stats["num_steps"])
+    return sol.ts[:k], jax.tree_util.tree_map(lambda x: x[:k], sol.ys)
+
+
+def last(tree):
+    """The last entry along the leading (time) axis of each leaf: the final state."""
+    return jax.tree_util.tree_map(lambda x: x[-1], tree)
+
+
 # ----------------------------------------------------------------------------------------
 # The four forms (Lagrangian, angular, Hamiltonian, angular Hamiltonian) on a random
 # configuration-dependent, time-dependent Lagrangian with random forces, with v = qdot and

@@ -20,6 +20,7 @@ from helpers import (
     assert_energy_balance,
     assert_forms_agree,
     cart_pendulum,
+    fixed_steps,
     flying_chain,
     max_rel_error,
     mixed_angular,
@@ -27,6 +28,7 @@ from helpers import (
     random_forces,
     random_lagrangian,
     random_params,
+    steps_taken,
 )
 
 import sphere_mech as sm
@@ -196,18 +198,6 @@ def test_lie_group_solvers_against_reference(make, solver):
     assert sm.constraint_error(q["chain"]) < 1e-13
 
 
-def variational_run(system, y0, h, t1, t0=0.0, **kwargs):
-    return sm.simulate(
-        system,
-        y0,
-        jnp.asarray(t1),
-        t0=jnp.asarray(t0),
-        dt0=jnp.asarray(h),
-        solver=sm.Variational(),
-        **kwargs,
-    )
-
-
 def test_variational_energy_bounded_and_reversible():
     """The unforced cart pendulum: 2000 steps of h = 0.02 keep the energy error bounded
     and O(h^2) (no drift), |q| = 1 to rounding; stepping back returns the initial state.
@@ -215,19 +205,20 @@ def test_variational_energy_bounded_and_reversible():
     model = cart_pendulum()
     system = model.system(forced=False)
     y0 = mixed_initial_state(model, seed=3)
-    sol = variational_run(system, y0, 0.02, 40.0, saveat=diffrax.SaveAt(steps=True))
-    k = int(sol.stats["num_steps"])
-    assert k == 2000
-    q, v = jax.tree.map(lambda x: x[:k], sol.ys)
+    sol = fixed_steps(
+        system, sm.Variational(), 0.02, y0, t1=40.0, saveat=diffrax.SaveAt(steps=True)
+    )
+    t, (q, v) = steps_taken(sol)
+    assert len(t) == 2000
     energy = np.asarray(jax.vmap(lambda q, v: system.energy(0.0, q, v))(q, v))
     error = energy - float(system.energy(0.0, *y0))
-    t = np.asarray(sol.ts[:k])
+    t = np.asarray(t)
     assert np.max(np.abs(error)) < 1e-2 * abs(float(energy[0]))
     slope = np.polyfit(t, error, 1)[0]
     assert abs(slope * t[-1]) < 0.1 * np.max(np.abs(error))
     assert sm.constraint_error(q["chain"]) < 1e-14
     end = jax.tree.map(lambda x: x[int(0.5 / 0.02) - 1], sol.ys)  # t = 0.5
-    back = variational_run(system, end, -0.02, 0.0, t0=0.5)
+    back = fixed_steps(system, sm.Variational(), -0.02, end, t0=0.5, t1=0.0)
     for a, b in zip(jax.tree.leaves(back.ys), jax.tree.leaves(y0), strict=True):
         np.testing.assert_allclose(a[-1], b, rtol=0, atol=1e-12)
 
@@ -238,7 +229,7 @@ def test_variational_forced_converges_to_reference():
     x_ref, r_ref = model.reference(*y0, forced=True, ts=np.array([0.0, 0.5]))
     errors = []
     for h in (0.01, 0.005):
-        q = variational_run(model.system(forced=True), y0, h, 0.5).ys[0]
+        q = fixed_steps(model.system(forced=True), sm.Variational(), h, y0, t1=0.5).ys[0]
         errors.append(np.max(np.abs(model.positions(jax.tree.map(lambda x: x[-1], q)) - r_ref[-1])))
     assert errors[1] < 1e-3
     assert 3.5 < errors[0] / errors[1] < 4.5  # order 2

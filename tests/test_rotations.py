@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import central_differences, fitted_order
+from helpers import central_differences, fitted_order, fixed_steps, last, steps_taken
 from scipy.integrate import solve_ivp
 from scipy.special import ellipj
 
@@ -425,30 +425,6 @@ def test_rigid_body_carrying_a_pendulum_against_a_cartesian_quaternion_dae(carri
 PENDULUM = sm.AngularLagrangian(pendulum_L2, space=SPACE)
 
 
-def fixed_run(system, solver, dt, y0, *, t0=0.0, t1=1.0, args=None):
-    """Fixed steps, saving each; times as arrays: every step size and direction shares
-    one compilation. Returns `(ts, (q, v))` over the steps taken."""
-    sol = sm.simulate(
-        system,
-        y0,
-        jnp.asarray(t1),
-        t0=jnp.asarray(t0),
-        args=args,
-        solver=solver,
-        dt0=jnp.asarray(dt),
-        stepsize_controller=FIXED,
-        saveat=diffrax.SaveAt(steps=True),
-        max_steps=4096,
-    )
-    k = int(sol.stats["num_steps"])
-    return sol.ts[:k], jax.tree_util.tree_map(lambda x: x[:k], sol.ys)
-
-
-def fixed_final(*arguments, **options):
-    """The state at the end of `fixed_run`."""
-    return jax.tree_util.tree_map(lambda x: x[-1], fixed_run(*arguments, **options)[1])
-
-
 def orthogonality_error(R):
     return float(jnp.max(jnp.abs(jnp.swapaxes(R, -1, -2) @ R - jnp.eye(3))))
 
@@ -460,7 +436,7 @@ def test_variational_orders_on_rotations(order, dts, pendulum_reference):
     R_ref = pendulum_reference[0][2]  # t = 1
     errors = []
     for dt in dts:
-        R = fixed_final(PENDULUM, sm.Variational(order), dt, (R0, W0))[0][0]
+        R = last(fixed_steps(PENDULUM, sm.Variational(order), dt, (R0, W0)).ys)[0][0]
         errors.append(float(jnp.max(jnp.abs(R - R_ref))))
         assert orthogonality_error(R) < 1e-15
     assert abs(fitted_order(dts, errors) - order) < 0.3, errors
@@ -471,7 +447,17 @@ def test_variational_energy_bounded_on_rotations():
     """3000 steps (h = 0.01, |Omega| up to 19 rad/s) of the 3-D pendulum: the energy error
     oscillates, O(h^2) and bounded, with no drift (the largest error of the last tenth of
     the run is that of the first); `R^T R = I` to rounding all along."""
-    t, (R, W) = fixed_run(PENDULUM, sm.Variational(), 0.01, (R0, W0), t1=30.0)
+    t, (R, W) = steps_taken(
+        fixed_steps(
+            PENDULUM,
+            sm.Variational(),
+            0.01,
+            (R0, W0),
+            t1=30.0,
+            saveat=diffrax.SaveAt(steps=True),
+            max_steps=4096,
+        )
+    )
     assert len(t) == 3000
     E0 = PENDULUM.energy(0.0, R0, W0)
     error = np.asarray(jax.vmap(lambda R_, W_: PENDULUM.energy(0.0, R_, W_))(R, W) - E0)
@@ -487,8 +473,8 @@ def test_variational_energy_bounded_on_rotations():
 def test_variational_time_reversible_on_rotations(order):
     """Forward over [0, 0.5] then back with -h returns `(R0, Omega0)` to rounding."""
     solver = sm.Variational(order)
-    forward = fixed_final(PENDULUM, solver, 0.02, (R0, W0), t1=0.5)
-    back = fixed_final(PENDULUM, solver, -0.02, forward, t0=0.5, t1=0.0)
+    forward = last(fixed_steps(PENDULUM, solver, 0.02, (R0, W0), t1=0.5).ys)
+    back = last(fixed_steps(PENDULUM, solver, -0.02, forward, t0=0.5, t1=0.0).ys)
     assert float(jnp.max(jnp.abs(forward[0] - R0))) > 0.1  # it did move
     assert float(jnp.max(jnp.abs(back[0] - R0))) < 1e-13
     assert float(jnp.max(jnp.abs(back[1] - W0))) < 1e-12
@@ -502,8 +488,8 @@ def test_variational_body_torque_in_forms_1_and_2():
     two, one = TORQUED
     dts, errors = (0.04, 0.02, 0.01), []
     for dt in dts:
-        R2, W2 = fixed_final(two, sm.Variational(), dt, (R0, W0))
-        R1, Rdot1 = fixed_final(one, sm.Variational(), dt, (R0, R0 @ sm.hat(W0)))
+        R2, W2 = last(fixed_steps(two, sm.Variational(), dt, (R0, W0)).ys)
+        R1, Rdot1 = last(fixed_steps(one, sm.Variational(), dt, (R0, R0 @ sm.hat(W0))).ys)
         assert float(jnp.max(jnp.abs(R1 - R2))) < 1e-12
         assert float(jnp.max(jnp.abs(body(R1, Rdot1) - W2))) < 1e-12
         errors.append(float(np.max(np.abs(np.asarray(W2[0]) - ref))))
@@ -513,8 +499,10 @@ def test_variational_body_torque_in_forms_1_and_2():
 def test_variational_on_a_product_with_rotations_agrees_with_lierk(carrier_lierk):
     """The carrier (`Euclidean(3) x Rotations(1) x Spheres(1)`, form 2) over 1.5 s: the
     order-4 variational step at h = 0.0025 against `LieRK(Dopri8())` at tolerance 1e-12."""
-    q, v = fixed_final(
-        CARRIER_SYSTEMS[True], sm.Variational(4), 0.0025, carrier_state(True), t1=1.5
+    q, v = last(
+        fixed_steps(
+            CARRIER_SYSTEMS[True], sm.Variational(4), 0.0025, carrier_state(True), t1=1.5
+        ).ys
     )
     tight = carrier_lierk[True].ys
     for k in CARRIER_SPACE:
@@ -528,7 +516,7 @@ def test_variational_gradient_on_rotations_matches_central_differences():
     differentiation) against central differences, in the initial body angular velocity."""
 
     def final_spin(w):
-        return fixed_final(PENDULUM, sm.Variational(), 0.02, (R0, w[None]), t1=0.2)[1][0]
+        return last(fixed_steps(PENDULUM, sm.Variational(), 0.02, (R0, w[None]), t1=0.2).ys)[1][0]
 
     grad = jax.jacrev(final_spin)(W0[0])
     fd = central_differences(final_spin, W0[0], 1e-6)
@@ -540,8 +528,8 @@ def test_variational_float32_on_rotations():
     """float32 states step in float32 (Newton to `eps ** 0.75`), `R^T R = I` to its
     rounding, and follow the float64 steps."""
     y0 = (R0.astype(jnp.float32), W0.astype(jnp.float32))
-    R = fixed_final(PENDULUM, sm.Variational(), jnp.float32(0.01), y0)[0][0]
-    R64 = fixed_final(PENDULUM, sm.Variational(), 0.01, (R0, W0))[0][0]
+    R = last(fixed_steps(PENDULUM, sm.Variational(), jnp.float32(0.01), y0).ys)[0][0]
+    R64 = last(fixed_steps(PENDULUM, sm.Variational(), 0.01, (R0, W0)).ys)[0][0]
     assert R.dtype == jnp.float32
     assert orthogonality_error(R) < 1e-6
     assert float(jnp.max(jnp.abs(R - R64))) < 1e-3

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 import pytest
-from helpers import fitted_order, jaxpr_equations, max_rel_error
+from helpers import fitted_order, fixed_steps, jaxpr_equations, last, max_rel_error, steps_taken
 
 import sphere_mech as sm
 from sphere_mech._anderson import Anderson
@@ -47,34 +47,19 @@ Y0 = (
 T1 = 1.0
 
 
-def run(system, solver, dt, *, t0=0.0, t1=T1, y0=Y0, args=G, **kwargs):
-    """Fixed-step run; times as arrays so that every step size shares one compilation."""
-    return sm.simulate(
-        system,
-        y0,
-        jnp.asarray(t1),
-        t0=jnp.asarray(t0),
-        args=args,
-        solver=solver,
-        dt0=jnp.asarray(dt),
-        **kwargs,
-    )
-
-
-def final(sol):
-    return jax.tree_util.tree_map(lambda x: x[-1], sol.ys)
-
-
 @pytest.fixture(scope="module")
 def reference():
-    return final(sm.simulate(GENERAL, Y0, T1, args=G, rtol=1e-13, atol=1e-13))
+    return last(sm.simulate(GENERAL, Y0, T1, args=G, rtol=1e-13, atol=1e-13).ys)
 
 
 @pytest.mark.parametrize("order, dts", [(2, (0.04, 0.02, 0.01)), (4, (0.025, 0.0125, 0.00625))])
 def test_order(reference, order, dts):
     """Time-dependent, non-quadratic L (Newton for the velocities too)."""
     errors = [
-        max_rel_error(final(run(GENERAL, sm.Variational(order), dt))[0], reference[0]) for dt in dts
+        max_rel_error(
+            last(fixed_steps(GENERAL, sm.Variational(order), dt, Y0, args=G).ys)[0], reference[0]
+        )
+        for dt in dts
     ]
     assert abs(fitted_order(dts, errors) - order) < 0.3, errors
     assert errors[-1] < (1e-2 if order == 2 else 1e-6)
@@ -85,8 +70,8 @@ def test_time_reversible(order):
     """Forward over [0, 0.5] then back with -h returns the initial state to rounding
     (diffrax runs t1 < t0 in reversed time with wrapped terms)."""
     solver = sm.Variational(order)
-    forward = final(run(GENERAL, solver, 0.05, t1=0.5))
-    back = final(run(GENERAL, solver, -0.05, t0=0.5, t1=0.0, y0=forward))
+    forward = last(fixed_steps(GENERAL, solver, 0.05, Y0, t1=0.5, args=G).ys)
+    back = last(fixed_steps(GENERAL, solver, -0.05, forward, t0=0.5, t1=0.0, args=G).ys)
     assert max_rel_error(forward[0], Y0[0]) > 0.1  # it did move
     assert max_rel_error(back[0], Y0[0]) < 1e-12
     assert max_rel_error(back[1], Y0[1]) < 1e-12
@@ -100,11 +85,10 @@ def long_runs():
     energy = jax.jit(jax.vmap(lambda q, v: chain.energy(0.0, q, v)))
     out = {}
     for name, solver in (("variational", sm.Variational()), ("rk4", sm.Projected(sm.RK4()))):
-        sol = run(chain, solver, 0.05, t1=1000.0, args=None, saveat=diffrax.SaveAt(steps=True))
-        k = int(sol.stats["num_steps"])
-        q, v = sol.ys[0][:k], sol.ys[1][:k]
+        sol = fixed_steps(chain, solver, 0.05, Y0, t1=1000.0, saveat=diffrax.SaveAt(steps=True))
+        t, (q, v) = steps_taken(sol)
         error = np.asarray(energy(q, v) - chain.energy(0.0, *Y0))
-        out[name] = (np.asarray(sol.ts[:k]), error, q)
+        out[name] = (np.asarray(t), error, q)
     return out
 
 
@@ -210,12 +194,13 @@ def test_gradient_matches_finite_differences():
 def test_forced_lagrange_dalembert(reference):
     """Damping through `forces`: the forced (Lagrange-d'Alembert) step converges with
     order 2 to the solution of the forced equations."""
-    damped_reference = final(sm.simulate(GENERAL, Y0, T1, args=DAMPED, rtol=1e-13, atol=1e-13))
+    damped_reference = last(sm.simulate(GENERAL, Y0, T1, args=DAMPED, rtol=1e-13, atol=1e-13).ys)
     assert max_rel_error(damped_reference[0], reference[0]) > 0.01  # damping matters
     dts = (0.04, 0.02, 0.01)
     errors = [
         max_rel_error(
-            final(run(GENERAL, sm.Variational(), dt, args=DAMPED))[0], damped_reference[0]
+            last(fixed_steps(GENERAL, sm.Variational(), dt, Y0, args=DAMPED).ys)[0],
+            damped_reference[0],
         )
         for dt in dts
     ]
@@ -238,11 +223,11 @@ def test_angular_lagrangian_same_step():
 def test_newton_failure_is_reported():
     """A step far too large for Newton: reported through `result`, not thrown, and the
     trajectory stops at the last good state."""
-    sol = run(GENERAL, sm.Variational(), 0.9, t1=9.0, throw=False)
+    sol = fixed_steps(GENERAL, sm.Variational(), 0.9, Y0, t1=9.0, args=G, throw=False)
     assert sol.result != sm.RESULTS.successful
     assert np.all(np.isfinite(np.asarray(sol.ys[0])))
     with pytest.raises(Exception, match="did not converge|onlinear solve"):
-        run(GENERAL, sm.Variational(), 0.9, t1=9.0)
+        fixed_steps(GENERAL, sm.Variational(), 0.9, Y0, t1=9.0, args=G)
 
 
 def test_refuses_hamiltonian_and_bad_options():
