@@ -1,6 +1,7 @@
 """Dense (unrolled LU with partial pivoting when small), dense SPD (unrolled Cholesky when
 small) and tridiagonal (O(n)) solves, differentiated as linear solves."""
 
+import dataclasses
 from collections.abc import Callable
 from typing import Any
 
@@ -114,17 +115,22 @@ class DenseLU(lx.AbstractLinearSolver):
         del options
         if operator.in_size() != operator.out_size():
             raise ValueError("DenseLU needs a square operator.")
-        return lu_factor(operator.as_matrix()), _Layout(operator)
+        unravel = lambda structure: ravel_pytree(
+            jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), structure)
+        )[1]
+        layout = _Layout(unravel(operator.in_structure()), unravel(operator.out_structure()))
+        return lu_factor(operator.as_matrix()), layout
 
     def compute(self, state, vector, options):
         del options
         factors, layout = state
         x = lu_solve(factors, ravel_pytree(vector)[0], transpose=layout.transposed)
-        return layout.unravel_solution(x), lx.RESULTS.successful, {}
+        unravel = layout.out_unravel if layout.transposed else layout.in_unravel
+        return unravel(x), lx.RESULTS.successful, {}
 
     def transpose(self, state, options):
         factors, layout = state
-        return (factors, layout.transpose()), {}
+        return (factors, dataclasses.replace(layout, transposed=not layout.transposed)), {}
 
     def conj(self, state, options):
         (L, U, perm), layout = state
@@ -136,26 +142,12 @@ class DenseLU(lx.AbstractLinearSolver):
 
 class _Layout(eqx.Module):
     """Static facts of a `DenseLU` state (it may be carried through loops): how flat
-    solutions unravel into the operator's input structure (its output's, transposed), and
-    whether the solve is transposed."""
+    vectors unravel into the operator's input and output structures, and whether the
+    solve is transposed (its solution then has the output's structure)."""
 
-    unravel_solution: Callable = eqx.field(static=True)
-    unravel_transposed: Callable = eqx.field(static=True)
+    in_unravel: Callable = eqx.field(static=True)
+    out_unravel: Callable = eqx.field(static=True)
     transposed: bool = eqx.field(static=True, default=False)
-
-    def __init__(self, operator=None, *, unravel=None, transposed=False):
-        if operator is not None:
-            zeros = lambda tree: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), tree)
-            unravel = (
-                ravel_pytree(zeros(operator.in_structure()))[1],
-                ravel_pytree(zeros(operator.out_structure()))[1],
-            )
-        self.unravel_solution, self.unravel_transposed = unravel
-        self.transposed = transposed
-
-    def transpose(self) -> "_Layout":
-        unravel = (self.unravel_transposed, self.unravel_solution)
-        return _Layout(unravel=unravel, transposed=not self.transposed)
 
 
 def _swap_rows(M, first, second):
