@@ -15,9 +15,11 @@ horizon is 1 s, `--steps 100`: 50 keeps the default run under about 5 minutes on
 2-core machine). Methods:
 
 - sphere_mech: `sm.simulate_batch` of `sm.AngularLagrangian(L)` on `sm.Rotations(1)`,
-  `L = 1/2 Omega.J Omega - m g e3.(R rho)`, fixed step dt; `--solver variational`
-  (default: `sm.Variational()`, Lee, Leok and McClamroch's Lie group variational
-  integrator), `variational4` (`sm.Variational(4)`) or `lierk` (`sm.LieRK(sm.RK4())`),
+  `L = 1/2 Omega.J Omega - m g e3.(R rho)`, fixed step dt,
+  `quadratic_in_velocity=True` (one linear solve for the velocity); `--solver
+  variational` (default: `sm.Variational()`, Lee, Leok and McClamroch's Lie group
+  variational integrator), `chord` (the same with `root_finder="chord"`), `variational4`
+  (`sm.Variational(4)`) or `lierk` (`sm.LieRK(sm.RK4())`),
   `chunk_size` 50000 (`--chunk`; the library's CPU default, about 512 rows, measured 4x
   slower here), timed on one device and sharded over all of them (`--devices`: XLA is
   asked for one CPU device per core; on the loaded machine one device was 3x faster);
@@ -39,17 +41,18 @@ is the accuracy at which they are compared. Then the whole batch is timed (compi
 first; MuJoCo warmed up on a few samples), and throughput is reported as
 samples x steps per second with the ratios to MuJoCo's RK4. The load average of the
 machine is recorded (a loaded machine slows the methods unevenly). Writes
-benchmarks/results/pendulum_monte_carlo{,_<solver>}{,_quick}.{md,png} (`_<solver>` unless
+benchmarks/results/pendulum_monte_carlo{,_<solver>}{,_gpu}{,_quick}.{md,png} (`_<solver>` unless
 the default variational): the table, the throughput and
 the Monte Carlo's spread (the distribution of e3.(R rho), the height of the centre of
 mass over the pivot, at a few times, and of the direction R rho).
 
-    python benchmarks/pendulum_monte_carlo.py [--quick] [--solver variational|variational4|lierk]
+    python benchmarks/pendulum_monte_carlo.py [--quick]
+        [--solver variational|chord|variational4|lierk] [--device cpu|gpu]
 """
 
 from _options import CORES, parse_options
 
-SOLVERS = ("variational", "variational4", "lierk")
+SOLVERS = ("variational", "chord", "variational4", "lierk")
 
 
 def add_arguments(parser):
@@ -101,7 +104,7 @@ MUJOCO_INTEGRATORS = ("RK4", "Euler")  # RK4 the peer; Euler (semi-implicit) MuJ
 PEER = "MuJoCo RK4"
 SCIPY = f"scipy DOP853 (rtol {OPTS.scipy_rtol:g})"
 STEM = "pendulum_monte_carlo" + ("" if OPTS.solver == "variational" else f"_{OPTS.solver}")
-STEM += "_quick" if OPTS.quick else ""
+STEM += ("_gpu" if OPTS.device == "gpu" else "") + ("_quick" if OPTS.quick else "")
 
 
 # --------------------------------------------------------------------- quaternions
@@ -173,12 +176,13 @@ def lagrangian(t, R, W, args):
     return 0.5 * jnp.sum(jnp.asarray(J) * W**2) - MASS * G * (R[0] @ jnp.asarray(RHO))[2]
 
 
-SYSTEM = sm.AngularLagrangian(lagrangian, space=sm.Rotations(1))
+SYSTEM = sm.AngularLagrangian(lagrangian, space=sm.Rotations(1), quadratic_in_velocity=True)
 
 
 def solver():
     return {
         "variational": lambda: sm.Variational(),
+        "chord": lambda: sm.Variational(root_finder="chord"),
         "variational4": lambda: sm.Variational(4),
         "lierk": lambda: sm.LieRK(sm.RK4()),
     }[OPTS.solver]()
@@ -186,6 +190,7 @@ def solver():
 
 SOLVER_NAME = {
     "variational": "Variational()",
+    "chord": 'Variational(root_finder="chord")',
     "variational4": "Variational(4)",
     "lierk": "LieRK(RK4())",
 }[OPTS.solver]
@@ -371,6 +376,8 @@ def report(results, loads, errors, between, spread, R_mujoco, batch, steps):
         for name, (seconds, rate, note, key) in results.items()
     ]
     setting = f"{machine(loads)}, {OPTS.dtype}"
+    if OPTS.device == "gpu":  # MuJoCo and scipy still run on the host's cores
+        setting = f"sphere_mech on one {jax.devices()[0].device_kind}, the rest on {setting}"
     text = (
         f"\n3-D pendulum Monte Carlo (FDCL setup): {batch} samples x {steps} steps of "
         f"dt = {DT} (T = {steps * DT:g} s), {setting}.\n\n"

@@ -1,6 +1,7 @@
 """The inverse Legendre map of a general Lagrangian: the tangent velocity `v` with
 `P dL/dv(t, q, v) = p`, solved in tangent coordinates (one linear solve, then Newton)."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import optimistix as optx
@@ -17,9 +18,10 @@ def newton_tolerance(dtype) -> float:
     return float(jnp.finfo(dtype).eps) ** 0.75
 
 
-def newton(tol) -> optx.Newton:
-    """Newton's method, stopping when the last step and the (relative) residual are `< tol`."""
-    return optx.Newton(rtol=tol, atol=tol, linear_solver=DenseLU())
+def newton(tol, *, chord: bool = False) -> optx.Newton | optx.Chord:
+    """Newton's method, stopping when the last step and the (relative) residual are `< tol`;
+    with `chord`, its chord variant (the Jacobian of the first iterate, factored once)."""
+    return (optx.Chord if chord else optx.Newton)(rtol=tol, atol=tol, linear_solver=DenseLU())
 
 
 def residual_scale(*terms) -> jax.Array:
@@ -28,6 +30,7 @@ def residual_scale(*terms) -> jax.Array:
     return jnp.maximum(size, jnp.finfo(size.dtype).tiny)
 
 
+@eqx.filter_jit
 def invert_momentum(L, space, t, q, p, args, *, guess, quadratic: bool, tol, max_steps: int):
     """The tangent `v` with `P dL/dv(t, q, v) = p` and a result code (`singular`, never
     raised): one linear solve around `guess`, then unless `quadratic` Newton; where Newton

@@ -68,11 +68,15 @@ def discrete_forces(system, t0, h, q0, q1, args):
     return force(t0, q0), force(t0 + h, q1)
 
 
-def solve_position(system, t0, h, q0, mu0, scale, guess, args, tol, max_steps, fast_path=True):
+def solve_position(
+    system, t0, h, q0, mu0, scale, guess, args, tol, max_steps, fast_path=True, reuse_jacobian=False
+):
     """Solve `P(q0) [mu0 + D1 L_d(q0, q1) + f0] = 0` for `q1 = exp_q0(h T0 a)` (`|q1_i| = 1`
     by construction, `R1 = R0 expm(h hat(omega))` on rotations; on a mixed space `x1 = x0 +
     h a_x`), from the tangent velocity `guess`:
-    Newton's method on `T0^T [...] / scale` (dense `2n x 2n` Jacobian), or for an
+    Newton's method on `T0^T [...] / scale` (dense `2n x 2n` Jacobian; with
+    `reuse_jacobian` the chord iteration, the Jacobian at `guess` factored once: the
+    predictor is O(h^3) off, so it contracts about as fast as Newton's), or for an
     `AbstractFastPath` (if `fast_path`), as `D1 L_d = -(P0 M P0) c` up to relative
     `h |qdot|`, the chord iteration `a <- a + T0^T x`, `P0 M x = P0 [mu0 + D1 L_d + f0]`,
     `q0 . x = 0` (the O(n) multiplier solve), Anderson-accelerated: same equations.
@@ -100,13 +104,17 @@ def solve_position(system, t0, h, q0, mu0, scale, guess, args, tol, max_steps, f
         )
     else:
         residual = lambda a, _: to_tangent(T0, momentum_residual(a)) / scale
-        sol = optx.root_find(residual, newton(tol), a0, max_steps=max_steps, throw=False)
+        finder = newton(tol, chord=reuse_jacobian)
+        sol = optx.root_find(residual, finder, a0, max_steps=max_steps, throw=False)
     return position, sol
 
 
-def substep(system, t0, h, q0, v0, rates0, args, tol, max_steps, fast_path=True):
-    """One step of size `h` (any sign) from `(q0, v0)` with rates `rates0` (`fast_path`: see
-    `solve_position`): the new state, the system's rates there, and a result code."""
+def substep(
+    system, t0, h, q0, v0, rates0, args, tol, max_steps, fast_path=True, reuse_jacobian=False
+):
+    """One step of size `h` (any sign) from `(q0, v0)` with rates `rates0` (`fast_path`,
+    `reuse_jacobian`: see `solve_position`): the new state, the system's rates there, and
+    a result code."""
     space = system.space
     qdot0, qddot0 = jax.jvp(system.to_linear, (q0, v0), rates0)
     dL_dq, dL_dv = jax.grad(system.lagrangian_qdot, argnums=(1, 2))(t0, q0, qdot0, args)
@@ -116,7 +124,7 @@ def substep(system, t0, h, q0, v0, rates0, args, tol, max_steps, fast_path=True)
     # Predictor: the geodesic with velocity qdot0 + h/2 P qddot0 matches q(t0 + h) to O(h^3).
     guess = tree_add(qdot0, tree_scale(0.5 * h, qddot0))
     position, sol = solve_position(
-        system, t0, h, q0, mu0, scale, guess, args, tol, max_steps, fast_path
+        system, t0, h, q0, mu0, scale, guess, args, tol, max_steps, fast_path, reuse_jacobian
     )
     # Renormalizing stops rounding errors from accumulating over millions of steps.
     q1 = space.normalize(position(sol.value))
