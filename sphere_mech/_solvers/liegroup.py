@@ -7,7 +7,6 @@ import equinox as eqx
 import jax.lax as lax
 import jax.numpy as jnp
 import jax.tree_util as jtu
-import numpy as np
 from diffrax import (
     RESULTS,
     AbstractAdaptiveSolver,
@@ -20,7 +19,7 @@ from diffrax import (
 from .._lie import AbstractLieAction
 from .._misc import tree_sub
 from .._term import MechanicsTerm, space_of, system_of
-from .rk4 import RK4
+from .rk4 import RK4, stage_coefficients
 
 ACTIONS = ("SE3", "SO3xR3")
 ERROR_ESTIMATES = ("state", "algebra")
@@ -154,13 +153,9 @@ class LieRK(AbstractAdaptiveSolver):
         """`(i, a_i, c_i)` of the stages computed inside a step (0-based `i` from 1; not an
         FSAL tableau's last), `a_i` padded to length `s`."""
         tableau = self.solver.tableau
-        s = tableau.num_stages
-        rows = tableau.a_lower[: s - 1 - tableau.fsal]
-        a = np.zeros((len(rows), s))
-        for i, row in enumerate(rows):
-            a[i, : len(row)] = row
-        index = jnp.arange(1, len(rows) + 1)
-        return index, jnp.asarray(a, dtype), jnp.asarray(tableau.c[: len(rows)], dtype)
+        a = stage_coefficients(tableau, tableau.num_stages - tableau.fsal)[1:]
+        index = jnp.arange(1, len(a) + 1)
+        return index, jnp.asarray(a, dtype), jnp.asarray(tableau.c[: len(a)], dtype)
 
     def init(self, terms, t0, t1, y0, args):
         self._group(terms, y0)  # a static error now if the action cannot work with `terms`

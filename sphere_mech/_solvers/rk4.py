@@ -81,9 +81,17 @@ class RK4(AbstractSolver):
         return terms.vf(t0, y0, args)
 
 
-_A = np.zeros((4, 4))
-for _i, _row in enumerate(RK4.tableau.a_lower[:3]):
-    _A[_i + 1, : _i + 1] = _row
+def stage_coefficients(tableau, stages: int) -> np.ndarray:
+    """`(stages, s)`: row `i` holds the coefficients `a_ij` of stage `i`'s state `y0 + sum_j
+    a_ij k_j` for the first `stages` stages of a diffrax `ButcherTableau` (row 0, the first
+    stage's, is zero), padded with zeros to its `s` stages."""
+    a = np.zeros((stages, tableau.num_stages))
+    for i, row in enumerate(tableau.a_lower[: stages - 1]):
+        a[i + 1, : len(row)] = row
+    return a
+
+
+_A = stage_coefficients(RK4.tableau, 4)[:, :4]
 _B = RK4.tableau.b_sol[:4]
 """The classic tableau, read from `RK4.tableau` (its four stages, not the FSAL one): stage
 `i` is evaluated at `y0 + sum_j _A[i, j] k_j`, and `y1 = y0 + sum_j _B[j] k_j`."""
