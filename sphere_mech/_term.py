@@ -1,7 +1,6 @@
 """`MechanicsTerm`: the diffrax term that carries a mechanical system."""
 
 import diffrax
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -21,20 +20,13 @@ class MechanicsTerm(diffrax.AbstractTerm):
     system: AbstractSystem
 
     def vf(self, t, y, args):
-        return _rates(self.system, t, y, args)
+        return self.system.rates(t, y, args)
 
     def contr(self, t0, t1, **kwargs):
         return t1 - t0
 
     def prod(self, vf, control):
         return jax.tree.map(lambda v: control * v, vf)
-
-
-@eqx.filter_jit
-def _rates(system, t, y, args):
-    """`system.rates`, traced once per solve: a solver evaluates it at every stage, and
-    tracing it again each time was most of the compilation."""
-    return system.rates(t, y, args)
 
 
 def _mechanics_terms(terms) -> list[MechanicsTerm]:

@@ -75,8 +75,9 @@ def solve_position(
     by construction, `R1 = R0 expm(h hat(omega))` on rotations; on a mixed space `x1 = x0 +
     h a_x`), from the tangent velocity `guess`:
     Newton's method on `T0^T [...] / scale` (dense `2n x 2n` Jacobian; with
-    `reuse_jacobian` the chord iteration, the Jacobian at `guess` factored once: the
-    predictor is O(h^3) off, so it contracts about as fast as Newton's), or for an
+    `reuse_jacobian` the chord iteration, the Jacobian at `guess` factored once: it
+    contracts linearly, at a rate about the predictor's distance from the solution), or
+    for an
     `AbstractFastPath` (if `fast_path`), as `D1 L_d = -(P0 M P0) c` up to relative
     `h |qdot|`, the chord iteration `a <- a + T0^T x`, `P0 M x = P0 [mu0 + D1 L_d + f0]`,
     `q0 . x = 0` (the O(n) multiplier solve), Anderson-accelerated: same equations.
