@@ -22,7 +22,15 @@ default adjoint's reverse mode: checkpointed reverse mode with the whole step tr
 at n = 2, 2 differentiated scalars; reverse mode at n = 8); writes
 benchmarks/results/gradients_rk4_batch.md.
 
-    python benchmarks/gradients.py [--quick | --rk4-batch]
+`--where`: where the time of the batched RK4 rows' reverse pass goes (float64): the vector
+field's reverse pass against its forward pass (`jax.vjp` with the forward recomputed, as the
+stage-by-stage reverse pass does, each in a `lax.scan` of 300 evaluations), the floor of a
+reverse pass that recomputes each step once (forward + recomputed forward + four vector
+field pullbacks a step), and the checkpointed reverse pass with `checkpoints` at half, one
+and four times the 300 steps (the default: `floor(sqrt(2 max_steps))` = 90); writes
+benchmarks/results/gradients_where.md.
+
+    python benchmarks/gradients.py [--quick | --rk4-batch | --where]
 """
 
 import argparse
@@ -48,14 +56,18 @@ SOLVERS = {  # name: (solver, dt0, t1)
 BATCH = {2: 256, 8: 64}
 
 
+def _states(n, batch, dtype):
+    keys = jax.random.split(jax.random.PRNGKey(0), batch)
+    q, v = jax.vmap(lambda k: sm.random_state(k, n, speed=0.5))(keys)
+    return q.astype(dtype), v.astype(dtype)
+
+
 def loss_fn(n, dtype, solver_name, batch, solver=None):
     """`loss(lengths, adjoint)` of one case (with `solver` in place of the case's), and
     its initial lengths."""
     default_solver, dt0, t1 = SOLVERS[solver_name]
     solver = solver or default_solver
-    keys = jax.random.split(jax.random.PRNGKey(0), batch or 1)
-    q, v = jax.vmap(lambda k: sm.random_state(k, n, speed=0.5))(keys)
-    q, v = q.astype(dtype), v.astype(dtype)
+    q, v = _states(n, batch or 1, dtype)
     weights = jnp.arange(1.0, 4.0, dtype=dtype)
 
     def loss(lengths, adjoint):
@@ -143,11 +155,113 @@ def rk4_batch(repeats=7):
     )
 
 
+def rates_pullback_ratio(n, batch, repeats, evaluations=300):
+    """Seconds per batched evaluation of the chain's vector field, forward and `jax.vjp`
+    (forward recomputed, cotangent pulled back to the lengths and the state)."""
+    y, lengths = _states(n, batch, jnp.float64), jnp.linspace(1.0, 0.7, n)
+
+    def rates(lengths, y):
+        chain = sm.chain_pendulum(jnp.ones(n), lengths, 9.81)
+        return jax.vmap(lambda y: chain.rates(0.0, y, None))(y)
+
+    nudge = lambda y, k: jax.tree.map(lambda a, b: a + 1e-9 * b, y, k)
+
+    @eqx.filter_jit
+    def forward(lengths, y):
+        body = lambda y, _: (nudge(y, rates(lengths, y)), None)
+        return jax.lax.scan(body, y, None, evaluations)[0]
+
+    @eqx.filter_jit
+    def pullback(lengths, y):
+        def body(carry, _):
+            y, g = carry
+            k, pull = jax.vjp(rates, lengths, y)
+            g_lengths, g_y = pull(k)
+            return (nudge(y, g_y), g + g_lengths), None
+
+        return jax.lax.scan(body, (y, lengths), None, evaluations)[0]
+
+    f, b = timings([lambda: forward(lengths, y), lambda: pullback(lengths, y)], repeats)
+    return f.median / evaluations, b.median / evaluations
+
+
+def where_row(n, counts, repeats):
+    """Forward, the default and stage-by-stage reverse mode with each of `counts`
+    checkpoints, float64."""
+    name = "RK4 (fixed, dt 1e-3)"
+    loss, lengths = loss_fn(n, jnp.float64, name, BATCH[n])
+    stagewise = sm.Projected(sm.RK4(stagewise_reverse=True))
+    loss_s, _ = loss_fn(n, jnp.float64, name, BATCH[n], stagewise)
+    adjoint = lambda k: diffrax.RecursiveCheckpointAdjoint(checkpoints=k)
+    programs = [
+        eqx.filter_jit(lambda x: loss(x, None)),
+        eqx.filter_jit(jax.value_and_grad(lambda x: loss(x, None))),
+        *(eqx.filter_jit(jax.value_and_grad(lambda x, k=k: loss_s(x, adjoint(k)))) for k in counts),
+    ]
+    grads = [p(lengths)[1] for p in programs[1:]]
+    for g in grads[1:]:
+        assert np.allclose(g, grads[0], rtol=1e-10, atol=1e-10), (g, grads[0])
+    return timings([lambda f=f: f(lengths) for f in programs], repeats)
+
+
+def where(repeats=7):
+    """The vector field's pullback, the recompute floor and the checkpoint counts."""
+    steps = 300
+    counts = (steps // 2, steps, 4 * steps)
+    rows, loads = [], [load()]
+    for n in BATCH:
+        rate_f, rate_b = rates_pullback_ratio(n, BATCH[n], repeats)
+        forward, *reverse = where_row(n, counts, repeats)
+        floor = (2 * forward.median + 4 * steps * rate_b) / forward.median
+        loads.append(load())
+        rows.append((n, BATCH[n], rate_f, rate_b, forward, floor, reverse))
+        print(f"  n = {n}: {forward.median * 1e3:.2f} ms", flush=True)
+    text = table(
+        [
+            "n",
+            "B",
+            "vector field [us]",
+            "its pullback / forward",
+            "solve, forward [ms]",
+            "floor (recompute once)",
+            "default (forward mode at n = 2: 2 scalars)",
+            *(f"checkpoints = {k}" for k in counts),
+        ],
+        [
+            (
+                n,
+                b,
+                f"{rf * 1e6:.1f}",
+                f"{rb / rf:.2f}",
+                f"{f.median * 1e3:.2f}",
+                f"{floor:.1f}",
+                *(f"{t.median / f.median:.1f}" for t in reverse),
+            )
+            for n, b, rf, rb, f, floor, reverse in rows
+        ],
+    )
+    machine = f"{platform.processor() or platform.machine()}, {jax.devices()[0].platform}"
+    publish(
+        "Where the reverse pass's time goes: `simulate_batch` with `Projected(RK4())`, dt0 = "
+        "1e-3 over 0.3 s (300 steps), float64, medians of 7 repeats; ratios are "
+        "value_and_grad time / forward time. The floor: a forward pass, the forward "
+        "recomputed once, and four pullbacks of the vector field a step (its measured "
+        "pullback time).\n\n"
+        f"Machine: {machine} (2-core CPU shared with other processes), `python "
+        f"benchmarks/gradients.py --where`; load average (1 min) {min(loads):.1f} to "
+        f"{max(loads):.1f} during the run.\n\n" + text + "\n",
+        "gradients_where.md",
+    )
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="n = 2, float64 only")
     parser.add_argument("--rk4-batch", action="store_true", help="the batched RK4 rows only")
+    parser.add_argument("--where", action="store_true", help="where the reverse pass's time goes")
     parsed = parser.parse_args()
+    if parsed.where:
+        return where()
     if parsed.rk4_batch:
         return rk4_batch()
     quick = parsed.quick
