@@ -43,11 +43,12 @@ scales linearly with its size (1e-4 gives 4.4e-3, 1e-5 5.9e-4, 1e-6 9.5e-5 on th
 magnet): their 4.45e-4 corresponds to about 7.5e-6.
 
 Results (`benchmarks/results/learned_lagrangian/`, `--summary` writes the table and the
-training curves): magnet 2.78e-2 after 2800 steps (CLNN 1.03e-2; 507 s wall, 518 s CPU,
-load 6 to 2; 1200 steps gave 5.1e-2, 1600 3.6e-2), not learned to the goal (1e-3); chain3
-4.51e-4 after 3000 steps (CLNN 3.26e-4; 681 s wall, 596 s CPU, load 2 to 7; 1500 steps
-gave 1.08e-3). On this shared 2-core CPU (load 2 to 11) a run got as little as a fifth of
-a core, so the CPU time is the figure to compare with the 30-minute goal.
+training curves; float64): magnet 9.90e-3 after 12000 steps at learning rate 1e-2
+(`--steps 12000 --learning-rate 1e-2`; CLNN 1.03e-2; 1394 s wall, 2110 s CPU, load 1.2
+to 1.3; 6000 steps gave 1.29e-2, 2800 2.78e-2), not learned to the goal (1e-3); chain3
+2.40e-4 and chain5 5.72e-4 after 6000 steps (CLNN 3.26e-4 and 9.33e-4; 785 and 1079 s
+wall). On this shared 2-core CPU a run under heavy load (2 to 11) got as little as a fifth
+of a core; under light load XLA uses both cores, so the CPU time exceeds the wall time.
 """
 
 import argparse
