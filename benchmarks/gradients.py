@@ -54,6 +54,7 @@ SOLVERS = {  # name: (solver, dt0, t1)
     "Tsit5 (adaptive)": (sm.Projected(diffrax.Tsit5()), 1e-2, 1.0),
 }
 BATCH = {2: 256, 8: 64}
+MACHINE = f"{platform.processor() or platform.machine()}, {jax.devices()[0].platform}"
 
 
 def _states(n, batch, dtype):
@@ -144,11 +145,10 @@ def rk4_batch(repeats=7):
             for n, b, dt, f, old, staged, new in rows
         ],
     )
-    machine = f"{platform.processor() or platform.machine()}, {jax.devices()[0].platform}"
     publish(
         "value_and_grad time / forward time of `simulate_batch` with `Projected(RK4())` at "
         "dt0 = 1e-3 over 0.3 s (300 steps), medians of 7 repeats.\n\n"
-        f"Machine: {machine} (2-core CPU shared with other processes), `python "
+        f"Machine: {MACHINE} (2-core CPU shared with other processes), `python "
         f"benchmarks/gradients.py --rk4-batch`; load average (1 min) {min(loads):.1f} to "
         f"{max(loads):.1f} during the run.\n\n" + text + "\n",
         "gradients_rk4_batch.md",
@@ -240,14 +240,13 @@ def where(repeats=7):
             for n, b, rf, rb, f, floor, reverse in rows
         ],
     )
-    machine = f"{platform.processor() or platform.machine()}, {jax.devices()[0].platform}"
     publish(
         "Where the reverse pass's time goes: `simulate_batch` with `Projected(RK4())`, dt0 = "
         "1e-3 over 0.3 s (300 steps), float64, medians of 7 repeats; ratios are "
         "value_and_grad time / forward time. The floor: a forward pass, the forward "
         "recomputed once, and four pullbacks of the vector field a step (its measured "
         "pullback time).\n\n"
-        f"Machine: {machine} (2-core CPU shared with other processes), `python "
+        f"Machine: {MACHINE} (2-core CPU shared with other processes), `python "
         f"benchmarks/gradients.py --where`; load average (1 min) {min(loads):.1f} to "
         f"{max(loads):.1f} during the run.\n\n" + text + "\n",
         "gradients_where.md",
@@ -305,10 +304,9 @@ def main():
             for n, dt, s, api, f, o, w in rows
         ],
     )
-    machine = f"{platform.processor() or platform.machine()}, {jax.devices()[0].platform}"
     suffix = "_quick" if quick else ""
     publish(
-        f"value_and_grad time / forward time.\n\nMachine: {machine} (2-core shared CPU when run "
+        f"value_and_grad time / forward time.\n\nMachine: {MACHINE} (2-core shared CPU when run "
         f"by the project), `python benchmarks/gradients.py{' --quick' * quick}`; load "
         f"average (1 min) {min(loads):.1f} to {max(loads):.1f} during the run.\n"
         f"Forward-mode Jacobian when at most {FORWARD_COLUMNS} scalars are "
