@@ -43,9 +43,9 @@ scales linearly with its size (1e-4 gives 4.4e-3, 1e-5 5.9e-4, 1e-6 9.5e-5 on th
 magnet): their 4.45e-4 corresponds to about 7.5e-6.
 
 Results (`benchmarks/results/learned_lagrangian/`, `--summary` writes the table and the
-training curves; float64): magnet 9.90e-3 after 12000 steps at learning rate 1e-2
-(`--steps 12000 --learning-rate 1e-2`; CLNN 1.03e-2; 1394 s wall, 2110 s CPU, load 1.2
-to 1.3; 6000 steps gave 1.29e-2, 2800 2.78e-2), not learned to the goal (1e-3); chain3
+training curves; float64): magnet 8.19e-3 after 14000 steps at learning rate 1e-2
+(`--steps 14000 --learning-rate 1e-2`; CLNN 1.03e-2; 1566 s wall, 2415 s CPU, load 0.9
+to 1.3; 12000 steps gave 9.90e-3, 6000 1.29e-2), not learned to the goal (1e-3); chain3
 2.40e-4 and chain5 5.72e-4 after 6000 steps (CLNN 3.26e-4 and 9.33e-4; 785 and 1079 s
 wall). On this shared 2-core CPU a run under heavy load (2 to 11) got as little as a fifth
 of a core; under light load XLA uses both cores, so the CPU time exceeds the wall time.
