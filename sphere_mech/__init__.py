@@ -62,6 +62,7 @@ if TYPE_CHECKING:  # the public names; imported on first use (see `__getattr__`)
     from ._scene.forces import (
         BaseForce as BaseForce,
         BaseTorque as BaseTorque,
+        BodyTorque as BodyTorque,
         Harmonic as Harmonic,
         JointDamping as JointDamping,
         PDPosition as PDPosition,
@@ -73,6 +74,7 @@ if TYPE_CHECKING:  # the public names; imported on first use (see `__getattr__`)
         Base as Base,
         Chain as Chain,
         Particles as Particles,
+        RigidBase as RigidBase,
         SharedSphere as SharedSphere,
     )
     from ._scene.potentials import (

@@ -17,7 +17,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._checks import unit_tolerance
+from ._checks import off_rotation, unit_tolerance
+from ._geometry import hat
 from ._scene import forces, kinetic, potentials
 from ._scene.base import MAX_MAGNITUDE, ParameterError
 from ._scene.scene import Scene
@@ -29,7 +30,7 @@ from ._solvers.names import (  # noqa: F401 (DIFFRAX_SOLVERS, PLAIN_SOLVERS: the
     PLAIN_SOLVERS,
     parse_solver,
 )
-from ._spaces import BASE, chain_state
+from ._spaces import ATTITUDE, BASE, chain_state
 
 
 class SceneFileError(ValueError):
@@ -53,10 +54,10 @@ def _snake(name: str) -> str:
 EFFECTS = {
     _snake(c.__name__): c
     for c in (
-        *(kinetic.Chain, kinetic.Particles, kinetic.SharedSphere, kinetic.Base),
+        *(kinetic.Chain, kinetic.Particles, kinetic.SharedSphere, kinetic.Base, kinetic.RigidBase),
         *(potentials.Gravity, potentials.Spring, potentials.Bending, potentials.PairInteraction),
         *(forces.JointDamping, forces.BaseTorque, forces.TipForce, forces.VibratingSupport),
-        forces.BaseForce,
+        *(forces.BaseForce, forces.BodyTorque),
     )
 }
 DRIVES = {_snake(c.__name__): c for c in (forces.PDTorque, forces.PDPosition, forces.Harmonic)}
@@ -182,7 +183,12 @@ BASE_INITIAL = {
     BASE: "the base's coordinates (m), one per axis of the Base",
     f"{BASE}_velocity": "the base's velocity (m/s), one per axis of the Base",
 }
-"""`[initial]` keys of a scene with a `Base` (default zeros)."""
+"""`[initial]` keys of a scene with a base (default zeros)."""
+ATTITUDE_INITIAL = {
+    ATTITUDE: "the body's rotation matrix (body to world), 3 rows of 3 numbers",
+    "angular_velocity": "the body angular velocity Omega (rad/s), 3 numbers",
+}
+"""`[initial]` keys of a scene with a `RigidBase` (default: the identity, zero)."""
 
 
 def _array(path, field: str, x, shapes, expected: str, bounds=None) -> np.ndarray:
@@ -207,10 +213,12 @@ def _initial(path, table, scene: Scene):
         expected = f"a table with q or polar_deg and azimuth_deg, got {_show(table)}"
         raise SceneFileError(path, "initial", expected)
     base = {} if scene.base is None else BASE_INITIAL
+    attitude = {} if scene.rigid_body is None else ATTITUDE_INITIAL
     expected = "q and qdot, or polar_deg and azimuth_deg with optional rates" + (
         ", and base and base_velocity" if base else " (base: the scene has no Base)"
     )
-    _no_unknown(path, "initial", table, [*INITIAL, *base], expected)
+    expected += ", attitude and angular_velocity" if attitude else ""
+    _no_unknown(path, "initial", table, [*INITIAL, *base, *attitude], expected)
     q, qdot = _spheres_initial(path, table, scene.n)
     if scene.base is None:
         return q, qdot
@@ -220,7 +228,26 @@ def _initial(path, table, scene: Scene):
         _array(path, f"initial.{key}", table.get(key, [0.0] * m), [(m,)], f"{what}: {count}")
         for key, what in BASE_INITIAL.items()
     )
-    return chain_state(jnp.asarray(x, q.dtype), q), chain_state(jnp.asarray(v, q.dtype), qdot)
+    x, v = jnp.asarray(x, q.dtype), jnp.asarray(v, q.dtype)
+    if not attitude:
+        return chain_state(x, q), chain_state(v, qdot)
+    R, Omega = _attitude_initial(path, table, q.dtype)
+    return chain_state(x, q, R[None]), chain_state(v, qdot, (R @ hat(Omega))[None])
+
+
+def _attitude_initial(path, table, dtype):
+    """A rigid base's rotation and body angular velocity from `[initial]`."""
+    magnitude = f" (at most {MAX_MAGNITUDE:g} in magnitude)"
+    (key, what), (rate, rate_what) = ATTITUDE_INITIAL.items()
+    R = _array(path, f"initial.{key}", table.get(key, np.eye(3).tolist()), [(3, 3)], what)
+    R = jnp.asarray(R, dtype)
+    bad, message = off_rotation(R[None], f"initial.{key}")
+    if bad:
+        raise SceneFileError(path, f"initial.{key}", message)
+    Omega = _array(
+        path, f"initial.{rate}", table.get(rate, [0.0] * 3), [(3,)], rate_what + magnitude
+    )
+    return R, jnp.asarray(Omega, dtype)
 
 
 def _spheres_initial(path, table, n: int):

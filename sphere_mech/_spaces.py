@@ -631,28 +631,37 @@ def as_space(space) -> AbstractSpace:
     )
 
 
-BASE, _SPHERES = "base", "spheres"  # the keys of a chain_space with a base
-"""The name of a `chain_space`'s base part: its key in states, and the name scene files
-(`[initial]`) and run summaries give it."""
+BASE, _SPHERES, ATTITUDE = "base", "spheres", "attitude"  # the keys of a chain_space
+"""The names of a `chain_space`'s base and attitude parts: their keys in states, and the
+names scene files (`[initial]`) and run summaries give them."""
 
 
-def chain_space(base: int | None, n: int | None) -> AbstractSpace:
+def chain_space(base: int | None, n: int | None, attitude: bool = False) -> AbstractSpace:
     """The space of spheres hanging from a pivot that may move (scenes, the fast path):
     `Spheres(n)`, or with a point-mass base moving in `R^base` the product
-    `{"base": Euclidean(base), "spheres": Spheres(n)}`. Its states, velocities and
-    forces are taken apart by `chain_parts` and put together by `chain_state`: no other
-    module spells its keys.
+    `{"base": Euclidean(base), "spheres": Spheres(n)}`, and with a rigid base (`attitude`)
+    also its attitude `"attitude": Rotations(1)`. Its states, velocities and forces are
+    taken apart by `chain_parts` and `chain_attitude` and put together by `chain_state`:
+    no other module spells its keys.
 
     **Arguments:**
     - `base`: the dimension `m` of the space the base moves in (1: a line, 2: a plane,
       3: space), or `None` for a fixed support.
     - `n`: the number of spheres, or `None` for any number.
+    - `attitude`: whether the base is a rigid body with an attitude (`base` must be 3).
 
-    **Returns:** `Spheres(n)`, or the `Product` of the base's `Euclidean(m)` and
-    `Spheres(n)`.
+    **Returns:** `Spheres(n)`, or the `Product` of the base's `Euclidean(m)`, `Spheres(n)`
+    and with `attitude` `Rotations(1)`.
     """
     spheres = Spheres(n)
-    return spheres if base is None else Product({BASE: Euclidean(base), _SPHERES: spheres})
+    if base is None:
+        return spheres
+    factors = {BASE: Euclidean(base), _SPHERES: spheres}
+    if attitude:
+        if base != 3:
+            raise ValueError(f"chain_space: a rigid base moves in 3-D space, got base={base}.")
+        factors[ATTITUDE] = Rotations(1)
+    return Product(dict(sorted(factors.items())))
 
 
 def chain_parts(tree):
@@ -661,7 +670,15 @@ def chain_parts(tree):
     return (tree[BASE], tree[_SPHERES]) if isinstance(tree, Mapping) else (None, tree)
 
 
-def chain_state(base, spheres):
+def chain_attitude(tree):
+    """The attitude part of a state, velocity or force of a `chain_space` (`(1, 3, 3)`,
+    `(1, 3)` for a torque), or `None` without a rigid base."""
+    return tree.get(ATTITUDE) if isinstance(tree, Mapping) else None
+
+
+def chain_state(base, spheres, attitude=None):
     """The state (velocity, force) of a `chain_space` with these parts (`base` `None`:
-    the spheres' array itself)."""
-    return spheres if base is None else {BASE: base, _SPHERES: spheres}
+    the spheres' array itself; `attitude` only with a rigid base)."""
+    if base is None:
+        return spheres
+    return {BASE: base, _SPHERES: spheres} | ({} if attitude is None else {ATTITUDE: attitude})

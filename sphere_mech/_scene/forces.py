@@ -48,7 +48,10 @@ def _check_drive(field: str, drive, scene, shape=(3,)) -> None:
         raise
     spheres = jax.ShapeDtypeStruct((scene.n, 3), jnp.result_type(float))
     base = None if scene.base is None else jax.ShapeDtypeStruct((scene.base.m,), spheres.dtype)
-    state = chain_state(base, spheres)
+    rigid = scene.rigid_body is not None
+    state = chain_state(
+        base, spheres, jax.ShapeDtypeStruct((1, 3, 3), spheres.dtype) if rigid else None
+    )
     out = jax.eval_shape(drive, jax.ShapeDtypeStruct((), spheres.dtype), state, state, None)
     if out.shape != shape:
         message = f"{type(drive).__name__} returns shape {out.shape}, expected {shape}"
@@ -250,8 +253,31 @@ class BaseForce(AbstractForce):
         _check_drive("force", self.force, scene, (scene.base.m,))
 
     def generalized_force(self, t, q, qdot, scene, args):
-        f = _evaluate(self.force, t, q, qdot, args, (scene.base.m,))
-        return chain_state(f, jnp.zeros_like(chain_parts(q)[1]))
+        return scene.on_base(q, _evaluate(self.force, t, q, qdot, args, (scene.base.m,)))
+
+
+class BodyTorque(AbstractForce):
+    """A torque on a `RigidBase`, in its body axes (the moment of its rotors, a reaction
+    wheel's, a controller's).
+
+    Virtual work `tau . eta` for `delta R = R hat(eta)`: the attitude's part of the
+    generalized force.
+
+    **Arguments:**
+    - `torque`: `tau` (N m, body axes): a constant `(3,)` vector or a function
+      `torque(t, q, qdot, args) -> (3,)` of the scene's state.
+    """
+
+    torque: jax.Array | Callable = _drive("torque")
+
+    def check(self, scene):
+        if scene.rigid_body is None:
+            raise ParameterError("", "BodyTorque needs a RigidBase in the scene")
+        _check_drive("torque", self.torque, scene)
+
+    def generalized_force(self, t, q, qdot, scene, args):
+        tau = _evaluate(self.torque, t, q, qdot, args)
+        return scene.on_base(q, jnp.zeros((3,), tau.dtype), tau)
 
 
 class PDPosition(AbstractDrive):

@@ -1,10 +1,15 @@
 """Kinetic terms: point masses on spheres, with constant scalar inertia (fast path)."""
 
+import abc
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._checks import unit_tolerance
+from .._geometry import vee
+from .._inertia import RigidBody
 from .base import (
     AbstractEffect,
     AbstractKinetic,
@@ -96,7 +101,53 @@ class Chain(AbstractKinetic):
         return Drawing(links=((np.asarray(self.base, float), tuple(range(self.n))),))
 
 
-class Base(AbstractEffect):
+class AbstractBase(AbstractEffect):
+    """A moving support that carries the scene's one `Chain`: its coordinates `x` join the
+    unit vectors in the state (`sm.chain_space`), the chain hanging from its `joint`."""
+
+    mass: eqx.AbstractVar[jax.Array]
+
+    @property
+    @abc.abstractmethod
+    def m(self) -> int:
+        """The number of coordinates `x` (static)."""
+
+    axes: eqx.AbstractVar[jax.Array | None]
+    """The `(m, 3)` directions a point-mass base moves along, `None` for a rigid base."""
+
+    @property
+    @abc.abstractmethod
+    def rigid_body(self) -> RigidBody | None:
+        """What the fast path needs of a rigid base, or `None` for a point mass."""
+
+    @abc.abstractmethod
+    def point(self, x: jax.Array) -> jax.Array:
+        """The base's point (its mass) in the support frame.
+
+        **Arguments:**
+        - `x`: its coordinates, `(m,)`.
+
+        **Returns:** a `(3,)` point (m)."""
+
+    @abc.abstractmethod
+    def joint(self, x: jax.Array, attitude: jax.Array | None) -> jax.Array:
+        """The point the chain hangs from.
+
+        **Arguments:**
+        - `x`: the base's coordinates, `(m,)`.
+        - `attitude`: its `(1, 3, 3)` rotation (a rigid base), else `None`.
+
+        **Returns:** a `(3,)` point (m)."""
+
+    def check(self, scene):
+        if len(scene.kinetic) != 1 or not isinstance(scene.kinetic[0], Chain):
+            got = [type(k).__name__ for k in scene.kinetic]
+            name = type(self).__name__
+            message = f"a {name} carries one Chain: the scene must list exactly one kinetic term"
+            raise ParameterError("", f"{message}, a Chain, got {got}")
+
+
+class Base(AbstractBase):
     """A point-mass base that moves and carries the scene's chain: a cart on a line, a
     trolley in a plane, a drone in space.
 
@@ -126,23 +177,93 @@ class Base(AbstractEffect):
 
     @property
     def m(self) -> int:
-        """The number of directions it moves along (static)."""
         return self.axes.shape[-2]
 
-    def point(self, x: jax.Array) -> jax.Array:
-        """The base's point in the support frame.
+    @property
+    def rigid_body(self) -> None:
+        return None
 
-        **Arguments:**
-        - `x`: its coordinates, `(m,)`.
-
-        **Returns:** `position + x @ axes`, `(3,)` (m)."""
+    def point(self, x):
         return self.position.astype(x.dtype) + x @ self.axes.astype(x.dtype)
 
-    def check(self, scene):
-        if len(scene.kinetic) != 1 or not isinstance(scene.kinetic[0], Chain):
-            got = [type(k).__name__ for k in scene.kinetic]
-            message = "a Base carries one Chain: the scene must list exactly one kinetic term"
-            raise ParameterError("", f"{message}, a Chain, got {got}")
+    def joint(self, x, attitude):
+        return self.point(x)
+
+
+def _inertia_matrix(x) -> jax.Array:
+    """A `(3,)` of principal moments as `diag(x)`; a `(3, 3)` as is."""
+    x = as_float(x)
+    return jnp.diag(x) if jnp.shape(x) == (3,) else x
+
+
+class RigidBase(AbstractBase):
+    """A rigid body that moves freely in space and carries the scene's chain: a quadrotor,
+    a helicopter, a spacecraft with a tether.
+
+    Its centre of mass `x` (`(3,)`, world frame) and attitude `R` (body to world) join the
+    unit vectors in the state, whose space becomes `sm.chain_space(3, n, attitude=True)`
+    (`{"attitude": Rotations(1), "base": Euclidean(3), "spheres": Spheres(n)}`;
+    velocities `xdot`, `Rdot`, `qdot`; forces: a force on the centre of mass, a body
+    torque, the spheres'). The chain hangs from the body point `attach`; kinetic energy
+    `1/2 m |xdot|^2 + 1/2 Omega . J Omega` plus the chain's. The scene keeps the O(n)
+    fast path (Newton-Euler at the joint: the body adds a 3x3 block).
+
+    **Arguments:**
+    - `mass`: the body's mass (kg, `> 0`).
+    - `inertia`: its inertia about the centre of mass in body axes (kg m^2): three
+      principal moments `(3,)` or a symmetric positive-definite `(3, 3)` matrix whose
+      principal moments satisfy the triangle inequality (`J1 + J2 >= J3`).
+    - `attach`: the body point the chain hangs from (m, body frame; default the centre of
+      mass).
+    """
+
+    mass: jax.Array = eqx.field(converter=as_float)
+    inertia: jax.Array = eqx.field(converter=_inertia_matrix)
+    attach: jax.Array = eqx.field(default=(0.0, 0.0, 0.0), converter=as_float)
+
+    def __check_init__(self):
+        check_sign("mass", self.mass, " (kg)", scalar=True)
+        check_shape("inertia", self.inertia, (3, 3), "three principal moments or a (3, 3) matrix")
+        check_vector("attach", self.attach)
+        if isinstance(self.inertia, jax.core.Tracer):
+            return
+        J = np.asarray(self.inertia, dtype=np.float64)
+        tol = unit_tolerance(jnp.result_type(self.inertia)) * np.max(np.abs(J))
+        moments = np.linalg.eigvalsh(J) if np.all(np.isfinite(J)) else np.full(3, np.nan)
+        if not (np.max(np.abs(J - J.T)) <= tol and moments[0] > 0):
+            message = "inertia must be symmetric positive-definite (kg m^2)"
+            raise ParameterError("inertia", f"{message}, got {J.tolist()}")
+        if not moments[0] + moments[1] >= moments[2] - tol:
+            message = "inertia's principal moments must satisfy J1 + J2 >= J3 (a rigid body's)"
+            raise ParameterError("inertia", f"{message}, got {moments.tolist()}")
+
+    @property
+    def m(self) -> int:
+        return 3
+
+    @property
+    def axes(self) -> None:
+        return None
+
+    @property
+    def rigid_body(self) -> RigidBody:
+        return RigidBody(self.mass, self.inertia, self.attach)
+
+    def point(self, x):
+        return x
+
+    def joint(self, x, attitude):
+        return x + attitude[0] @ self.attach.astype(x.dtype)
+
+    def rotational_energy(self, attitude, velocity) -> jax.Array:
+        """`1/2 Omega . J Omega`, `Omega = vee(R^T Rdot)`.
+
+        **Arguments:**
+        - `attitude`, `velocity`: `R` and `Rdot`, `(1, 3, 3)`.
+
+        **Returns:** a scalar (J)."""
+        Omega = vee(attitude[0].T @ velocity[0])
+        return 0.5 * Omega @ (self.inertia.astype(Omega.dtype) @ Omega)
 
 
 class AbstractSphereMasses(AbstractKinetic):

@@ -8,11 +8,11 @@ import jax.scipy.linalg as jsl
 import numpy as np
 
 from .._inertia import AbstractFastPath
-from .._misc import tree_dtype, tree_zeros_like
-from .._spaces import AbstractSpace, chain_parts, chain_space, chain_state
+from .._misc import tree_dtype
+from .._spaces import AbstractSpace, chain_attitude, chain_parts, chain_space, chain_state
 from .base import AbstractEffect, AbstractForce, AbstractKinetic, AbstractPotential, ParameterError
 from .forces import BaseTorque, TipForce
-from .kinetic import Base, Chain, chain_inertia, chain_inverse_bands
+from .kinetic import AbstractBase, Chain, chain_inertia, chain_inverse_bands
 from .potentials import Gravity
 
 
@@ -22,26 +22,31 @@ class Scene(AbstractFastPath):
     their spheres in the order given; only the listed effects are traced, each under its
     class name (no force effect: `forces` is `None`), and each is checked against the
     scene (indices, counts) at construction. With a `Base`, the one `Chain` hangs from it
-    and the state holds its coordinates `(m,)` beside the unit vectors (`chain_space(m, n)`).
+    and the state holds its coordinates `(m,)` beside the unit vectors (`chain_space(m, n)`);
+    with a `RigidBase`, its centre of mass `(3,)` and attitude `(1, 3, 3)` too
+    (`chain_space(3, n, attitude=True)`).
 
     **Arguments:**
     - `effects`: in any order: at least one kinetic term (`Chain`, `Particles`,
-      `SharedSphere`), at most one `Base`, any potentials and forces (see each).
+      `SharedSphere`), at most one base (`Base` or `RigidBase`), any potentials and forces
+      (see each).
     """
 
     kinetic: tuple[AbstractKinetic, ...]
-    base: Base | None
+    base: AbstractBase | None
     potentials: tuple[AbstractPotential, ...]
     force_effects: tuple[AbstractForce, ...]
 
     def __init__(self, *effects: AbstractEffect):
         for e in effects:
-            if not isinstance(e, AbstractKinetic | Base | AbstractPotential | AbstractForce):
+            if not isinstance(
+                e, AbstractKinetic | AbstractBase | AbstractPotential | AbstractForce
+            ):
                 what = "effects (kinetic terms, a base, potentials, forces)"
                 raise ValueError(f"Scene takes {what}, got {type(e).__name__}.")
-        bases = [e for e in effects if isinstance(e, Base)]
+        bases = [e for e in effects if isinstance(e, AbstractBase)]
         if len(bases) > 1:
-            raise ValueError(f"A scene takes at most one Base, got {len(bases)}.")
+            raise ValueError(f"A scene takes at most one base (Base, RigidBase), got {len(bases)}.")
         self.base = bases[0] if bases else None
         self.kinetic = tuple(e for e in effects if isinstance(e, AbstractKinetic))
         self.potentials = tuple(e for e in effects if isinstance(e, AbstractPotential))
@@ -70,12 +75,19 @@ class Scene(AbstractFastPath):
 
     @property
     def space(self) -> AbstractSpace:
-        """`Spheres(n)`, or with a `Base` `chain_space(m, n)`."""
-        return chain_space(None if self.base is None else self.base.m, self.n)
+        """`Spheres(n)`, or with a `Base` `chain_space(m, n)` (a `RigidBase`: `chain_space(3,
+        n, attitude=True)`)."""
+        if self.base is None:
+            return chain_space(None, self.n)
+        return chain_space(self.base.m, self.n, attitude=self.rigid_body is not None)
 
     @property
     def base_axes(self):
         return None if self.base is None else self.base.axes
+
+    @property
+    def rigid_body(self):
+        return None if self.base is None else self.base.rigid_body
 
     def _blocks(self):
         """Each kinetic term with the global indices `start, stop` of its spheres."""
@@ -110,12 +122,12 @@ class Scene(AbstractFastPath):
         """Positions of the masses the spheres carry, in the support frame.
 
         **Arguments:**
-        - `q`: the configuration, `(n, 3)` unit vectors (with a `Base`, `chain_space(m, n)`'s).
+        - `q`: the configuration, `(n, 3)` unit vectors (with a base, `chain_space`'s).
 
         **Returns:** the positions, `(n, 3)` (m)."""
         base, s = chain_parts(q)
         x = jnp.concatenate([k.positions(s[a:b]) for k, a, b in self._blocks()]).astype(s.dtype)
-        return x if base is None else x + self.base.point(base)
+        return x if base is None else x + self.base.joint(base, chain_attitude(q))
 
     def points(self, q) -> jax.Array:
         """Positions of every point mass: the base's point (with a `Base`), then `positions`.
@@ -138,8 +150,34 @@ class Scene(AbstractFastPath):
         **Arguments:**
         - `f`: the spheres' part, `(n, 3)`.
 
-        **Returns:** `f`, or with a `Base` the force with zeros on the base."""
-        return chain_state(None if self.base is None else jnp.zeros((self.base.m,), f.dtype), f)
+        **Returns:** `f`, or with a base the force with zeros on the base (and attitude)."""
+        if self.base is None:
+            return f
+        attitude = None if self.rigid_body is None else jnp.zeros((1, 3, 3), f.dtype)
+        return chain_state(jnp.zeros((self.base.m,), f.dtype), f, attitude)
+
+    def on_base(self, q, force: jax.Array, torque: jax.Array | None = None):
+        """A generalized force on the base (and a rigid base's attitude), zeros elsewhere,
+        structured as the state; the attitude's part as a covector like `jax.grad`'s,
+        `1/2 R hat(torque)` (the scene's `forces` turn it into the body torque).
+
+        **Arguments:**
+        - `q`: the configuration.
+        - `force`: the base's part, `(m,)` (a rigid base's: at its centre of mass).
+        - `torque`: a rigid base's body torque, `(3,)` (default zero).
+
+        **Returns:** the generalized force."""
+        f = jnp.zeros((self.n, 3), force.dtype)
+        if self.rigid_body is None:
+            return chain_state(force, f)
+        torque = jnp.zeros((3,), force.dtype) if torque is None else torque
+        covector = self._rotation.force_covector(chain_attitude(q), torque[None])
+        return chain_state(force, f, covector.astype(force.dtype))
+
+    @property
+    def _rotation(self):
+        """The attitude's factor (a rigid base only)."""
+        return chain_attitude(self.space.factors)
 
     def parents(self) -> np.ndarray:
         """The joint structure of the scene. **Returns:** each sphere's parent's global
@@ -155,6 +193,8 @@ class Scene(AbstractFastPath):
     def kinetic_energy(self, q, qdot, args=None):  # 1/2 sum_i m_i |xdot_i|^2, O(n)
         xdot = jax.jvp(self.points, (q,), (qdot,))[1]
         T = 0.5 * jnp.sum(self.point_masses() * jnp.sum(xdot**2, axis=-1))
+        if self.rigid_body is not None:
+            T = T + self.base.rotational_energy(chain_attitude(q), chain_attitude(qdot))
         return T.astype(xdot.dtype)
 
     def _sum(self, effects, total, term):
@@ -170,7 +210,12 @@ class Scene(AbstractFastPath):
 
     def _force(self, t, q, qdot, args):
         f = lambda e: e.generalized_force(t, q, qdot, self, args)
-        return self._sum(self.force_effects, tree_zeros_like(q), f)
+        total = self._sum(self.force_effects, self.on_spheres(jnp.zeros_like(self.spheres(q))), f)
+        if self.rigid_body is None:
+            return total
+        # Effects give the attitude's part as a covector (virtual work's gradient): the torque.
+        torque = self._rotation.from_covector(chain_attitude(q), chain_attitude(total))
+        return chain_state(*chain_parts(total), torque)
 
     @property
     def forces(self) -> Callable | None:
