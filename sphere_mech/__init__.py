@@ -83,6 +83,15 @@ if TYPE_CHECKING:  # the public names; imported on first use (see `__getattr__`)
         PairInteraction as PairInteraction,
         Spring as Spring,
     )
+    from ._scene.rotorcraft import (
+        AbstractCommand as AbstractCommand,
+        Circle as Circle,
+        GeometricControl as GeometricControl,
+        Hover as Hover,
+        Line as Line,
+        Rotors as Rotors,
+        mixing_matrix as mixing_matrix,
+    )
     from ._scene.scene import Scene as Scene, chain_pendulum as chain_pendulum
     from ._scene_files import (
         SceneFileError as SceneFileError,

@@ -19,7 +19,7 @@ import numpy as np
 
 from ._checks import off_rotation, unit_tolerance
 from ._geometry import hat
-from ._scene import forces, kinetic, potentials
+from ._scene import forces, kinetic, potentials, rotorcraft
 from ._scene.base import MAX_MAGNITUDE, ParameterError
 from ._scene.scene import Scene
 from ._simulate import simulate
@@ -57,11 +57,16 @@ EFFECTS = {
         *(kinetic.Chain, kinetic.Particles, kinetic.SharedSphere, kinetic.Base, kinetic.RigidBase),
         *(potentials.Gravity, potentials.Spring, potentials.Bending, potentials.PairInteraction),
         *(forces.JointDamping, forces.BaseTorque, forces.TipForce, forces.VibratingSupport),
-        *(forces.BaseForce, forces.BodyTorque),
+        *(forces.BaseForce, forces.BodyTorque, rotorcraft.Rotors),
     )
 }
-DRIVES = {_snake(c.__name__): c for c in (forces.PDTorque, forces.PDPosition, forces.Harmonic)}
+DRIVES = {
+    _snake(c.__name__): c
+    for c in (forces.PDTorque, forces.PDPosition, forces.Harmonic, rotorcraft.GeometricControl)
+}
 """Controllers, written as inline tables where Python takes a function."""
+COMMANDS = {_snake(c.__name__): c for c in (rotorcraft.Hover, rotorcraft.Line, rotorcraft.Circle)}
+"""Flight commands of `GeometricControl`, written as inline tables."""
 
 
 def _show(x) -> str:
@@ -99,6 +104,10 @@ KINDS = {
         lambda x: tuple(x) if isinstance(x, list) and all(map(_integer, x)) else None,
     ),
     Callable: (f"an inline table {{ type = ... }} ({', '.join(DRIVES)})", lambda x: None),
+    rotorcraft.AbstractCommand: (
+        f"an inline table {{ type = ... }} ({', '.join(COMMANDS)})",
+        lambda x: None,
+    ),
 }
 """Annotation -> (what a file must give, the TOML value converted or `None`)."""
 
@@ -151,7 +160,9 @@ def _module(path, where: str, table, registry: dict, what: str):
         expected, x = " or ".join(KINDS[k][0] for k in kinds), table.get(key)
         if key not in table and default is inspect.Parameter.empty:
             raise SceneFileError(path, f"{where}.{key}", f"missing; expected {expected}")
-        if Callable in kinds and isinstance(x, dict):
+        if rotorcraft.AbstractCommand in kinds and isinstance(x, dict):
+            values[key] = _module(path, f"{where}.{key}", x, COMMANDS, "a command type")
+        elif Callable in kinds and isinstance(x, dict):
             values[key] = _module(path, f"{where}.{key}", x, DRIVES, "a controller type")
         elif key in table:
             values[key] = next((v for k in kinds if (v := KINDS[k][1](x)) is not None), None)

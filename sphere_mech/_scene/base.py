@@ -225,9 +225,10 @@ class AbstractForce(AbstractEffect):
 
 
 class AbstractDrive(_Checked):
-    """A controller for a torque or force: `drive(t, q, qdot, args) -> (3,)` (scene files
-    write it as an inline table). Its floating arrays and `check` are as an effect's."""
+    """A controller for a torque or force: `drive(t, q, qdot, args) -> (3,)` (`(m,)` for a
+    `BaseForce`, `(4,)` thrust and moments for `Rotors`; scene files write it as an inline
+    table). Its floating arrays and `check` are as an effect's."""
 
     @abc.abstractmethod
     def __call__(self, t, q, qdot, args) -> jax.Array:
-        """The `(3,)` torque or force."""
+        """The torque or force."""

@@ -190,7 +190,7 @@ class Base(AbstractBase):
         return self.point(x)
 
 
-def _inertia_matrix(x) -> jax.Array:
+def inertia_matrix(x) -> jax.Array:
     """A `(3,)` of principal moments as `diag(x)`; a `(3, 3)` as is."""
     x = as_float(x)
     return jnp.diag(x) if jnp.shape(x) == (3,) else x
@@ -218,7 +218,7 @@ class RigidBase(AbstractBase):
     """
 
     mass: jax.Array = eqx.field(converter=as_float)
-    inertia: jax.Array = eqx.field(converter=_inertia_matrix)
+    inertia: jax.Array = eqx.field(converter=inertia_matrix)
     attach: jax.Array = eqx.field(default=(0.0, 0.0, 0.0), converter=as_float)
 
     def __check_init__(self):

@@ -1,0 +1,310 @@
+"""Rotorcraft: four rotors on a `RigidBase` and the geometric tracking controller on SE(3)
+of Lee, Leok and McClamroch (2010) that drives them, with the commands it tracks."""
+
+import abc
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from .._geometry import hat, vee
+from .._linalg import dense_solve
+from .._spaces import chain_attitude, chain_parts
+from . import base
+from .base import AbstractDrive, AbstractForce, ParameterError
+from .forces import _check_drive, _evaluate
+from .kinetic import inertia_matrix
+
+E3 = (0.0, 0.0, 1.0)
+
+
+def mixing_matrix(arm: jax.Array, torque_coefficient: jax.Array) -> jax.Array:
+    """The mixing of four rotors in the `+` layout: rotor `i` at `d (cos, sin)((i - 1) pi/2)`
+    in the body's `e1 e2` plane pushing along `+e3` with the yaw reaction `+-c f_i` (`+`
+    for rotors 1 and 3): `M1 = d (f2 - f4)`, `M2 = d (f3 - f1)`, `M3 = c (f1 - f2 + f3 -
+    f4)`.
+
+    **Arguments:**
+    - `arm`: `d` (m).
+    - `torque_coefficient`: `c` (m).
+
+    **Returns:** `A`, `(4, 4)`, with `(f, M1, M2, M3) = A (f_1, ..., f_4)`."""
+    d, c, zero, one = arm, torque_coefficient, jnp.zeros_like(arm), jnp.ones_like(arm)
+    return jnp.stack(
+        [
+            jnp.stack([one, one, one, one]),
+            jnp.stack([zero, d, zero, -d]),
+            jnp.stack([-d, zero, d, zero]),
+            jnp.stack([c, -c, c, -c]),
+        ]
+    )
+
+
+class Rotors(AbstractForce):
+    """Four rotors on the scene's `RigidBase` in the `+` layout (`mixing_matrix`): the
+    commanded total thrust `f` and body moments `M` are mixed into the four rotor thrusts,
+    each saturated to `[min_thrust, max_thrust]`, and mixed back: the body feels the
+    thrust `f R e3` at its centre of mass (`e3` the body axis, up) and the moment `M`.
+
+    **Arguments:**
+    - `command`: `(f, M1, M2, M3)` (N, N m): a constant `(4,)` vector or a function
+      `command(t, q, qdot, args) -> (4,)` of the scene's state, such as
+      `GeometricControl`.
+    - `arm`: the distance `d` of each rotor from the centre of mass (m, `> 0`).
+    - `torque_coefficient`: `c`, the yaw moment per unit thrust (m, `> 0`).
+    - `min_thrust`, `max_thrust`: each rotor's bounds (N; default 0 and no upper bound;
+      `None`: unbounded, as in the controller's published analysis).
+    """
+
+    command: jax.Array | Callable
+    arm: jax.Array
+    torque_coefficient: jax.Array
+    min_thrust: jax.Array | None
+    max_thrust: jax.Array | None
+
+    def __init__(self, command, arm, torque_coefficient, min_thrust=0.0, max_thrust=None):
+        if not callable(command):
+            command = base.as_float(command)
+            base.check_shape("command", command, (4,), "a (4,) vector (f, M1, M2, M3)")
+            base.check_magnitude("command", command)
+        self.command = command
+        self.arm, self.torque_coefficient = base.as_float(arm), base.as_float(torque_coefficient)
+        self.min_thrust, self.max_thrust = (
+            None if x is None else base.as_float(x) for x in (min_thrust, max_thrust)
+        )
+
+    def __check_init__(self):
+        base.check_sign("arm", self.arm, " (m)", scalar=True)
+        base.check_sign("torque_coefficient", self.torque_coefficient, " (m)", scalar=True)
+        for name in ("min_thrust", "max_thrust"):
+            if getattr(self, name) is not None:
+                base.check_shape(name, getattr(self, name), (), "a scalar")
+                base.check_magnitude(name, getattr(self, name))
+        low, high = self.min_thrust, self.max_thrust
+        if low is not None and high is not None and base._concrete(high) and not high > low:
+            message = f"max_thrust must be > min_thrust ({float(low):g} N)"
+            raise ParameterError("max_thrust", f"{message}, got {float(high):g}")
+
+    def check(self, scene):
+        if scene.rigid_body is None:
+            raise ParameterError("", "Rotors needs a RigidBase in the scene")
+        _check_drive("command", self.command, scene, (4,))
+
+    def thrusts(self, wrench: jax.Array) -> jax.Array:
+        """The four rotor thrusts of `(f, M)`, saturated.
+
+        **Arguments:**
+        - `wrench`: `(f, M1, M2, M3)`, `(4,)` (N, N m).
+
+        **Returns:** `(4,)` thrusts (N)."""
+        A = mixing_matrix(self.arm, self.torque_coefficient).astype(wrench.dtype)
+        f = dense_solve(A, wrench)
+        f = f if self.min_thrust is None else jnp.maximum(f, self.min_thrust)
+        return f if self.max_thrust is None else jnp.minimum(f, self.max_thrust)
+
+    def generalized_force(self, t, q, qdot, scene, args):
+        wrench = _evaluate(self.command, t, q, qdot, args, (4,))
+        A = mixing_matrix(self.arm, self.torque_coefficient).astype(wrench.dtype)
+        f, M = jnp.split(A @ self.thrusts(wrench), [1])
+        R = chain_attitude(q)[0]
+        return scene.on_base(q, f[0] * R[:, 2], M)
+
+
+class AbstractCommand(base._Checked):
+    """A flight command: `command(t) -> (x_d, b1_d)`, the desired position `(3,)` (m) and
+    heading `(3,)` (the desired body `e1`, not parallel to the thrust) at time `t`. The
+    controller takes its derivatives by autodiff: it must be smooth where it is flown
+    (a step is smooth on either side of its time)."""
+
+    @abc.abstractmethod
+    def __call__(self, t) -> tuple[jax.Array, jax.Array]:
+        """`(x_d, b1_d)` at `t`."""
+
+
+class Hover(AbstractCommand):
+    """Hold `position` (after `step_time`, `position + step`: a step command), heading
+    `heading`.
+
+    **Arguments:**
+    - `position`, `step`: `(3,)` points (m).
+    - `step_time`: when the step happens (s).
+    - `heading`: the desired body `e1`, a unit `(3,)` vector (default `e1`).
+    """
+
+    position: jax.Array = eqx.field(default=(0.0, 0.0, 0.0), converter=base.as_float)
+    heading: jax.Array = eqx.field(default=(1.0, 0.0, 0.0), converter=base.as_float)
+    step: jax.Array = eqx.field(default=(0.0, 0.0, 0.0), converter=base.as_float)
+    step_time: jax.Array = eqx.field(default=0.0, converter=base.as_float)
+
+    def __check_init__(self):
+        base.check_vector("position", self.position)
+        base.check_vector("heading", self.heading, unit=True)
+        base.check_vector("step", self.step)
+        base.check_shape("step_time", self.step_time, (), "a scalar")
+
+    def __call__(self, t):
+        x = self.position + jnp.where(t >= self.step_time, 1.0, 0.0) * self.step
+        return x + 0.0 * t, self.heading
+
+
+class Line(AbstractCommand):
+    """Fly from `start` at constant `velocity`, heading along `heading`.
+
+    **Arguments:**
+    - `start`, `velocity`: `(3,)` (m, m/s).
+    - `heading`: the desired body `e1`, a unit `(3,)` vector (default `e1`).
+    """
+
+    start: jax.Array = eqx.field(converter=base.as_float)
+    velocity: jax.Array = eqx.field(converter=base.as_float)
+    heading: jax.Array = eqx.field(default=(1.0, 0.0, 0.0), converter=base.as_float)
+
+    def __check_init__(self):
+        base.check_vector("start", self.start)
+        base.check_vector("velocity", self.velocity)
+        base.check_vector("heading", self.heading, unit=True)
+
+    def __call__(self, t):
+        return self.start + t * self.velocity, self.heading
+
+
+class Circle(AbstractCommand):
+    """Fly the horizontal circle `center + radius (cos(w t + phase), sin(w t + phase), 0)`,
+    heading along `heading`.
+
+    **Arguments:**
+    - `center`: `(3,)` (m).
+    - `radius`: (m, `> 0`).
+    - `angular_frequency`: `w` (rad/s).
+    - `phase`: (rad).
+    - `heading`: the desired body `e1`, a unit `(3,)` vector (default `e1`).
+    """
+
+    center: jax.Array = eqx.field(converter=base.as_float)
+    radius: jax.Array = eqx.field(converter=base.as_float)
+    angular_frequency: jax.Array = eqx.field(converter=base.as_float)
+    phase: jax.Array = eqx.field(default=0.0, converter=base.as_float)
+    heading: jax.Array = eqx.field(default=(1.0, 0.0, 0.0), converter=base.as_float)
+
+    def __check_init__(self):
+        base.check_vector("center", self.center)
+        base.check_sign("radius", self.radius, " (m)", scalar=True)
+        base.check_shape("angular_frequency", self.angular_frequency, (), "a scalar")
+        base.check_shape("phase", self.phase, (), "a scalar")
+        base.check_vector("heading", self.heading, unit=True)
+
+    def __call__(self, t):
+        angle = self.angular_frequency * t + self.phase
+        offset = jnp.stack([jnp.cos(angle), jnp.sin(angle), jnp.zeros_like(angle)])
+        return self.center + self.radius * offset, self.heading
+
+
+def _derivatives(f, t, order: int):
+    """`f(t), f'(t), ..., f^(order)(t)` by nested forward-mode autodiff."""
+    if order == 0:
+        return (f(t),)
+    inner = lambda s: _derivatives(f, s, order - 1)
+    values, tangents = jax.jvp(inner, (t,), (jnp.ones_like(t),))
+    return (*values, tangents[-1])
+
+
+def _unit(x):
+    return x / jnp.linalg.norm(x)
+
+
+class GeometricControl(AbstractDrive):
+    """The geometric tracking controller on SE(3) of Lee, Leok and McClamroch (2010), for
+    `Rotors` (`(f, M)`), in a frame whose `e3` points up (thrust `f R e3`, gravity `-g e3`):
+
+    `F = -kx e_x - kv e_v + m g e3 + m xddot_d`, `f = F . R e3`; the command attitude
+    `R_c = [b2 x b3, b2, b3]`, `b3 = F / |F|`, `b2 = b3 x b1_d / |b3 x b1_d|`;
+    `e_R = vee(R_c^T R - R^T R_c) / 2`, `e_Omega = Omega - R^T R_c Omega_c`;
+    `M = -kR e_R - kOmega e_Omega + Omega x J Omega - J (hat(Omega) R^T R_c Omega_c -
+    R^T R_c Omegadot_c)`. `Omega_c` and `Omegadot_c` are the first and second time
+    derivatives of `R_c`, taken by autodiff along the controller's model of the flight
+    (the rigid body alone: `xddot = -g e3 + f R e3 / m`, `Rdot = R hat(Omega)`), and the
+    command's derivatives too: nothing is differentiated by hand.
+
+    **Arguments:**
+    - `mass`, `inertia`: the controller's model of the vehicle (kg; `(3,)` or `(3, 3)`
+      kg m^2), e.g. the body plus the payload it carries as `mass`.
+    - `kx`, `kv`, `kR`, `kOmega`: the gains (`> 0`).
+    - `command`: an `AbstractCommand` (`Hover`, `Line`, `Circle`) or any function
+      `command(t) -> (x_d, b1_d)`.
+    - `g`: gravity (m/s^2, default 9.81).
+    """
+
+    mass: jax.Array = eqx.field(converter=base.as_float)
+    inertia: jax.Array = eqx.field(converter=inertia_matrix)
+    kx: jax.Array = eqx.field(converter=base.as_float)
+    kv: jax.Array = eqx.field(converter=base.as_float)
+    kR: jax.Array = eqx.field(converter=base.as_float)
+    kOmega: jax.Array = eqx.field(converter=base.as_float)
+    command: AbstractCommand | Callable = Hover()
+    g: jax.Array = eqx.field(default=9.81, converter=base.as_float)
+
+    def __check_init__(self):
+        base.check_sign("mass", self.mass, " (kg)", scalar=True)
+        base.check_shape("inertia", self.inertia, (3, 3), "three principal moments or (3, 3)")
+        for name in ("kx", "kv", "kR", "kOmega"):
+            base.check_sign(name, getattr(self, name), "", scalar=True)
+        base.check_sign("g", self.g, " (m/s^2)", strict=False, scalar=True)
+
+    def check(self, scene):
+        if scene.rigid_body is None:
+            raise ParameterError("", "GeometricControl needs a RigidBase in the scene")
+
+    def thrust_vector(self, t, x, v):
+        """The force the thrust should give and the heading the command asks for.
+
+        **Arguments:**
+        - `t`, `x`, `v`: time, the centre of mass and its velocity `(3,)`.
+
+        **Returns:** `(F, b1_d)`, `(3,)` each (world axes)."""
+        (x_d, b1_d), (v_d, _), (a_d, _) = _derivatives(self.command, t, 2)
+        e3 = jnp.asarray(E3, x.dtype)
+        F = -self.kx * (x - x_d) - self.kv * (v - v_d) + self.mass * (self.g * e3 + a_d)
+        return F, b1_d
+
+    def command_attitude(self, t, x, v):
+        """The command attitude `R_c = [b2 x b3, b2, b3]`.
+
+        **Arguments:**
+        - `t`, `x`, `v`: time, the centre of mass and its velocity `(3,)`.
+
+        **Returns:** `R_c`, `(3, 3)`."""
+        F, b1_d = self.thrust_vector(t, x, v)
+        b3 = _unit(F)
+        b2 = _unit(jnp.cross(b3, b1_d))
+        return jnp.stack([jnp.cross(b2, b3), b2, b3], axis=-1)
+
+    def __call__(self, t, q, qdot, args):
+        x, v = chain_parts(q)[0], chain_parts(qdot)[0]
+        R, Rdot = chain_attitude(q)[0], chain_attitude(qdot)[0]
+        Omega = vee(R.T @ Rdot)
+        t = jnp.asarray(t, x.dtype)
+        m, J = self.mass.astype(x.dtype), self.inertia.astype(x.dtype)
+
+        def flow(z):  # the controller's model: (t, x, v, R) move as the body alone would
+            t_, x_, v_, R_ = z
+            F, _ = self.thrust_vector(t_, x_, v_)
+            e3 = R_[:, 2]
+            a = (F @ e3) * e3 / m - self.g * jnp.asarray(E3, x.dtype)
+            return jnp.ones_like(t_), v_, a, R_ @ hat(Omega)
+
+        Rc = lambda z: self.command_attitude(z[0], z[1], z[2])
+        Rc_dot = lambda z: jax.jvp(Rc, (z,), (flow(z),))[1]
+        z = (t, x, v, R)
+        R_c, (Rc_d, Rc_dd) = Rc(z), jax.jvp(Rc_dot, (z,), (flow(z),))
+        Omega_c, Omegadot_c = vee(R_c.T @ Rc_d), vee(R_c.T @ Rc_dd)
+        F, _ = self.thrust_vector(t, x, v)
+        e_R = 0.5 * vee(R_c.T @ R - R.T @ R_c)
+        e_Omega = Omega - R.T @ R_c @ Omega_c
+        M = (
+            -self.kR * e_R
+            - self.kOmega * e_Omega
+            + jnp.cross(Omega, J @ Omega)
+            - J @ (hat(Omega) @ R.T @ R_c @ Omega_c - R.T @ R_c @ Omegadot_c)
+        )
+        return jnp.concatenate([(F @ R[:, 2])[None], M])
