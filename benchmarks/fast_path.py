@@ -21,7 +21,8 @@ fixed step `--dt`, default 1e-3, from a chain released near its hanging position
 systems take) for n <= 32, checked to agree with the O(n) path.
 
 Third table (`--base`, alone): the same chains hanging from a moving base (a drone: a
-`Base` point mass in space, and a cart: a `Base` on a line), the scene's O(n) fast path
+`Base` point mass in space; a cart: a `Base` on a line; a rigid body: a `RigidBase` with
+an attitude, the chain hung 5 cm from its centre of mass), the scene's O(n) fast path
 against its general autodiff twin (the same energies through `sm.Lagrangian` on the
 product space) and against the fixed-pivot chain of the same n, per acceleration
 evaluation as in the first table. Writes benchmarks/results/fast_path_base.md.
@@ -31,6 +32,7 @@ evaluation as in the first table. Writes benchmarks/results/fast_path_base.md.
 """
 
 import argparse
+import os
 
 import equinox as eqx
 import jax
@@ -38,7 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 
 jax.config.update("jax_enable_x64", True)
-from _harness import publish, pyplot, save_figure, table, timing  # noqa: E402
+from _harness import machine, publish, pyplot, save_figure, table, timing  # noqa: E402
 
 import sphere_mech as sm  # noqa: E402
 
@@ -56,12 +58,20 @@ def make_systems(n):
     return chain, general
 
 
-def base_systems(n, axes):
-    """A chain (tip force, gravity) hanging from a `Base` moving along `axes`, and the
-    same energies and forces through the general path on the product space."""
+BASES = {
+    "drone": lambda: sm.Base(1.5),
+    "cart": lambda: sm.Base(1.5, axes=[[1.0, 0.0, 0.0]]),
+    "rigid body": lambda: sm.RigidBase(1.5, [0.02, 0.02, 0.04], attach=[0.0, 0.0, -0.05]),
+}
+"""The moving bases of the third table."""
+
+
+def base_systems(n, base):
+    """A chain (tip force, gravity) hanging from `base`, and the same energies and forces
+    through the general path on the product space."""
     rng = np.random.default_rng(n)
     scene = sm.Scene(
-        sm.Base(1.5, axes=axes),
+        base,
         sm.Chain(rng.uniform(0.5, 2.0, n), rng.uniform(0.5, 2.0, n)),
         sm.Gravity(9.81),
         sm.TipForce(jnp.array([0.5, 0.0, -0.4])),
@@ -79,11 +89,14 @@ def base_rows(ns, batch, repeats):
         s, sdot = jax.vmap(lambda k, n=n: sm.random_state(k, n))(keys)
         fixed, _ = make_systems(n)
         pivot, _ = time_per_evaluation(batched_rates(fixed), s, sdot, repeats)
-        for name, axes in (("drone", np.eye(3)), ("cart", [[1.0, 0.0, 0.0]])):
-            m = len(axes)
-            x = jax.random.normal(keys[0], (batch, m))
+        for name, make in BASES.items():
+            scene, general = base_systems(n, make())
+            x = jax.random.normal(keys[0], (batch, scene.base.m))
             q, v = {"base": x, "spheres": s}, {"base": x[:, ::-1], "spheres": sdot}
-            scene, general = base_systems(n, axes)
+            if scene.rigid_body is not None:
+                R = jax.vmap(sm.rotation_matrix)(jax.random.normal(keys[1], (batch, 3)))
+                Omega = jax.random.normal(keys[2], (batch, 3))
+                q["attitude"], v["attitude"] = R[:, None], (R @ sm.hat(Omega))[:, None]
             fast_fn, general_fn = batched_rates(scene), batched_rates(general)
             fast, _ = time_per_evaluation(fast_fn, q, v, repeats)
             slow, _ = time_per_evaluation(general_fn, q, v, repeats)
@@ -102,11 +115,14 @@ def base_rows(ns, batch, repeats):
     return rows
 
 
-def base_table(rows, batch, repeats):
+def base_table(rows, batch, repeats, where):
     header = (
-        f"Chains on a moving base: acceleration evaluations, float64, jit(vmap) over a batch "
+        f"Chains on a moving base ({where}): acceleration evaluations, float64, jit(vmap) "
+        f"over a batch "
         f"of {batch} states, median of {repeats} repeats. Drone: a `Base` in space; cart: "
-        "a `Base` on a line. General path: the same energies and forces through "
+        "a `Base` on a line; rigid body: a `RigidBase` (mass 1.5 kg, inertia diag(0.02, "
+        "0.02, 0.04) kg m^2, the chain hung 5 cm below its centre of mass). General path: "
+        "the same energies and forces through "
         "`sm.Lagrangian` on the product space; fixed pivot: the chain of the same n without "
         "a base, in the same run.\n\n"
     )
@@ -234,8 +250,10 @@ def main():
     ns = [1, 2, 4, 8] if opts.quick else [1, 2, 4, 8, 16, 32, 64]
     repeats = 5 if opts.quick else 20
     if opts.base:
+        loads = [os.getloadavg()[0]]
         rows = base_rows(ns, opts.batch, repeats)
-        publish(base_table(rows, opts.batch, repeats), "fast_path_base.md")
+        loads.append(os.getloadavg()[0])
+        publish(base_table(rows, opts.batch, repeats, machine(loads)), "fast_path_base.md")
         return
     rows = []
     for n in ns:

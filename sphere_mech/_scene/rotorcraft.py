@@ -43,9 +43,11 @@ def mixing_matrix(arm: jax.Array, torque_coefficient: jax.Array) -> jax.Array:
 
 class Rotors(AbstractForce):
     """Four rotors on the scene's `RigidBase` in the `+` layout (`mixing_matrix`): the
-    commanded total thrust `f` and body moments `M` are mixed into the four rotor thrusts,
-    each saturated to `[min_thrust, max_thrust]`, and mixed back: the body feels the
-    thrust `f R e3` at its centre of mass (`e3` the body axis, up) and the moment `M`.
+    commanded total thrust `f` and body moments `M` are allocated to the four rotors (with
+    the flight controller's model of the rotors, by default the rotors themselves), each
+    thrust saturated to `[min_thrust, max_thrust]`, and the rotors' own mixing gives what
+    the body feels: the thrust `f R e3` at its centre of mass (`e3` the body axis, up) and
+    the moment `M`.
 
     **Arguments:**
     - `command`: `(f, M1, M2, M3)` (N, N m): a constant `(4,)` vector or a function
@@ -55,6 +57,9 @@ class Rotors(AbstractForce):
     - `torque_coefficient`: `c`, the yaw moment per unit thrust (m, `> 0`).
     - `min_thrust`, `max_thrust`: each rotor's bounds (N; default 0 and no upper bound;
       `None`: unbounded, as in the controller's published analysis).
+    - `model_arm`, `model_torque_coefficient`: the rotors as the allocation knows them
+      (default: `arm` and `torque_coefficient`, an exact allocation); a different value
+      is a model error, such as one a fit recovers.
     """
 
     command: jax.Array | Callable
@@ -62,21 +67,39 @@ class Rotors(AbstractForce):
     torque_coefficient: jax.Array
     min_thrust: jax.Array | None
     max_thrust: jax.Array | None
+    model_arm: jax.Array | None
+    model_torque_coefficient: jax.Array | None
 
-    def __init__(self, command, arm, torque_coefficient, min_thrust=0.0, max_thrust=None):
+    def __init__(
+        self,
+        command,
+        arm,
+        torque_coefficient,
+        min_thrust=0.0,
+        max_thrust=None,
+        model_arm=None,
+        model_torque_coefficient=None,
+    ):
         if not callable(command):
             command = base.as_float(command)
             base.check_shape("command", command, (4,), "a (4,) vector (f, M1, M2, M3)")
             base.check_magnitude("command", command)
         self.command = command
         self.arm, self.torque_coefficient = base.as_float(arm), base.as_float(torque_coefficient)
-        self.min_thrust, self.max_thrust = (
-            None if x is None else base.as_float(x) for x in (min_thrust, max_thrust)
+        self.min_thrust, self.max_thrust, self.model_arm, self.model_torque_coefficient = (
+            None if x is None else base.as_float(x)
+            for x in (min_thrust, max_thrust, model_arm, model_torque_coefficient)
         )
 
     def __check_init__(self):
         base.check_sign("arm", self.arm, " (m)", scalar=True)
         base.check_sign("torque_coefficient", self.torque_coefficient, " (m)", scalar=True)
+        for name, x in (
+            ("model_arm", self.model_arm),
+            ("model_torque_coefficient", self.model_torque_coefficient),
+        ):
+            if x is not None:
+                base.check_sign(name, x, " (m)", scalar=True)
         for name in ("min_thrust", "max_thrust"):
             if getattr(self, name) is not None:
                 base.check_shape(name, getattr(self, name), (), "a scalar")
@@ -92,14 +115,16 @@ class Rotors(AbstractForce):
         _check_drive("command", self.command, scene, (4,))
 
     def thrusts(self, wrench: jax.Array) -> jax.Array:
-        """The four rotor thrusts of `(f, M)`, saturated.
+        """The four rotor thrusts the allocation gives `(f, M)`, saturated.
 
         **Arguments:**
         - `wrench`: `(f, M1, M2, M3)`, `(4,)` (N, N m).
 
         **Returns:** `(4,)` thrusts (N)."""
-        A = mixing_matrix(self.arm, self.torque_coefficient).astype(wrench.dtype)
-        f = dense_solve(A, wrench)
+        arm = self.arm if self.model_arm is None else self.model_arm
+        c = self.torque_coefficient
+        c = c if self.model_torque_coefficient is None else self.model_torque_coefficient
+        f = dense_solve(mixing_matrix(arm, c).astype(wrench.dtype), wrench)
         f = f if self.min_thrust is None else jnp.maximum(f, self.min_thrust)
         return f if self.max_thrust is None else jnp.minimum(f, self.max_thrust)
 
