@@ -138,17 +138,20 @@ def rotation_to(q):
     return np.eye(3) + K + K @ K / (1.0 + c)
 
 
-def joint_state(q, v, base=None, base_v=None):
+def joint_state(q, v, base=None, base_v=None, parent=None, parent_omega=None):
     """Joint coordinates `(qpos, qvel)` of a batch of chain states `(q, v)`: one
     quaternion per ball joint (relative to its parent link) and the relative angular
     velocity in the child's frame; before them the slide joints' positions `base` and
     velocities `base_v` (`(batch, m)`) when the chain hangs from a sliding base, which
-    translates only, so the first link's parent frame is the world's."""
+    translates only, so the first link's parent frame is the world's. A chain hanging
+    from a rotating body: its rotation `parent` `(batch, 3, 3)` and world angular velocity
+    `parent_omega` `(batch, 3)` (the body's own joint is the caller's)."""
     q, v = np.asarray(q, dtype=float), np.asarray(v, dtype=float)
     batch, n = q.shape[:2]
     qpos, qvel = np.zeros((batch, 4 * n)), np.zeros((batch, 3 * n))
     for b in range(batch):
-        R_prev, w_prev = np.eye(3), np.zeros(3)
+        R_prev = np.eye(3) if parent is None else np.asarray(parent[b], dtype=float)
+        w_prev = np.zeros(3) if parent_omega is None else np.asarray(parent_omega[b], float)
         for i in range(n):
             R = rotation_to(q[b, i])
             quat = np.zeros(4)

@@ -113,8 +113,7 @@ class AbstractFastPath(AbstractLagrangianSystem):
         else:
             inverse = _Banded(*(b.astype(s.dtype) for b in bands), s)
         if self.rigid_body is not None:
-            body = self.rigid_body
-            return _RigidRow(inverse, body, chain_attitude(q)[0]).solver(self, body)
+            return _RigidRow(inverse, self.rigid_body, chain_attitude(q)[0]).solver(self)
         if self.base_axes is not None:
             inverse = _BaseRow(inverse, self.base_axes.astype(s.dtype))
 
@@ -271,17 +270,20 @@ class _RigidRow(eqx.Module):
     inverse: _AbstractInverse
     u: jax.Array
     R: jax.Array
+    mass: jax.Array
     J: jax.Array
+    Jinv: jax.Array
     d: jax.Array
     K: jax.Array
 
     def __init__(self, inverse, body, R):
-        dtype = R.dtype
-        self.R, self.J, self.d = R, body.inertia.astype(dtype), body.attach.astype(dtype)
+        self.R, self.mass = R, body.mass.astype(R.dtype)
+        self.J, self.d = body.inertia.astype(R.dtype), body.attach.astype(R.dtype)
+        self.Jinv = spd_solve(self.J, jnp.eye(3, dtype=R.dtype))  # factorized once
         column = inverse.base_column()
         self.u = column / column[0]
         lever = R @ hat(self.d)
-        self.K = lever @ spd_solve(self.J, lever.T)
+        self.K = lever @ self.Jinv @ lever.T
         self.inverse = inverse.with_schur_update(self.u[1:], self.K)
 
     def total(self, x):
@@ -292,21 +294,20 @@ class _RigidRow(eqx.Module):
         """Rows `z` (`[f_x, spheres]`), the body torque about the centre of mass, the
         spheres' `q_i . x_i` and the joint's known acceleration: `(F, Omegadot, spheres)`,
         `F` the force on the body (`xddot = F / m_b`)."""
-        inverse, s, R, J, d = self.inverse, self.inverse.s, self.R, self.J, self.d
+        inverse, s, R, Jinv, d = self.inverse, self.inverse.s, self.R, self.Jinv, self.d
         torque = torque - jnp.cross(d, R.T @ z[0])
-        b = jnp.cross(R @ spd_solve(J, torque), R @ d) + joint
+        b = jnp.cross(R @ (Jinv @ torque), R @ d) + joint
         y = self.total(z) + self.u[:, None] * b
         r = -jnp.sum(s * y[1:], axis=-1)
         lam = inverse.schur_solve(r + target)
         pulls = jnp.concatenate([jnp.zeros_like(s[:1]), lam[:, None] * s])
         F = self.u @ (z + pulls)
-        return F, spd_solve(J, torque + jnp.cross(d, R.T @ F)), (y + self.total(pulls))[1:]
+        return F, Jinv @ (torque + jnp.cross(d, R.T @ F)), (y + self.total(pulls))[1:]
 
-    def solver(self, system, body: RigidBody) -> Callable:
+    def solver(self, system) -> Callable:
         """The fast path's solve `(rhs, qdot=None)` (see `multiplier_solver`)."""
         R, J, d = self.R, self.J, self.d
         rotation = chain_attitude(system.space.factors)
-        mass = body.mass.astype(R.dtype)
 
         def solve(rhs, qdot=None):
             torque = rotation.from_covector(R[None], chain_attitude(rhs))[0]
@@ -322,7 +323,7 @@ class _RigidRow(eqx.Module):
             if qdot is not None:
                 normal = rotation.normal_acceleration(R[None], chain_attitude(qdot))
                 attitude = attitude - normal
-            return chain_state(F / mass, spheres, attitude)
+            return chain_state(F / self.mass, spheres, attitude)
 
         return solve
 
