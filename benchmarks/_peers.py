@@ -130,6 +130,16 @@ def chain_xml(lengths, masses, base_mass=None, slides=(), actuators="", inertia=
     )
 
 
+def hanging_links(rng, batch, n):
+    """Random chain states: links within 60 degrees of -e3 (uniform in the cap), tangent
+    velocities of about 0.5 rad/s a component. **Returns:** `(q, v)`, `(batch, n, 3)` each."""
+    cos_t = rng.uniform(np.cos(np.pi / 3), 1.0, (batch, n))
+    phi = rng.uniform(0.0, 2 * np.pi, (batch, n))
+    sin_t = np.sqrt(1 - cos_t**2)
+    q = np.stack([sin_t * np.cos(phi), sin_t * np.sin(phi), -cos_t], axis=-1)
+    return q, sm.project(jnp.asarray(q), jnp.asarray(rng.normal(0.0, 0.5, (batch, n, 3))))
+
+
 def rotation_to(q):
     """The rotation matrix turning -e3 into the unit vector q (about -e3 x q)."""
     a = np.array([0.0, 0.0, -1.0])

@@ -160,11 +160,7 @@ def random_states(kind, batch, seed=0):
     """Links within 60 degrees of -e3, the base within 0.1 m of 0, small velocities."""
     s, rng = SYSTEMS[kind], np.random.default_rng(seed)
     m, n = len(s.axes), len(s.lengths)
-    cos_t = rng.uniform(np.cos(np.pi / 3), 1.0, (batch, n))
-    phi = rng.uniform(0.0, 2 * np.pi, (batch, n))
-    sin_t = np.sqrt(1 - cos_t**2)
-    q = np.stack([sin_t * np.cos(phi), sin_t * np.sin(phi), -cos_t], axis=-1)
-    v = sm.project(jnp.asarray(q), jnp.asarray(rng.normal(0.0, 0.5, (batch, n, 3))))
+    q, v = peers.hanging_links(rng, batch, n)
     dtype = jnp.zeros(()).dtype
     q0 = {"base": rng.uniform(-0.1, 0.1, (batch, m)), "spheres": q}
     v0 = {"base": rng.normal(0.0, 0.1, (batch, m)), "spheres": v}

@@ -130,11 +130,7 @@ def random_states(n, batch, seed=0):
     yaw = rng.uniform(0, 2 * np.pi, (batch, 1)) * np.array([0.0, 0.0, 1.0])
     R = jax.vmap(lambda a, b: sm.rotation_matrix(a) @ sm.rotation_matrix(b))(tilt, yaw)
     Omega = rng.normal(0.0, 0.5, (batch, 3))
-    cos_t = rng.uniform(np.cos(np.pi / 3), 1.0, (batch, n))
-    phi = rng.uniform(0.0, 2 * np.pi, (batch, n))
-    sin_t = np.sqrt(1 - cos_t**2)
-    s = np.stack([sin_t * np.cos(phi), sin_t * np.sin(phi), -cos_t], axis=-1)
-    sdot = sm.project(jnp.asarray(s), jnp.asarray(rng.normal(0.0, 0.5, (batch, n, 3))))
+    s, sdot = peers.hanging_links(rng, batch, n)
     dtype = jnp.zeros(()).dtype
     q = {"attitude": R[:, None], "base": rng.uniform(-0.1, 0.1, (batch, 3)), "spheres": s}
     v = {

@@ -11,7 +11,7 @@ import pytest
 from helpers import G, jaxpr_equations
 from scipy.integrate import solve_ivp
 from test_base_scenes import DENSE_PRIMITIVES, general_twin, max_abs_diff
-from test_scenes import TWO_LINKS, _file
+from test_scenes import RIGID_SCENE, TORQUE, _file
 
 import sphere_mech as sm
 from sphere_mech._solvers.discrete_mechanics import substep
@@ -223,31 +223,6 @@ def test_rigid_base_rejects_bad_input(make, match):
         make()
 
 
-RIGID_SCENE = """
-[[effects]]
-type = "rigid_base"
-mass = 0.5
-inertia = [0.00557, 0.00557, 0.0105]
-attach = [0.0, 0.0, -0.05]
-[[effects]]
-type = "chain"
-masses = 0.02
-lengths = 0.2
-links = 3
-[[effects]]
-type = "gravity"
-{extra}
-[initial]
-polar_deg = 170.0
-azimuth_deg = 0.0
-attitude = [[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]
-angular_velocity = [0.1, 0.2, 0.3]
-[simulate]
-t1 = 0.5
-{simulate}
-"""
-
-
 def test_rigid_base_scene_file(tmp_path):
     """A file builds the Python scene, and its initial attitude and body angular
     velocity are the state's `R` and `Rdot = R hat(Omega)`."""
@@ -266,32 +241,6 @@ def test_rigid_base_scene_file(tmp_path):
     assert np.array_equal(q["attitude"][0], R)
     assert np.allclose(v["attitude"][0], R @ sm.hat(jnp.array([0.1, 0.2, 0.3])), atol=1e-15)
     assert np.array_equal(q["base"], np.zeros(3))
-
-
-TORQUE = '[[effects]]\ntype = "body_torque"\ntorque = {}'
-RIGID_CASES = {  # name: (Python, what the file changes, the field the file error names)
-    "inertia off the triangle inequality": (
-        lambda: sm.RigidBase(0.5, [0.001, 0.001, 0.0105]),
-        dict(replace={"inertia = [0.00557, 0.00557, 0.0105]": "inertia = [0.001, 0.001, 0.0105]"}),
-        "effects[0].inertia",
-    ),
-    "body torque without a rigid base": (
-        lambda: sm.Scene(sm.Chain(1.0, 1.0, links=2), sm.Gravity(), sm.BodyTorque([0.0, 0.0, 1.0])),
-        dict(template=TWO_LINKS, extra=TORQUE.format("[0.0, 0.0, 1.0]")),
-        "effects[2]",
-    ),
-}
-
-
-@pytest.mark.parametrize("case", list(RIGID_CASES))
-def test_rigid_base_python_and_files_reject_with_the_same_words(case, tmp_path):
-    build, change, field = RIGID_CASES[case]
-    with pytest.raises(ValueError) as python:
-        build()
-    path = _file(tmp_path, **{"template": RIGID_SCENE, **change})
-    with pytest.raises(sm.SceneFileError) as file:
-        sm.load_scene(path)
-    assert str(file.value) == f"{path}: {field}: {python.value}"
 
 
 def test_rigid_base_initial_attitude_must_be_a_rotation(tmp_path):

@@ -493,6 +493,32 @@ def _file(tmp_path, extra="", simulate="", replace=None, template=TWO_LINKS):
     return path
 
 
+RIGID_SCENE = """
+[[effects]]
+type = "rigid_base"
+mass = 0.5
+inertia = [0.00557, 0.00557, 0.0105]
+attach = [0.0, 0.0, -0.05]
+[[effects]]
+type = "chain"
+masses = 0.02
+lengths = 0.2
+links = 3
+[[effects]]
+type = "gravity"
+{extra}
+[initial]
+polar_deg = 170.0
+azimuth_deg = 0.0
+attitude = [[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]
+angular_velocity = [0.1, 0.2, 0.3]
+[simulate]
+t1 = 0.5
+{simulate}
+"""
+
+
+TORQUE = '[[effects]]\ntype = "body_torque"\ntorque = {}'
 M2, L2 = "masses = [1.0, 1.0]", "lengths = [1.0, 1.0]"
 CART_BASE = lambda: sm.Base(1.0, axes=[[1.0, 0.0, 0.0]])  # noqa: E731
 CART_CHAIN = sm.Chain(0.5, 0.8)
@@ -596,6 +622,19 @@ CASES = {  # name: (Python, what the file changes, the field the file error name
             ),
         ),
         "effects[2].force",
+    ),
+    "inertia off the triangle inequality": (
+        lambda: sm.RigidBase(0.5, [0.001, 0.001, 0.0105]),
+        dict(
+            template=RIGID_SCENE,
+            replace={"inertia = [0.00557, 0.00557, 0.0105]": "inertia = [0.001, 0.001, 0.0105]"},
+        ),
+        "effects[0].inertia",
+    ),
+    "body torque without a rigid base": (
+        lambda: sm.Scene(sm.Chain(1.0, 1.0, links=2), sm.Gravity(), sm.BodyTorque([0.0, 0.0, 1.0])),
+        dict(extra=TORQUE.format("[0.0, 0.0, 1.0]")),
+        "effects[2]",
     ),
     "negative pd gain": (
         lambda: sm.PDPosition(-1.0),
