@@ -234,11 +234,14 @@ def undocumented(api_markdown: str | None = None) -> list[str]:
 # --- The scene-file reference -----------------------------------------------------------
 
 
-def _toml(value) -> str:
+def _toml(value, files) -> str:
     if value is inspect.Parameter.empty:
         return "required"
     if value is None:
         return "optional"
+    kind = next((k for k, cls in files.COMMANDS.items() if type(value) is cls), None)
+    if kind is not None:  # a default command: its table with its own defaults
+        return f'`{{ type = "{kind}" }}`'
     return f"`{_plain(value)}`"
 
 
@@ -259,7 +262,7 @@ def _effect_table(kind: str, cls, files) -> str:
     cell = lambda text: text.replace("|", "\\|")
     rows = [
         f"| `{field}` | {' or '.join(files.KINDS[k][0] for k in kinds)} | "
-        f"{_toml(default)} | {cell(fields.get(field, ''))} |"
+        f"{_toml(default, files)} | {cell(fields.get(field, ''))} |"
         for field, (kinds, default) in schema_of.items()
     ]
     return "\n".join(
@@ -286,6 +289,10 @@ def scene_file_reference() -> str:
         f"| `{key}` | {what}, with a `base` effect (default zeros) |"
         for key, what in files.BASE_INITIAL.items()
     ]
+    initial += [
+        f"| `{key}` | {what}, with a `rigid_base` effect (default: the identity, zero) |"
+        for key, what in files.ATTITUDE_INITIAL.items()
+    ]
     simulate = [f"| `{key}` | {what} |" for key, what in files.SIMULATE.items()]
     return "\n".join(
         [
@@ -295,16 +302,21 @@ def scene_file_reference() -> str:
             "types: " + ", ".join(f"`{k}`" for k in files.EFFECTS) + ". Controllers (inline "
             "tables where Python takes a function): "
             + ", ".join(f"`{k}`" for k in files.DRIVES)
+            + ". Flight commands (inline tables in `geometric_control`'s `command`): "
+            + ", ".join(f"`{k}`" for k in files.COMMANDS)
             + ".",
             "",
             *(_effect_table(kind, cls, files) for kind, cls in files.EFFECTS.items()),
             *(_effect_table(kind, cls, files) for kind, cls in files.DRIVES.items()),
+            *(_effect_table(kind, cls, files) for kind, cls in files.COMMANDS.items()),
             "### Initial state (`[initial]`)",
             "",
             "Either `q` (and optionally `qdot`), or `polar_deg` and `azimuth_deg` with optional "
             "rates; each one value for every sphere or a list with one per sphere. With a "
             "`base` effect, also `base` and `base_velocity`, one number per axis of the base "
-            '(the state is then `{"base": (m,), "spheres": (n, 3)}`).',
+            '(the state is then `{"base": (m,), "spheres": (n, 3)}`); with a `rigid_base`, '
+            "`base` and `base_velocity` (3 numbers) and `attitude` and `angular_velocity` "
+            '(the state is then `{"attitude": (1, 3, 3), "base": (3,), "spheres": (n, 3)}`).',
             "",
             "| key | expected |",
             "|---|---|",

@@ -119,6 +119,8 @@ def schema(cls) -> dict[str, tuple[tuple, object]]:
     for name, p in inspect.signature(cls).parameters.items():
         kind = fields[name] if p.annotation in (p.empty, typing.Any) else p.annotation
         kinds = typing.get_args(kind) if isinstance(kind, types.UnionType) else (kind,)
+        if rotorcraft.AbstractCommand in kinds:  # a file gives a command's table, not a drive
+            kinds = (rotorcraft.AbstractCommand,)
         out[name] = (tuple(k for k in kinds if k is not types.NoneType), p.default)
     return out
 

@@ -112,11 +112,12 @@ def test_notebooks_render_with_their_outputs(site):
 
 def test_scene_file_reference_lists_every_effect_and_field(site):
     html = (site / "scenes" / "index.html").read_text()
-    for kind, cls in (_scene_files.EFFECTS | _scene_files.DRIVES).items():
+    for kind, cls in (_scene_files.EFFECTS | _scene_files.DRIVES | _scene_files.COMMANDS).items():
         assert f"<code>{kind}</code>" in html, kind
         for field in _scene_files.schema(cls):
             assert f"<td><code>{field}</code></td>" in html, (kind, field)
-    for key in [*_scene_files.INITIAL, *_scene_files.BASE_INITIAL, *_scene_files.SIMULATE]:
+    initial = [*_scene_files.INITIAL, *_scene_files.BASE_INITIAL, *_scene_files.ATTITUDE_INITIAL]
+    for key in [*initial, *_scene_files.SIMULATE]:
         assert f"<td><code>{key}</code></td>" in html, key
 
 
