@@ -43,6 +43,7 @@ def _artists(ax, skel: Skeleton) -> tuple:
     marker = "" if max([len(link) for link in skel.links] + [0]) > 9 else "o"
     link = dict(color="k", lw=1.4, marker=marker, ms=4, mfc="tab:blue", markevery=slice(1, None))
     links = [line("-", **link) for _ in skel.links]
+    links += [line("-", color="tab:blue", lw=2.6) for _ in skel.frame]  # a rigid base's arms
     tips, bases = line("o", color="tab:red", ms=5), line("ks", ms=7)
     n_trails = len(skel.tips) if len(skel.tips) <= 8 else 0
     trails = [line("-", lw=0.8, alpha=0.7, color=f"C{k}") for k in range(n_trails)]
@@ -72,7 +73,7 @@ def render(
     overlays, trail = [], max(2, round(TRAIL * len(idx)))
     for f in range(len(idx)):
         canvas.restore_region(still)
-        for line, link in zip(links, skel.links, strict=True):
+        for line, link in zip(links, skel.links + skel.frame, strict=True):
             line.set_data_3d(*pts[f, link].T)
         tips.set_data_3d(*pts[f, skel.tips].T)
         bases.set_data_3d(*pts[f, skel.bases].T)

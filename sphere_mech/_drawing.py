@@ -13,13 +13,15 @@ from ._scene.scene import Scene
 class Skeleton:
     """`anchors`: `(k, 3)` fixed points; `links`: polylines as indices into `points(x)`
     (anchors, then the points of `x`); `spheres`: `(centre, radius)` of shared spheres;
-    `free`: masses on no link; `bases`: indices into `points(x)` of moving bases."""
+    `free`: masses on no link; `bases`: indices into `points(x)` of moving bases; `frame`:
+    polylines of a rigid base's arms (indices into `points(x)`)."""
 
     anchors: np.ndarray
     links: tuple[np.ndarray, ...]
     spheres: tuple[tuple[np.ndarray, float], ...]
     free: np.ndarray
     bases: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=int))
+    frame: tuple[np.ndarray, ...] = ()
 
     def points(self, x: np.ndarray) -> np.ndarray:
         """Anchors and masses, `(..., k + n, 3)`, from positions `x` of shape `(..., n, 3)`."""
@@ -47,18 +49,21 @@ def _anchor(anchors: list, point) -> int:
 
 
 def skeleton(system, n: int) -> Skeleton:
-    """The skeleton of a `Scene`'s `points(q)` from its kinetic terms' `drawing()` (links
-    from the moving `Base` where it has one); of any other system, `n` points on the unit
-    sphere."""
+    """The skeleton of a `Scene`'s `drawn_points(q)` from its kinetic terms' `drawing()`
+    (links from the moving base where it has one: a `RigidBase`'s joint, its arms drawn as
+    `frame`); of any other system, `n` points on the unit sphere."""
     if not isinstance(system, Scene):
         return Skeleton(np.zeros((1, 3)), (), ((np.zeros(3), 1.0),), np.arange(n))
     anchors, links, spheres, free = [], [], [], []
     bases = [] if system.base is None else [0]  # points(q): the base's point first
     offset = len(bases)
+    rigid = system.rigid_body is not None
+    joint = 1 + system.n  # drawn_points(q): after points(q), a rigid base's joint and arms
+    start_of = lambda support: [joint] if rigid else bases or [_anchor(anchors, support)]
     for k in system.kinetic:
         k_links, k_spheres, k_free = k.drawing()
         for support, masses in k_links:
-            start = bases or [_anchor(anchors, support)]
+            start = start_of(support)
             links.append(start + [offset + i for i in masses])
         spheres += [(np.asarray(c, float), float(r)) for c, r in k_spheres]
         free += [offset + i for i in k_free]
@@ -66,13 +71,17 @@ def skeleton(system, n: int) -> Skeleton:
     anchors = np.asarray(anchors, dtype=float).reshape(-1, 3)
     index = lambda i: i + len(anchors) if i >= 0 else -1 - i
     links = tuple(np.asarray([index(i) for i in link]) for link in links)
+    arms = joint + 1 + np.arange(5)  # +e1, -e1, +e2, -e2, e3
+    frame = () if not rigid else ((arms[0], 0, arms[1]), (arms[2], 0, arms[3]), (0, arms[4]))
+    frame = tuple(np.asarray([index(i) for i in line]) for line in frame)
     bases = np.asarray(bases, dtype=int) + len(anchors)
-    return Skeleton(anchors, links, tuple(spheres), np.asarray(free, dtype=int), bases)
+    free = np.asarray(free, dtype=int)
+    return Skeleton(anchors, links, tuple(spheres), free, bases, frame)
 
 
 def positions(system, q) -> np.ndarray:
-    """The points drawn, `(T, p, 3)`: a scene's `points(q)`, else `q`."""
-    return np.asarray(jax.vmap(system.points)(q) if isinstance(system, Scene) else q)
+    """The points drawn, `(T, p, 3)`: a scene's `drawn_points(q)`, else `q`."""
+    return np.asarray(jax.vmap(system.drawn_points)(q) if isinstance(system, Scene) else q)
 
 
 def cube(skel: Skeleton, x: np.ndarray) -> tuple[np.ndarray, float]:

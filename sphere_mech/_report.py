@@ -52,7 +52,8 @@ class SceneResult:
     - `t`, `energy`, `potential`: the saved times `(T,)`, and `E` and `U` at `t`.
     - `q`, `v`: the saved states, `(T, n, 3)` each (with a `Base`, dicts of arrays with a
       leading `T` axis, as `sm.chain_space`).
-    - `x`: the points drawn at `t`, `scene.points(q)` (with a `Base`, its point first).
+    - `x`: the points drawn at `t`, `scene.drawn_points(q)` (with a base, its point first;
+      with a `RigidBase`, its joint and the ends of its arms last).
     - `error_t`: the times of `error`: `t`, or with forces the start and the end of every
       segment (steps of the solver, where the work is known).
     - `error`: `(E - E(0)) / |E(0)|`, or with forces `E - E(0) - W` divided by the larger
@@ -141,7 +142,7 @@ def scene_result(spec, run, t1=None) -> SceneResult:
         }
     q, v = jax.tree.map(np.asarray, (q, v))
     constraint = np.asarray(jax.vmap(constraint_error)(scene.spheres(q)))
-    x = np.asarray(jax.vmap(scene.points)(q))
+    x = np.asarray(jax.vmap(scene.drawn_points)(q))
     base = {} if scene.base is None else {BASE: chain_parts(q)[0][-1].tolist()}
     adaptive = isinstance(spec.solver, diffrax.AbstractAdaptiveSolver)
     summary = {

@@ -254,3 +254,24 @@ def test_rigid_base_initial_attitude_must_be_a_rotation(tmp_path):
         sm.SceneFileError, match="initial.attitude: initial.attitude is not a rotation"
     ):
         sm.load_scene(path)
+
+
+def test_rigid_base_pictures_draw_its_joint_and_arms():
+    """`drawn_points` adds the joint and the arms' ends; the skeleton hangs the chain from
+    the joint and draws the arms through the centre of mass (`plot.png`, animations)."""
+    from sphere_mech._drawing import skeleton
+
+    scene = rigid_scene()
+    q, v = random_rigid_state(4)
+    x = np.asarray(scene.drawn_points(q))
+    skel = skeleton(scene, x.shape[0])
+    R, centre = np.asarray(q["attitude"][0]), np.asarray(q["base"])
+    assert x.shape == (1 + 3 + 1 + 5, 3)
+    np.testing.assert_allclose(x[4], centre + R @ ATTACH, atol=1e-15)  # the joint
+    np.testing.assert_array_equal(skel.links[0], [4, 1, 2, 3])  # joint, then the masses
+    pts = skel.points(x)
+    for line, axis in zip(skel.frame, (R[:, 0], R[:, 1], R[:, 2]), strict=True):
+        assert line[len(line) // 2 if len(line) == 3 else 0] == 0  # through the centre
+        np.testing.assert_allclose(
+            pts[line[-1]] - centre, 0.2 * axis * (1 if len(line) == 2 else -1), atol=1e-15
+        )

@@ -22,6 +22,8 @@ def _configuration(ax, skel, pts, style, label):
         handles += ax.plot(*pts[skel.free + len(skel.anchors)].T, marker="o", ms=6, **dots)
     if len(skel.bases):
         ax.plot(*pts[skel.bases].T, marker="s", ms=7, **dots)
+    for line in skel.frame:  # a rigid base's arms
+        ax.plot(*pts[line].T, lw=2.4, **style)
     handles[0].set_label(label)
     return handles[:1]
 

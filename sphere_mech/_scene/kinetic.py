@@ -215,16 +215,20 @@ class RigidBase(AbstractBase):
       principal moments satisfy the triangle inequality (`J1 + J2 >= J3`).
     - `attach`: the body point the chain hangs from (m, body frame; default the centre of
       mass).
+    - `size`: the length of the arms pictures draw along the body's `+-e1`, `+-e2` and
+      `e3` (m, `> 0`; default 0.2; for pictures only).
     """
 
     mass: jax.Array = eqx.field(converter=as_float)
     inertia: jax.Array = eqx.field(converter=inertia_matrix)
     attach: jax.Array = eqx.field(default=(0.0, 0.0, 0.0), converter=as_float)
+    size: jax.Array = eqx.field(default=0.2, converter=as_float)
 
     def __check_init__(self):
         check_sign("mass", self.mass, " (kg)", scalar=True)
         check_shape("inertia", self.inertia, (3, 3), "three principal moments or a (3, 3) matrix")
         check_vector("attach", self.attach)
+        check_sign("size", self.size, " (m)", scalar=True)
         if isinstance(self.inertia, jax.core.Tracer):
             return
         J = np.asarray(self.inertia, dtype=np.float64)
@@ -254,6 +258,17 @@ class RigidBase(AbstractBase):
 
     def joint(self, x, attitude):
         return x + attitude[0] @ self.attach.astype(x.dtype)
+
+    def arms(self, x, attitude) -> jax.Array:
+        """The ends of the arms a picture draws: `x + size R e` for `e` = `e1`, `-e1`, `e2`,
+        `-e2`, `e3`.
+
+        **Arguments:**
+        - `x`, `attitude`: the centre of mass `(3,)` and the rotation `(1, 3, 3)`.
+
+        **Returns:** `(5, 3)` points (m)."""
+        e = jnp.asarray([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1]], x.dtype)
+        return x + self.size.astype(x.dtype) * e @ attitude[0].T
 
     def rotational_energy(self, attitude, velocity) -> jax.Array:
         """`1/2 Omega . J Omega`, `Omega = vee(R^T Rdot)`.

@@ -139,6 +139,21 @@ class Scene(AbstractFastPath):
         x, base = self.positions(q), chain_parts(q)[0]
         return x if base is None else jnp.concatenate([self.base.point(base)[None], x])
 
+    def drawn_points(self, q) -> jax.Array:
+        """The points a picture shows: `points(q)`, then with a `RigidBase` the chain's joint
+        and the ends of the body's arms (`RigidBase.arms`).
+
+        **Arguments:**
+        - `q`: the configuration.
+
+        **Returns:** `(p, 3)` points (m)."""
+        x = self.points(q)
+        if self.rigid_body is None:
+            return x
+        base, attitude = chain_parts(q)[0], chain_attitude(q)
+        body = [self.base.joint(base, attitude)[None], self.base.arms(base, attitude)]
+        return jnp.concatenate([x, *body])
+
     def point_masses(self) -> jax.Array:
         """The masses at `points(q)`. **Returns:** `(n,)` (`(n + 1,)` with a `Base`) (kg)."""
         m = self.masses()
