@@ -319,9 +319,9 @@ class GeometricControl(AbstractDrive):
             return jnp.ones_like(t_), v_, a, R_ @ hat(Omega)
 
         Rc = lambda z: self.command_attitude(z[0], z[1], z[2])
-        Rc_dot = lambda z: jax.jvp(Rc, (z,), (flow(z),))[1]
+        with_rate = lambda z: jax.jvp(Rc, (z,), (flow(z),))  # (R_c, its rate along the flow)
         z = (t, x, v, R)
-        R_c, (Rc_d, Rc_dd) = Rc(z), jax.jvp(Rc_dot, (z,), (flow(z),))
+        (R_c, Rc_d), (_, Rc_dd) = jax.jvp(with_rate, (z,), (flow(z),))
         Omega_c, Omegadot_c = vee(R_c.T @ Rc_d), vee(R_c.T @ Rc_dd)
         F, _ = self.thrust_vector(t, x, v)
         e_R = 0.5 * vee(R_c.T @ R - R.T @ R_c)
