@@ -307,7 +307,19 @@ class GeometricControl(AbstractDrive):
     def __call__(self, t, q, qdot, args):
         x, v = chain_parts(q)[0], chain_parts(qdot)[0]
         R, Rdot = chain_attitude(q)[0], chain_attitude(qdot)[0]
-        Omega = vee(R.T @ Rdot)
+        return self.wrench(t, x, v, R, vee(R.T @ Rdot))
+
+    def wrench(self, t, x, v, R, Omega):
+        """The commanded thrust and moments of a vehicle in this state (the drive a scene's
+        `Rotors` evaluate, for a vehicle modelled outside a scene too).
+
+        **Arguments:**
+        - `t`: time.
+        - `x`, `v`: the centre of mass and its velocity `(3,)` (world axes).
+        - `R`, `Omega`: the attitude `(3, 3)` (body to world) and the body angular
+          velocity `(3,)`.
+
+        **Returns:** `(f, M1, M2, M3)`, `(4,)` (N, N m)."""
         t = jnp.asarray(t, x.dtype)
         m, J = self.mass.astype(x.dtype), self.inertia.astype(x.dtype)
 
