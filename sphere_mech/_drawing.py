@@ -104,12 +104,17 @@ def equal_axes(ax, skel: Skeleton, x: np.ndarray) -> None:
     ax.tick_params(labelsize=7, pad=0)
 
 
+def wireframe(centre: np.ndarray, radius: float) -> np.ndarray:
+    """A sphere's grid, `(3, 13, 25)`: rows are parallels (pole to pole), columns meridians."""
+    u, v = np.meshgrid(np.linspace(0, 2 * np.pi, 25), np.linspace(0, np.pi, 13))
+    unit = np.stack([np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v)])
+    return np.asarray(centre, float)[:, None, None] + radius * unit
+
+
 def draw_static(ax, skel: Skeleton) -> list:
     """The spheres (wireframes) and the anchors (black squares); returns legend handles."""
-    u, v = np.meshgrid(np.linspace(0, 2 * np.pi, 25), np.linspace(0, np.pi, 13))
     for c, r in skel.spheres:
-        x, y, z = r * np.cos(u) * np.sin(v), r * np.sin(u) * np.sin(v), r * np.cos(v)
-        ax.plot_wireframe(c[0] + x, c[1] + y, c[2] + z, color="0.75", lw=0.4)
+        ax.plot_wireframe(*wireframe(c, r), color="0.75", lw=0.4)
     if not len(skel.anchors):
         return []
     a, label = skel.anchors, "pivot" if skel.links else "centre"

@@ -1,6 +1,7 @@
-"""`sm.animate` and `animation.html`: one player for scenes and for any system, a bounded
-number of frames, no network, and (where a chromium binary exists) the page rendered in a
-real headless browser: not blank, controls present, the script ran."""
+"""`sm.animate` and `animation.html`: one plotly viewer for scenes and for any system, a
+bounded number of frames holding the drawn points, no network, and (where a chromium binary
+exists) the page rendered in a real headless browser with WebGL: not blank, the 3-D scene,
+the controls and the time."""
 
 import json
 import os
@@ -12,18 +13,33 @@ from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
+import plotly.graph_objects as go
 import pytest
 
 import sphere_mech as sm
-from sphere_mech._animation import MAX_FRAMES, frame_indices
+from sphere_mech._animation import MAX_FRAMES, TRAIL, figure, frame_indices, page
 from sphere_mech._cli import main
 from sphere_mech._drawing import skeleton
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
 
-def _frames(html: str) -> list:
-    return json.loads(re.search(r"var frames = (\[.*?\]), times", html).group(1))
+def _figure(html: str) -> dict:
+    """The figure a viewer embeds (the first one)."""
+    found = re.search(r'<script type="application/json" class="sm-figure">(.*?)</script>', html)
+    return json.loads(found.group(1))  # JSON reads "<\\/" as "</"
+
+
+def _trace(fig: dict, name: str, frame: int) -> np.ndarray:
+    """The points `(m, 3)` of the first trace named `name` in a frame (NaN: a gap)."""
+    i = [trace["name"] for trace in fig["data"]].index(name)
+    trace = fig["frames"][frame]["data"][fig["frames"][frame]["traces"].index(i)]
+    return np.array([trace[k] for k in "xyz"], dtype=float).T
+
+
+def _offline(html: str) -> None:
+    """Nothing fetched: no URL at all (plotly.js is compressed), no external script or sheet."""
+    assert "://" not in html and "<script src" not in html and "<link" not in html
 
 
 def _circling(n: int, steps: int):
@@ -34,29 +50,85 @@ def _circling(n: int, steps: int):
     return types.SimpleNamespace(ts=jnp.asarray(t), ys=(jnp.asarray(q), jnp.zeros_like(q)))
 
 
-def _controls(html: str) -> None:
-    for action in ("play", "pause", "first", "previous", "next", "last"):
-        assert f'data-action="{action}"' in html
-    assert 'type="range"' in html
+def _controls(fig: dict) -> None:
+    buttons = fig["layout"]["updatemenus"][0]["buttons"]
+    assert [b["label"] for b in buttons] == ["Play", "Pause"]
+    slider = fig["layout"]["sliders"][0]
+    assert slider["currentvalue"]["prefix"] == "t = " and slider["currentvalue"]["suffix"] == " s"
+    steps = [step["args"][0] for step in slider["steps"]]
+    assert steps == [[frame["name"]] for frame in fig["frames"]]  # one step a frame, in order
 
 
 def test_animate_a_scene():
     scene = sm.chain_pendulum(masses=[1.0, 0.5], lengths=[1.0, 0.5])
-    html = sm.animate(scene, _circling(2, 301))
+    sol = _circling(2, 301)
+    html = sm.animate(scene, sol)
     assert isinstance(html, str) and html._repr_html_() == str(html)
     assert "MB of HTML" in repr(html)  # not the whole page
-    _controls(html)
-    assert len(_frames(html)) == MAX_FRAMES == 150
-    assert "://" not in html  # embedded frames and icons: no network
-    assert len(_frames(sm.animate(scene, _circling(2, 301), frames=20))) == 20
+    _offline(html)
+    fig = _figure(html)
+    go.Figure(fig)  # plotly's schema: every property exists
+    _controls(fig)
+    assert len(fig["frames"]) == MAX_FRAMES == 150
+    labels = [step["label"] for step in fig["layout"]["sliders"][0]["steps"]]
+    assert labels[0] == "0.00" and labels[-1] == "2.00"  # both ends kept
+    assert len(_figure(sm.animate(scene, sol, frames=20))["frames"]) == 20
+    ids = re.findall(r'<div id="(sm-viewer-[0-9a-f]+)"', html + sm.animate(scene, sol))
+    assert len(ids) == len(set(ids)) == 2  # two viewers on one page do not clash
+
+
+def test_frames_hold_the_drawn_points_and_trails():
+    scene = sm.chain_pendulum(masses=[1.0, 0.5], lengths=[1.0, 0.5])
+    sol = _circling(2, 301)
+    t, q = np.asarray(sol.ts), np.asarray(sol.ys[0])
+    skel = skeleton(scene, 2)
+    fig = figure(skel, t, q, frames=40)
+    idx = frame_indices(t, 40)
+    pts = skel.points(q[idx])
+    assert [list(link) for link in skel.links] == [[0, 1, 2]] and list(skel.tips) == [2]
+    trail = max(2, round(TRAIL * len(idx)))
+    for f in (0, 17, len(idx) - 1):
+        np.testing.assert_allclose(_trace(fig, "links", f), pts[f, [0, 1, 2]], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(_trace(fig, "tips", f), pts[f, [2]], rtol=0, atol=1e-12)
+        recent = pts[max(0, f - trail) : f + 1, 2]
+        np.testing.assert_allclose(_trace(fig, "trail", f), recent, rtol=0, atol=1e-5)
+    assert len(_trace(fig, "trail", 17)) == trail + 1
+    pivot = fig["data"][[trace["name"] for trace in fig["data"]].index("pivot")]
+    assert [pivot[k] for k in "xyz"] == [[0.0], [0.0], [0.0]]
+    ranges = np.array([fig["layout"]["scene"][f"{k}axis"]["range"] for k in "xyz"])
+    assert np.allclose(np.diff(ranges, axis=1), ranges[0, 1] - ranges[0, 0])  # equal aspect
+    assert np.all(ranges[:, :1] <= pts.min(axis=(0, 1))[:, None])
+    assert np.all(ranges[:, 1:] >= pts.max(axis=(0, 1))[:, None])
+
+
+def test_a_rigid_base_draws_its_arms():
+    quad = sm.Scene(
+        sm.RigidBase(0.5, [5.57e-3, 5.57e-3, 1.05e-2], attach=[0.0, 0.0, -0.05]),
+        sm.Chain(0.02, 0.2, links=2),
+        sm.Gravity(),
+    )
+    skel = skeleton(quad, quad.n)
+    assert len(skel.frame) == 3  # +-e1, +-e2, e3
+    p = 1 + max(int(np.max(line)) for line in skel.links + skel.frame)
+    x = np.random.default_rng(1).normal(size=(5, p, 3))
+    fig = figure(skel, np.arange(5.0), x)
+    body = _trace(fig, "body", 3)
+    gap = np.isnan(body[:, 0])
+    lines = np.split(body[~gap], np.cumsum([len(line) for line in skel.frame])[:-1])
+    for line, drawn in zip(skel.frame, lines, strict=True):
+        np.testing.assert_allclose(drawn, skel.points(x[3])[line], rtol=0, atol=1e-12)
+    assert gap.sum() == 2 and "base" in [trace["name"] for trace in fig["data"]]
 
 
 def test_animate_any_system_draws_points_on_the_unit_sphere():
     system = sm.Lagrangian(lambda t, q, qdot, args: 0.5 * jnp.sum(qdot**2) - 9.81 * q[0, 2])
     skel = skeleton(system, 1)
     assert skel.links == () and [r for _, r in skel.spheres] == [1.0]
-    html = sm.animate(system, _circling(1, 40))
-    assert len(_frames(html)) == 40  # fewer saved states than the bound: all of them
+    fig = _figure(sm.animate(system, _circling(1, 40)))
+    assert len(fig["frames"]) == 40  # fewer saved states than the bound: all of them
+    sphere = fig["data"][[trace["name"] for trace in fig["data"]].index("sphere")]
+    r = np.linalg.norm(np.array([sphere[k] for k in "xyz"], dtype=float), axis=0)
+    assert np.allclose(r[np.isfinite(r)], 1.0)  # the wireframe of the unit sphere
 
 
 def test_skeleton_of_scenes():
@@ -105,56 +177,38 @@ def _chromium():
     pytest.skip("no chromium binary on PATH (.ci/run installs Debian's chromium)")
 
 
+def _browse(browser: str, page: Path, *args: str) -> str:
+    """Chromium's output on `page`; WebGL drawn by SwiftShader (on the CPU, no GPU)."""
+    flags = ["--headless", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
+    flags += ["--hide-scrollbars", "--virtual-time-budget=5000", "--window-size=720,720"]
+    run = subprocess.run([browser, *flags, *args, page.as_uri()], capture_output=True, timeout=120)
+    assert run.returncode == 0, run.stderr.decode()[-2000:]
+    return run.stdout.decode()
+
+
 def test_animation_html_in_headless_chromium(tmp_path):
     import matplotlib.image
 
     browser = _chromium()
     out = tmp_path / "out"
-    assert (
-        main(
-            [
-                "run",
-                str(EXAMPLES / "double_pendulum.toml"),
-                "--out",
-                str(out),
-                "--t1",
-                "2",
-                "--no-progress",
-            ]
-        )
-        == 0
-    )
-    page = out / "animation.html"
-    html = page.read_text()
-    assert html.startswith("<!DOCTYPE html>") and "://" not in html
-    _controls(html)
-    flags = [
-        browser,
-        "--headless",
-        "--no-sandbox",
-        "--disable-gpu",
-        "--hide-scrollbars",
-        "--virtual-time-budget=3000",
-        "--window-size=640,640",
-    ]
+    args = ["run", str(EXAMPLES / "double_pendulum.toml"), "--out", str(out), "--t1", "2"]
+    assert main([*args, "--no-progress"]) == 0
+    path = out / "animation.html"
+    html = path.read_text()
+    assert html.startswith("<!DOCTYPE html>")
+    _offline(html)
+    _controls(_figure(html))
     shot = tmp_path / "shot.png"
-    subprocess.run(
-        flags + [f"--screenshot={shot}", page.as_uri()],
-        capture_output=True,
-        timeout=120,
-        check=True,
-    )
+    dom = _browse(browser, path, f"--screenshot={shot}", "--dump-dom")
     pixels = matplotlib.image.imread(shot)[..., :3]
-    assert pixels.shape[:2] == (640, 640)
+    assert pixels.shape[:2] == (720, 720)
     assert pixels.std() > 0.05  # not blank: a white page has 0
-    assert np.mean(np.all(pixels < 0.3, axis=-1)) > 1e-3  # dark ink: axes, links, buttons
-    dom = subprocess.run(
-        flags + ["--dump-dom", page.as_uri()],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=True,
-    ).stdout
-    _controls(dom)
-    assert re.search(r"t = 0\.0* s</span>", dom)  # the script ran: the first frame's time
-    assert re.search(r'class="sm-frame"[^>]*src="data:image/png;base64,', dom)
+    assert np.mean(np.all(pixels < 0.3, axis=-1)) > 1e-3  # dark ink: links, labels, buttons
+    assert "WebGL is not supported" not in dom
+    assert dom.count('class="gl-container"') == 1 and "<canvas" in dom  # the 3-D scene
+    assert re.search(r'class="slider-label"[^>]*>t = 0\.0* s<', dom)
+    assert '<text class="updatemenu-item-text"' in dom and ">Play<" in dom
+    two = tmp_path / "two.html"  # two viewers on a page: plotly.js unpacked once, both drawn
+    scene = sm.chain_pendulum(masses=[1.0], lengths=[1.0])
+    two.write_text(page("".join(sm.animate(scene, _circling(1, 30)) for _ in range(2)), "two"))
+    assert _browse(browser, two, "--dump-dom").count('class="gl-container"') == 2
