@@ -55,7 +55,8 @@ def _trace(name: str, mode: str, **style) -> dict:
 
 def _moving(skel: Skeleton) -> list[tuple[np.ndarray, dict]]:
     """The traces that move, as indices into `points(x)` (-1: a gap) and a style: links
-    (dots at the masses unless a cable), a rigid base's arms, moving bases, the tips."""
+    (dots at the masses unless a cable), a rigid base's arms and rotors, moving bases, the
+    tips."""
     traces = []
     if skel.links:
         seq = _joined(skel.links)
@@ -68,6 +69,9 @@ def _moving(skel: Skeleton) -> list[tuple[np.ndarray, dict]]:
     if skel.frame:
         arms = dict(color=COLOURS[0], width=8)
         traces.append((_joined(skel.frame), _trace("body", "lines", line=arms)))
+    if len(skel.rotors):
+        hubs = dict(symbol="circle-open", size=10, color=COLOURS[0], line=dict(width=3))
+        traces.append((skel.rotors, _trace("rotors", "markers", marker=hubs)))
     square = dict(symbol="square", size=6, color="black")
     if len(skel.bases):
         traces.append((skel.bases, _trace("base", "markers", marker=square)))

@@ -6,6 +6,7 @@ import dataclasses
 import jax
 import numpy as np
 
+from ._scene.rotorcraft import Rotors
 from ._scene.scene import Scene
 
 
@@ -14,7 +15,8 @@ class Skeleton:
     """`anchors`: `(k, 3)` fixed points; `links`: polylines as indices into `points(x)`
     (anchors, then the points of `x`); `spheres`: `(centre, radius)` of shared spheres;
     `free`: masses on no link; `bases`: indices into `points(x)` of moving bases; `frame`:
-    polylines of a rigid base's arms (indices into `points(x)`)."""
+    polylines of a rigid base's arms (indices into `points(x)`); `rotors`: indices into
+    `points(x)` of the ends of the arms along `+-e1`, `+-e2`, where `Rotors` sit."""
 
     anchors: np.ndarray
     links: tuple[np.ndarray, ...]
@@ -22,6 +24,7 @@ class Skeleton:
     free: np.ndarray
     bases: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=int))
     frame: tuple[np.ndarray, ...] = ()
+    rotors: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=int))
 
     def points(self, x: np.ndarray) -> np.ndarray:
         """Anchors and masses, `(..., k + n, 3)`, from positions `x` of shape `(..., n, 3)`."""
@@ -51,7 +54,8 @@ def _anchor(anchors: list, point) -> int:
 def skeleton(system, n: int) -> Skeleton:
     """The skeleton of a `Scene`'s `drawn_points(q)` from its kinetic terms' `drawing()`
     (links from the moving base where it has one: a `RigidBase`'s joint, its arms drawn as
-    `frame`); of any other system, `n` points on the unit sphere."""
+    `frame`, with `Rotors` at the ends of four); of any other system, `n` points on the
+    unit sphere."""
     if not isinstance(system, Scene):
         return Skeleton(np.zeros((1, 3)), (), ((np.zeros(3), 1.0),), np.arange(n))
     anchors, links, spheres, free = [], [], [], []
@@ -76,7 +80,9 @@ def skeleton(system, n: int) -> Skeleton:
     frame = tuple(np.asarray([index(i) for i in line]) for line in frame)
     bases = np.asarray(bases, dtype=int) + len(anchors)
     free = np.asarray(free, dtype=int)
-    return Skeleton(anchors, links, tuple(spheres), free, bases, frame)
+    flown = rigid and any(isinstance(e, Rotors) for e in system.force_effects)
+    rotors = np.asarray([index(i) for i in arms[:4]] if flown else [], dtype=int)
+    return Skeleton(anchors, links, tuple(spheres), free, bases, frame, rotors)
 
 
 def positions(system, q) -> np.ndarray:

@@ -118,6 +118,13 @@ def test_a_rigid_base_draws_its_arms():
     for line, drawn in zip(skel.frame, lines, strict=True):
         np.testing.assert_allclose(drawn, skel.points(x[3])[line], rtol=0, atol=1e-12)
     assert gap.sum() == 2 and "base" in [trace["name"] for trace in fig["data"]]
+    assert "rotors" not in [trace["name"] for trace in fig["data"]]  # a body without Rotors
+    flown = sm.Scene(*quad.effects, sm.Rotors(jnp.array([6.0, 0.0, 0.0, 0.0]), 0.17, 0.0135))
+    skel = skeleton(flown, flown.n)
+    fig = figure(skel, np.arange(5.0), x)
+    ends = [line[k] for line in skel.frame[:2] for k in (0, -1)]  # +-e1, +-e2
+    assert list(skel.rotors) == ends
+    np.testing.assert_allclose(_trace(fig, "rotors", 3), skel.points(x[3])[ends], atol=1e-12)
 
 
 def test_animate_any_system_draws_points_on_the_unit_sphere():

@@ -24,6 +24,8 @@ def _configuration(ax, skel, pts, style, label):
         ax.plot(*pts[skel.bases].T, marker="s", ms=7, **dots)
     for line in skel.frame:  # a rigid base's arms
         ax.plot(*pts[line].T, lw=2.4, **style)
+    if len(skel.rotors):
+        ax.plot(*pts[skel.rotors].T, marker="o", ms=9, mew=1.2, **{**dots, "mfc": "none"})
     handles[0].set_label(label)
     return handles[:1]
 
