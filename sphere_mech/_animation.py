@@ -270,8 +270,8 @@ def animate(
     pause and a time slider; the tips' recent paths as trails) that a notebook displays,
     with no network needed (plotly.js is embedded, compressed: about 2 MB). A `Scene` is
     drawn from its kinetic terms at `scene.drawn_points(q)` (chains from their pivot or the
-    moving `Base`, drawn as a square, a `RigidBase`'s arms, beads with their shared
-    sphere); any other system as the points `q` on the unit sphere.
+    moving `Base`, drawn as a square, a `RigidBase`'s arms and its `Rotors` as rings, beads
+    with their shared sphere); any other system as the points `q` on the unit sphere.
 
     **Arguments:**
     - `system_or_scene`, `sol`: the system simulated and a solution of `sm.simulate` saved at
