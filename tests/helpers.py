@@ -95,6 +95,21 @@ def last(tree):
     return jax.tree_util.tree_map(lambda x: x[-1], tree)
 
 
+def exact_observations(system, y0, ts, observe):
+    """`observe(system, t, q, v)` at times `ts` `(T,)` of a run from `y0` at `ts[0] = 0`
+    integrated to rounding (`Projected(Dopri8)` at 1e-12): the data fits are given."""
+    sol = sm.simulate(
+        system,
+        y0,
+        float(ts[-1]),
+        solver=sm.Projected(diffrax.Dopri8()),
+        rtol=1e-12,
+        atol=1e-12,
+        saveat=diffrax.SaveAt(ts=jnp.asarray(ts)),
+    )
+    return jax.vmap(lambda t, q, v: observe(system, t, q, v))(sol.ts, *sol.ys)
+
+
 # ----------------------------------------------------------------------------------------
 # The four forms (Lagrangian, angular, Hamiltonian, angular Hamiltonian) on a random
 # configuration-dependent, time-dependent Lagrangian with random forces, with v = qdot and

@@ -13,6 +13,7 @@ from helpers import (
     TIGHT,
     G,
     cart_pendulum,
+    exact_observations,
     flying_chain,
     jaxpr_equations,
     mixed_initial_state,
@@ -158,17 +159,7 @@ def test_fit_recovers_payload_and_cable_damping():
         {"base": jnp.zeros(3), "spheres": jnp.tile(tilt, (5, 1))},
         {"base": jnp.zeros(3), "spheres": jnp.zeros((5, 3))},
     )
-    data = sm.simulate(
-        drone_scene(truth),
-        y0,
-        DRONE_TS[-1],
-        solver=sm.Projected(diffrax.Dopri8()),
-        rtol=1e-12,
-        atol=1e-12,
-        saveat=diffrax.SaveAt(ts=jnp.asarray(DRONE_TS)),
-    )
-    scene = drone_scene(truth)
-    obs = jax.vmap(lambda q, v: observe_drone(scene, 0.0, q, v))(*data.ys)
+    obs = exact_observations(drone_scene(truth), y0, DRONE_TS, observe_drone)
     result = sm.fit(
         drone_scene,
         {"payload": 0.45, "damping": 0.015},

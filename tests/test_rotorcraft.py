@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import exact_observations
 from test_cli import run_cli
 from test_rigid_base import random_rigid_state
 
@@ -226,17 +227,7 @@ def test_fit_recovers_payload_and_rotor_coefficient_with_standard_errors():
         {"attitude": jnp.eye(3)[None], "base": jnp.zeros(3), "spheres": hanging},
         {"attitude": jnp.zeros((1, 3, 3)), "base": jnp.zeros(3), "spheres": jnp.zeros((3, 3))},
     )
-    data = sm.simulate(
-        cable_quadrotor(truth),
-        y0,
-        FLIGHT_TS[-1],
-        solver=sm.Projected(diffrax.Dopri8()),
-        rtol=1e-12,
-        atol=1e-12,
-        saveat=diffrax.SaveAt(ts=jnp.asarray(FLIGHT_TS)),
-    )
-    scene = cable_quadrotor(truth)
-    clean = jax.vmap(lambda q, v: observe_flight(scene, 0.0, q, v))(*data.ys)
+    clean = exact_observations(cable_quadrotor(truth), y0, FLIGHT_TS, observe_flight)
     noisy = clean + 1e-3 * jax.random.normal(jax.random.PRNGKey(0), clean.shape)
     result = sm.fit(
         cable_quadrotor,
