@@ -27,14 +27,22 @@ steps / wall time after compilation, median of 3 repeats) at batch 1, 64 and 102
 the ratio to MuJoCo measured in the same run. Prints a markdown table and writes
 benchmarks/results/quadrotor_throughput.{md,png}.
 
-    python benchmarks/quadrotor_throughput.py [--quick]
+    python benchmarks/quadrotor_throughput.py [--quick] [--device cpu|gpu] [--dtype ...]
 
-`--quick`: n = 1 and 5, batches 1 and 1024, fewer steps.
+`--quick`: n = 1 and 5, batches 1 and 1024, fewer steps. `--device gpu`: sphere_mech on
+the GPU (batches up to 65536; pass `--dtype float64` to keep the 1e-9 agreement check),
+MuJoCo on the same machine's cores; writes `quadrotor_throughput_gpu.{md,png}`.
 """
 
 from _options import parse_options
 
-OPTS = parse_options(__doc__.splitlines()[0])
+
+def _sizes(parser):
+    parser.add_argument("--links", type=int, nargs="+", help="cable links n (default 1 5 20)")
+    parser.add_argument("--batches", type=int, nargs="+", help="batch sizes")
+
+
+OPTS = parse_options(__doc__.splitlines()[0], _sizes)
 
 import os  # noqa: E402
 
@@ -53,10 +61,14 @@ import sphere_mech as sm  # noqa: E402
 MASS, INERTIA, ATTACH = 0.5, np.array([0.00557, 0.00557, 0.0105]), np.array([0.0, 0.0, -0.05])
 ARM, C_TF, PAYLOAD, CABLE_MASS, CABLE_LENGTH = 0.17, 0.0135, 0.1, 0.05, 1.0
 DIFFERENTIAL = np.array([0.01, -0.01, 0.0, 0.0])  # N on rotors 1 and 2
-LINKS = (1, 5) if OPTS.quick else (1, 5, 20)
-BATCHES = (1, 1024) if OPTS.quick else (1, 64, 1024)
+LINKS = tuple(OPTS.links or ((1, 5) if OPTS.quick else (1, 5, 20)))
+GPU = OPTS.device == "gpu"
+BATCHES = tuple(
+    OPTS.batches
+    or ((1, 1024) if OPTS.quick else (1, 64, 1024, 8192, 65536) if GPU else (1, 64, 1024))
+)
 DT, G = peers.DT, peers.G
-AGREEMENT = 1e-9
+AGREEMENT = {"float64": 1e-9, "float32": 1e-3}[OPTS.dtype]
 """The largest position difference (m) allowed beyond the RK4 errors' slack."""
 
 
@@ -187,12 +199,16 @@ def measure(n, budget):
 
 
 def main():
-    budget = 5e4 if OPTS.quick else 2e5
+    if GPU and jax.default_backend() != "gpu":
+        raise SystemExit(f"--device gpu: JAX sees no GPU (its backend is {jax.default_backend()})")
+    budget = (5e4 if OPTS.quick else 2e5) * (100 if GPU else 1)
     loads = [os.getloadavg()[0]]
     agreement = {n: check_agreement(n) for n in LINKS}
     records = {n: measure(n, budget) for n in LINKS}
     loads.append(os.getloadavg()[0])
     where = f"{machine(loads)}, {OPTS.dtype}"
+    if GPU:
+        where = f"sphere_mech on {jax.devices()[0].device_kind}, MuJoCo on {where}"
     rows = []
     for n, by_method in records.items():
         peer = by_method["MuJoCo"]
@@ -212,7 +228,7 @@ def main():
             for name, e in errs.items()
         ],
     )
-    stem = "quadrotor_throughput" + ("_quick" if OPTS.quick else "")
+    stem = "quadrotor_throughput" + ("_gpu" if GPU else "") + ("_quick" if OPTS.quick else "")
     publish(
         f"Quadrotor with an n-link cable, RK4 at dt = {DT:g} ({where}).\n\n"
         f"Agreement: max position difference after 0.2 s (4 random states).\n\n{check}\n\n"
