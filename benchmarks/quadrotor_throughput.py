@@ -236,7 +236,8 @@ def main():
         f"{stem}.md",
     )
     plt = pyplot()
-    fig, axes = plt.subplots(1, len(LINKS), figsize=(5 * len(LINKS), 4), sharey=True)
+    fig, axes = plt.subplots(1, len(LINKS), figsize=(5 * len(LINKS), 4), sharey=True, squeeze=False)
+    axes = axes[0]
     for ax, n in zip(axes, LINKS, strict=True):
         for name, by_batch in records[n].items():
             pts = sorted((b, r) for b, (r, _) in by_batch.items())
