@@ -31,7 +31,8 @@ benchmarks/results/quadrotor_throughput.{md,png}.
 
 `--quick`: n = 1 and 5, batches 1 and 1024, fewer steps. `--device gpu`: sphere_mech on
 the GPU (batches up to 65536; pass `--dtype float64` to keep the 1e-9 agreement check),
-MuJoCo on the same machine's cores; writes `quadrotor_throughput_gpu.{md,png}`.
+MuJoCo on the same machine's cores; writes `quadrotor_throughput_gpu.{md,png}`. `--links`
+and `--batches` choose the sizes (the files then end in `_partial`).
 """
 
 from _options import parse_options
@@ -229,6 +230,7 @@ def main():
         ],
     )
     stem = "quadrotor_throughput" + ("_gpu" if GPU else "") + ("_quick" if OPTS.quick else "")
+    stem += "_partial" if OPTS.links or OPTS.batches else ""
     publish(
         f"Quadrotor with an n-link cable, RK4 at dt = {DT:g} ({where}).\n\n"
         f"Agreement: max position difference after 0.2 s (4 random states).\n\n{check}\n\n"
