@@ -252,5 +252,7 @@ def learn(
         if checkpoint_every and (i + 1) % checkpoint_every == 0:
             save(u)
     save(u)
-    losses = np.asarray(jnp.stack(losses))
+    # one transfer of the host-side list: `jnp.stack` of 16000 scalars took 98 s (one
+    # concatenation of that many operands compiled), `jax.device_get` 0.5 s
+    losses = np.asarray(jax.device_get(losses))
     return LearnResult(eqx.combine(u, static), losses, time.perf_counter() - start)
