@@ -43,11 +43,13 @@ scales linearly with its size (1e-4 gives 4.4e-3, 1e-5 5.9e-4, 1e-6 9.5e-5 on th
 magnet): their 4.45e-4 corresponds to about 7.5e-6.
 
 Results (`benchmarks/results/learned_lagrangian/`, `--summary` writes the table and the
-training curves; float64): magnet 8.19e-3 after 14000 steps at learning rate 1e-2
-(`--steps 14000 --learning-rate 1e-2`; CLNN 1.03e-2; 1566 s wall, 2415 s CPU, load 0.9
-to 1.3; 12000 steps gave 9.90e-3, 6000 1.29e-2), not learned to the goal (1e-3); chain3
-2.40e-4 and chain5 5.72e-4 after 6000 steps (CLNN 3.26e-4 and 9.33e-4; 785 and 1079 s
-wall). On this shared 2-core CPU a run under heavy load (2 to 11) got as little as a fifth
+training curves): magnet 6.05e-3 after 16000 steps trained in float32 at learning rate
+1e-2 (`--dtype float32 --steps 16000 --learning-rate 1e-2`; CLNN 1.03e-2; 1571 s wall,
+2239 s CPU, load 1.1 to 1.3; 121 s of it came after the last step, stacking the losses
+with `jnp.stack`, 98 s when timed alone, since replaced), not learned to the goal (1e-3); in float64 (`--steps 14000 --learning-rate
+1e-2`) 14000 steps gave 8.19e-3 (1566 s wall), 12000 9.90e-3, 6000 1.29e-2. chain3
+2.40e-4 and chain5 5.72e-4 after 6000 float64 steps (CLNN 3.26e-4 and 9.33e-4; 785 and
+1079 s wall). On this shared 2-core CPU a run under heavy load (2 to 11) got as little as a fifth
 of a core; under light load XLA uses both cores, so the CPU time exceeds the wall time.
 
 What did not help on the magnet (from the 14000-step model, 8.19e-3): full-batch L-BFGS
@@ -349,20 +351,22 @@ def summary(out: Path):
         json.loads((out / f"{s}.json").read_text()) for s in CLNN if (out / f"{s}.json").exists()
     ]
     lines = [
-        "Learned Lagrangian (`sm.learn`, `sm.LearnedLagrangian`, float64) on the tasks of "
+        "Learned Lagrangian (`sm.learn`, `sm.LearnedLagrangian`; trained in the dtype of "
+        "its row, evaluated in float64) on the tasks of "
         "Finzi et al. (NeurIPS 2020), their rollout metric (200 test trajectories, 5 s). "
         "Written by `python benchmarks/learned_lagrangian.py --system S --out DIR`, "
         "then `--summary`.",
         "",
-        "| system | rollout_rel_err | CLNN | chaos floor (perturbation) | steps | "
+        "| system | rollout_rel_err | CLNN | chaos floor (perturbation) | steps | dtype | "
         "train wall time (s) | train CPU time (s) | load (1 min) before / after | model |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in reports:
         load = r.get("load_average_1min_before_after", [float("nan")] * 2)
         lines.append(
             f"| {r['system']} | {r['rollout_rel_err']:.2e} | {r['clnn_rollout_rel_err']:.2e} | "
             f"{r['chaos_floor']:.2e} ({r['floor_perturbation']:g}) | {r['steps']} | "
+            f"{r.get('dtype', 'float64')} | "
             f"{r['train_time_s']:.0f} | {r.get('train_cpu_time_s', float('nan')):.0f} | "
             f"{load[0]:.1f} / {load[1]:.1f} | {r.get('model', '')} |"
         )
