@@ -46,11 +46,12 @@ Results (`benchmarks/results/learned_lagrangian/`, `--summary` writes the table 
 training curves): magnet 6.05e-3 after 16000 steps trained in float32 at learning rate
 1e-2 (`--dtype float32 --steps 16000 --learning-rate 1e-2`; CLNN 1.03e-2; 1571 s wall,
 2239 s CPU, load 1.1 to 1.3; 121 s of it came after the last step, stacking the losses
-with `jnp.stack`, 98 s when timed alone, since replaced), not learned to the goal (1e-3); in float64 (`--steps 14000 --learning-rate
-1e-2`) 14000 steps gave 8.19e-3 (1566 s wall), 12000 9.90e-3, 6000 1.29e-2. chain3
-2.40e-4 and chain5 5.72e-4 after 6000 float64 steps (CLNN 3.26e-4 and 9.33e-4; 785 and
-1079 s wall). On this shared 2-core CPU a run under heavy load (2 to 11) got as little as a fifth
-of a core; under light load XLA uses both cores, so the CPU time exceeds the wall time.
+with `jnp.stack`, 98 s when timed alone, since replaced), not learned to the goal (1e-3);
+in float64 (`--steps 14000 --learning-rate 1e-2`) 14000 steps gave 8.19e-3 (1566 s
+wall), 12000 9.90e-3, 6000 1.29e-2. chain3 2.40e-4 and chain5 5.72e-4 after 6000 float64
+steps (CLNN 3.26e-4 and 9.33e-4; 785 and 1079 s wall). On this shared 2-core CPU a run
+under heavy load (2 to 11) got as little as a fifth of a core; under light load XLA uses
+both cores, so the CPU time exceeds the wall time.
 
 What did not help on the magnet (from the 14000-step model, 8.19e-3): full-batch L-BFGS
 (`optax.lbfgs`, mean-square loss, 200 iterations) lowered the training mean square from
