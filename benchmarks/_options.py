@@ -27,3 +27,12 @@ def parse_options(description, add_arguments=None, argv=None):
         os.environ.setdefault("XLA_FLAGS", f"--xla_force_host_platform_device_count={CORES}")
         os.environ.setdefault("JAX_PLATFORMS", "cpu")
     return opts
+
+
+def require_device(opts) -> None:
+    """Exit with a message when `--device gpu` was asked for and JAX sees no GPU (call
+    after importing JAX)."""
+    import jax
+
+    if opts.device == "gpu" and jax.default_backend() != "gpu":
+        raise SystemExit(f"--device gpu: JAX sees no GPU (its backend is {jax.default_backend()})")

@@ -48,7 +48,7 @@ GPU; it defaults to float32 (CPU: float64).
 
 import sys
 
-from _options import CORES, parse_options
+from _options import CORES, parse_options, require_device
 
 OPTS = parse_options(__doc__.splitlines()[0])
 
@@ -326,8 +326,7 @@ def cpu_name():
 
 
 def main():
-    if OPTS.device == "gpu" and jax.default_backend() != "gpu":
-        raise SystemExit(f"--device gpu: JAX sees no GPU (its backend is {jax.default_backend()})")
+    require_device(OPTS)
     gpu = OPTS.device == "gpu"
     batches = (
         (1, 64, 1024) if OPTS.quick else (1, 64, 1024, 8192, 65536) if gpu else (1, 64, 1024, 8192)

@@ -50,7 +50,7 @@ mass over the pivot, at a few times, and of the direction R rho).
         [--solver variational|chord|variational4|lierk] [--device cpu|gpu]
 """
 
-from _options import CORES, parse_options
+from _options import CORES, parse_options, require_device
 
 SOLVERS = ("variational", "chord", "variational4", "lierk")
 
@@ -452,8 +452,7 @@ def report(results, loads, errors, between, spread, R_mujoco, batch, steps):
 
 
 def main():
-    if OPTS.device == "gpu" and jax.default_backend() != "gpu":
-        raise SystemExit(f"--device gpu: JAX sees no GPU (its backend is {jax.default_backend()})")
+    require_device(OPTS)
     if OPTS.mjx:
         raise SystemExit("--mjx: this comparison has no MJX run")
     quick = OPTS.quick

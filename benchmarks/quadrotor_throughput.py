@@ -35,7 +35,7 @@ MuJoCo on the same machine's cores; writes `quadrotor_throughput_gpu.{md,png}`. 
 and `--batches` choose the sizes (the files then end in `_partial`).
 """
 
-from _options import parse_options
+from _options import parse_options, require_device
 
 
 def _sizes(parser):
@@ -200,8 +200,7 @@ def measure(n, budget):
 
 
 def main():
-    if GPU and jax.default_backend() != "gpu":
-        raise SystemExit(f"--device gpu: JAX sees no GPU (its backend is {jax.default_backend()})")
+    require_device(OPTS)
     budget = (5e4 if OPTS.quick else 2e5) * (100 if GPU else 1)
     loads = [os.getloadavg()[0]]
     agreement = {n: check_agreement(n) for n in LINKS}

@@ -29,7 +29,7 @@ writes benchmarks/results/throughput_<device>.{png,md,json}.
 `--device gpu` fails unless JAX sees a GPU; it defaults to float32 (CPU: float64).
 """
 
-from _options import CORES, parse_options
+from _options import CORES, parse_options, require_device
 
 
 def add_arguments(parser):
@@ -310,8 +310,7 @@ def report(records, errors, stem, setting):
 
 
 def main():
-    if OPTS.device == "gpu" and jax.default_backend() != "gpu":
-        raise SystemExit(f"--device gpu: JAX sees no GPU (its backend is {jax.default_backend()})")
+    require_device(OPTS)
     quick, gpu = OPTS.quick, OPTS.device == "gpu"
     ns = OPTS.ns if OPTS.ns is not None else ((2, 8) if quick else (2, 8, 32))
     batches = OPTS.batches or (
