@@ -188,7 +188,9 @@ def _browse(browser: str, page: Path, *args: str) -> str:
     """Chromium's output on `page`; WebGL drawn by SwiftShader (on the CPU, no GPU)."""
     flags = ["--headless", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
     flags += ["--hide-scrollbars", "--virtual-time-budget=5000", "--window-size=720,720"]
-    run = subprocess.run([browser, *flags, *args, page.as_uri()], capture_output=True, timeout=120)
+    # 300 s: WebGL on the CPU; on a slow 2-core machine with the suite's other worker
+    # compiling, one render ran past 120 s (alone the file takes 27 s)
+    run = subprocess.run([browser, *flags, *args, page.as_uri()], capture_output=True, timeout=300)
     assert run.returncode == 0, run.stderr.decode()[-2000:]
     return run.stdout.decode()
 
