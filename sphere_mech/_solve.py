@@ -16,6 +16,7 @@ from ._misc import all_finite, as_arrays, rows, tree_dtype
 from ._results import RESULTS, describe_failures, gathered
 from ._solvers.names import as_solver
 from ._solvers.projected import Projected
+from ._system import vector_field
 from ._term import MechanicsTerm
 
 DEFAULT_MAX_STEPS = 100_000
@@ -268,7 +269,7 @@ def solve(system, y0, t0, t1, dt0, args, opts: Options) -> diffrax.Solution:
 
 def solve_with(adjoint, system, y0, t0, t1, dt0, args, opts: Options) -> diffrax.Solution:
     """One trajectory, never raising: `sol.result` is a `RESULTS` code."""
-    ok = all_finite(system.rates(t0, y0, args))
+    ok = all_finite(vector_field(system, t0, y0, args))
     saveat = opts.saveat
     if isinstance(opts.controller, diffrax.AbstractAdaptiveStepSizeController):
         # Not finite at the start: no step over [t0, t0], not NaN steps rejected until

@@ -2,11 +2,13 @@
 families, `AbstractLagrangianSystem` and `AbstractHamiltonianSystem`."""
 
 import abc
+import functools
 from collections.abc import Callable
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import jax.tree_util as jtu
 
 from ._checks import check_function, check_scalar
 from ._custom_types import Args, ForceFn, Points, Scalar, State, Tangents
@@ -36,6 +38,53 @@ def check_rates(x, message: str, system, args):
 def as_time(t, like: jax.Array) -> jax.Array:
     """`t` as a scalar array of `like`'s floating dtype (differentiable)."""
     return jnp.asarray(t, dtype=tree_dtype(like))
+
+
+class _Static:
+    """A static leaf as part of a `jax.jit` cache key: by value when hashable (floats,
+    functions), else by identity (NumPy arrays, which stay concrete inside the trace)."""
+
+    __slots__ = ("value", "hashable")
+
+    def __init__(self, value):
+        self.value = value
+        try:
+            hash(value)
+            self.hashable = True
+        except TypeError:
+            self.hashable = False
+
+    def __hash__(self):
+        return hash(self.value) if self.hashable else id(self.value)
+
+    def __eq__(self, other):
+        if not isinstance(other, _Static) or self.hashable != other.hashable:
+            return False
+        return self.value == other.value if self.hashable else self.value is other.value
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _jitted_rates(treedef, static, dynamic):
+    leaves = [s.value if s is not None else d for s, d in zip(static, dynamic, strict=True)]
+    system, t, y, args = jtu.tree_unflatten(treedef, leaves)
+    return system.rates(t, y, args)
+
+
+def vector_field(system: "AbstractSystem", t, y, args):
+    """`system.rates(t, y, args)` traced once per system, argument shapes and dtypes: its
+    jaxpr is cached (as `jax.jit` caches) and reused by every later call in any trace.
+    A solve evaluates the vector field in many places (each Runge-Kutta stage, the
+    loop's first pass, and again under `jax.jvp`, `jax.vmap` and reverse mode, which
+    transform the cached jaxpr instead of tracing Python again); the notebook's cable
+    quadrotor traced `simulate` in 7.8 s without it and 4.1 s with it (forward-mode
+    Jacobian 22.8 s and 7.4 s). The compiled program is the same (XLA inlines the call).
+    JAX arrays (tracers included) are the jitted function's arguments; every other leaf
+    (floats, functions, NumPy arrays) is static, as it is in `system.rates`."""
+    leaves, treedef = jtu.tree_flatten((system, t, y, args))
+    is_dynamic = [isinstance(x, jax.Array) for x in leaves]
+    static = tuple(None if d else _Static(x) for x, d in zip(leaves, is_dynamic, strict=True))
+    dynamic = [x if d else None for x, d in zip(leaves, is_dynamic, strict=True)]
+    return _jitted_rates(treedef, static, dynamic)
 
 
 class AbstractSystem(eqx.Module):

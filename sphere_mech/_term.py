@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._spaces import AbstractSpace, Spheres
-from ._system import AbstractSystem
+from ._system import AbstractSystem, vector_field
 
 
 class MechanicsTerm(diffrax.AbstractTerm):
@@ -20,7 +20,7 @@ class MechanicsTerm(diffrax.AbstractTerm):
     system: AbstractSystem
 
     def vf(self, t, y, args):
-        return self.system.rates(t, y, args)
+        return vector_field(self.system, t, y, args)
 
     def contr(self, t0, t1, **kwargs):
         return t1 - t0

@@ -62,6 +62,39 @@ def test_vmap_over_initial_conditions(eager):
     assert float(sm.constraint_error(ys[0])) < 1e-14
 
 
+def test_vector_field_traced_once_per_system_and_shapes():
+    """`L` runs (in Python) only when JAX traces the vector field: a solve traces it once,
+    not once per Runge-Kutta stage and loop pass, and forward mode (`jax.jacfwd`) or
+    reverse mode (`jax.grad`) transforms the traced equations instead of tracing them
+    again (30, 30 and 30 traces of `L` each before `vector_field` cached them; 3, 0, 3
+    now)."""
+    traces = []
+
+    def counted(t, q, qdot, g):
+        traces.append(None)
+        return double_pendulum(t, q, qdot, g)
+
+    system, opts = sm.Lagrangian(counted), dict(solver=sm.Projected(sm.RK4()), dt0=0.05)
+    final = lambda g, **kw: sm.simulate(system, (Q0, V0), 0.2, args=g, **opts, **kw).ys[0][-1]
+    counts = [len(traces)]
+    for run_ in (
+        lambda: final(G),
+        lambda: jax.jacfwd(lambda g: final(g, adjoint=diffrax.ForwardMode()))(G),
+        lambda: jax.grad(lambda g: final(g)[1, 2])(G),
+    ):
+        run_()
+        counts.append(len(traces))
+    per_run = np.diff(counts)
+    assert per_run[0] >= 1 and np.all(per_run <= 6), per_run
+    # the cache is keyed on what is static: a new function object is traced anew, and
+    # Python floats (static, as in `system.rates`) give their own equations
+    before = len(traces)
+    sm.simulate(sm.Lagrangian(lambda *a: counted(*a)), (Q0, V0), 0.2, args=G, **opts)
+    assert len(traces) > before
+    low, high = final(1.0), final(9.81)
+    assert float(jnp.max(jnp.abs(high - final(G)))) < 1e-12 < float(jnp.max(jnp.abs(low - high)))
+
+
 def test_grad_wrt_args_and_initial_state():
     """Reverse mode through fixed steps of Projected(RK4) against central differences
     of the same discrete map (relative 1e-6), for `args` and along tangent directions

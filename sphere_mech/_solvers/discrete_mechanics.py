@@ -25,7 +25,7 @@ from .._anderson import Anderson
 from .._inertia import AbstractFastPath
 from .._misc import tree_add, tree_scale
 from .._momentum import newton, residual_scale
-from .._system import AbstractLagrangianSystem
+from .._system import AbstractLagrangianSystem, vector_field
 
 
 def check_lagrangian(system) -> AbstractLagrangianSystem:
@@ -144,4 +144,4 @@ def substep(
     result = RESULTS.where(
         sol.result == optx.RESULTS.successful, vel_result, RESULTS.promote(sol.result)
     )
-    return y1, system.rates(t1, y1, args), result
+    return y1, vector_field(system, t1, y1, args), result

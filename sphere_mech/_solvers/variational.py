@@ -13,6 +13,7 @@ from jax import lax
 
 from .._misc import tree_dtype
 from .._momentum import newton_tolerance
+from .._system import vector_field
 from .._term import MechanicsTerm, physical_time, system_of
 from .discrete_mechanics import check_lagrangian, substep
 
@@ -127,7 +128,7 @@ class Variational(AbstractSolver):
 
     def init(self, terms, t0, t1, y0, args):
         system = check_lagrangian(system_of(terms))
-        return system.rates(physical_time(terms, t0), y0, args)
+        return vector_field(system, physical_time(terms, t0), y0, args)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         system = check_lagrangian(system_of(terms))
@@ -137,7 +138,7 @@ class Variational(AbstractSolver):
         rates0 = solver_state
         if made_jump is not False:
             rates0 = lax.cond(
-                made_jump, lambda: system.rates(start, y0, args), lambda: solver_state
+                made_jump, lambda: vector_field(system, start, y0, args), lambda: solver_state
             )
         # Backwards, diffrax reverses time and wraps the terms: the physical step is the control.
         h = jnp.asarray(terms.contr(t0, t1), dtype=dtype)

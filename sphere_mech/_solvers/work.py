@@ -5,6 +5,7 @@ import jax.numpy as jnp
 from diffrax import AbstractSolver
 
 from .._misc import tree_dtype
+from .._system import vector_field
 from .._term import physical_time, system_of
 from .wrapped import AbstractTransparentSolver, unwrapped
 
@@ -13,7 +14,7 @@ def power_and_rate(system, t, q, v, args):
     """`(P, dP/dt)`: the power `system.power` of the forces and its derivative along the
     flow (`jax.jvp` along `system.rates`)."""
     p = lambda s, y: system.power(s, y[0], y[1], args)
-    tangent = (jnp.ones_like(t), system.rates(t, (q, v), args))
+    tangent = (jnp.ones_like(t), vector_field(system, t, (q, v), args))
     return jax.jvp(p, (t, (q, v)), tangent)
 
 
