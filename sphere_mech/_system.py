@@ -41,8 +41,9 @@ def as_time(t, like: jax.Array) -> jax.Array:
 
 
 class _Static:
-    """A static leaf as part of a `jax.jit` cache key: by value when hashable (floats,
-    functions), else by identity (NumPy arrays, which stay concrete inside the trace)."""
+    """A static leaf as part of a `jax.jit` cache key: by type and value when hashable
+    (floats, functions; `1.0` and `np.float32(1.0)` promote differently, so they differ),
+    else by identity (NumPy arrays, which stay concrete inside the trace)."""
 
     __slots__ = ("value", "hashable")
 
@@ -55,12 +56,14 @@ class _Static:
             self.hashable = False
 
     def __hash__(self):
-        return hash(self.value) if self.hashable else id(self.value)
+        return hash((type(self.value), self.value)) if self.hashable else id(self.value)
 
     def __eq__(self, other):
-        if not isinstance(other, _Static) or self.hashable != other.hashable:
+        if not isinstance(other, _Static) or type(self.value) is not type(other.value):
             return False
-        return self.value == other.value if self.hashable else self.value is other.value
+        if self.hashable and other.hashable:
+            return bool(self.value == other.value)
+        return self.value is other.value
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1))
