@@ -30,9 +30,9 @@ against their 4.45e-4).
 writes `DIR/<system>.json` and `DIR/<system>.eqx`; `load(path, system)` reads the model
 back as a library system (state `(q, qdot)`: the links' unit vectors in the task's frame).
 
-Model (`MODEL`): `sm.LearnedLagrangian` with its linear term (gravity) and a width-128,
-depth-3 silu MLP; on the magnet its inputs are scaled by 8 (the dipoles' potential varies
-over about 0.1 on the sphere). Adam with warmup then cosine decay, gradient clipping, L1
+Model (`MODEL`): `sm.LearnedLagrangian` with its linear term (gravity) and a depth-3 silu
+MLP of width 128 (64 on the magnet, whose inputs are scaled by 8: the dipoles' potential
+varies over about 0.1 on the sphere). Adam with warmup then cosine decay, gradient clipping, L1
 loss, minibatches of 100 chunks, `--substeps` RK4 steps per observation in training.
 
 Their chaos floor comes from `test_rollouts` in their trainer: a perturbation
@@ -43,17 +43,20 @@ scales linearly with its size (1e-4 gives 4.4e-3, 1e-5 5.9e-4, 1e-6 9.5e-5 on th
 magnet): their 4.45e-4 corresponds to about 7.5e-6.
 
 Results (`benchmarks/results/learned_lagrangian/`, `--summary` writes the table and the
-training curves): magnet 6.05e-3 after 16000 steps trained in float32 at learning rate
-1e-2 (`--dtype float32 --steps 16000 --learning-rate 1e-2`; CLNN 1.03e-2; 1571 s wall,
-2239 s CPU, load 1.1 to 1.3; 121 s of it came after the last step, stacking the losses
-with `jnp.stack`, 98 s when timed alone, since replaced), not learned to the goal (1e-3);
-in float64 (`--steps 14000 --learning-rate 1e-2`) 14000 steps gave 8.19e-3 (1566 s
-wall), 12000 9.90e-3, 6000 1.29e-2. chain3 2.40e-4 and chain5 5.72e-4 after 6000 float64
-steps (CLNN 3.26e-4 and 9.33e-4; 785 and 1079 s wall). On this shared 2-core CPU a run
-under heavy load (2 to 11) got as little as a fifth of a core; under light load XLA uses
-both cores, so the CPU time exceeds the wall time.
+training curves): magnet 2.79e-3 with a width-64 MLP after 36000 steps trained in
+float32 at learning rate 1e-2 (`--dtype float32 --steps 36000 --learning-rate 1e-2`;
+CLNN 1.03e-2; 1342 s wall, 1959 s CPU, load 1.4 to 1.8), not learned to the goal (1e-3).
+Its error falls with the number of steps, so the step time decides: a width-64 step took
+38 ms against 83 to 100 ms at width 128 (progress lines of three runs), and the
+width-128 model had given 6.05e-3 after 16000 float32 steps (1571 s wall); in float64
+(`--steps 14000`) 8.19e-3 (1566 s), 12000 steps 9.90e-3, 6000 1.29e-2. chain3 2.40e-4
+and chain5 5.72e-4 after 6000 float64 steps (CLNN 3.26e-4 and 9.33e-4; 785 and 1079 s
+wall). On this shared 2-core CPU a run under heavy load (2 to 11) got as little as a
+fifth of a core; under light load XLA uses both cores, so the CPU time exceeds the wall
+time.
 
-What did not help on the magnet (from the 14000-step model, 8.19e-3): full-batch L-BFGS
+What did not help on the magnet (from the width-128 14000-step float64 model, 8.19e-3):
+full-batch L-BFGS
 (`optax.lbfgs`, mean-square loss, 200 iterations) lowered the training mean square from
 1.93e-4 to 1.13e-4 but raised the rollout error to 2.7e-2 (the mean square follows the
 few chunks that pass the magnets; the metric, a geometric mean, the typical ones); 1200
@@ -62,10 +65,15 @@ more Adam steps at 8 RK4 steps per observation instead of 2 (learning rate 1e-3)
 per 0.05 s it scores 9.2e-3, 8.2e-3, 8.0e-3, and on the training chunks its median chunk
 error (mean `|r|`) is 1.35e-4 at 2, 4 and 8 steps per observation, against 1.9e-7,
 1.2e-8 and 7.7e-10 for the true system (whose mean over chunks at 2 steps, 1.2e-2, comes
-from the chunks that pass the magnets).
+from the chunks that pass the magnets). Random Fourier features (the MLP also reading
+`sin(B q)`, `cos(B q)`, 64 rows of `B` drawn `N(0, 8^2)`, fixed; width 128), trained
+from scratch in float32 at learning rate 1e-2: after 2500 steps 1.09e-2 against 1.70e-2
+for the plain width-128 model (one run each), but each step 1.5x as long, and 10000 steps
+(1589 s) gave 1.82e-2, worse than the plain model's 6.05e-3 after 16000.
 
-`--dtype float32` trains in float32 (evaluated and saved in float64): a magnet step took
-83 ms against 214 ms in float64 (100 chunks, same run conditions, this 2-core CPU).
+`--dtype float32` trains in float32 (evaluated and saved in float64): a width-128 magnet
+step took 83 ms against 214 ms in float64 (100 chunks, same run conditions, this 2-core
+CPU).
 """
 
 import argparse
@@ -88,8 +96,9 @@ import sphere_mech as sm  # noqa: E402
 CLNN = {"magnet": 1.03e-2, "chain3": 3.26e-4, "chain5": 9.33e-4}
 """Their published rollout errors of the constrained Lagrangian network."""
 MODEL = {
-    # the magnets' potential varies over about 0.1 on the sphere: inputs scaled, silu
-    "magnet": dict(width=128, depth=3, activation=jax.nn.silu, input_scale=8.0),
+    # the magnets' potential varies over about 0.1 on the sphere: inputs scaled, silu;
+    # width 64: a step 2.2x to 2.6x faster than at 128, more steps in the 30 minutes
+    "magnet": dict(width=64, depth=3, activation=jax.nn.silu, input_scale=8.0),
     "chain3": dict(width=128, depth=3, activation=jax.nn.silu),
     "chain5": dict(width=128, depth=3, activation=jax.nn.silu),
 }
