@@ -32,8 +32,8 @@ back as a library system (state `(q, qdot)`: the links' unit vectors in the task
 
 Model (`MODEL`): `sm.LearnedLagrangian` with its linear term (gravity) and a depth-3 silu
 MLP of width 128 (64 on the magnet, whose inputs are scaled by 8: the dipoles' potential
-varies over about 0.1 on the sphere). Adam with warmup then cosine decay, gradient clipping, L1
-loss, minibatches of 100 chunks, `--substeps` RK4 steps per observation in training.
+varies over about 0.1 on the sphere). Adam with warmup then cosine decay, gradient
+clipping, L1 loss, minibatches of 100 chunks, `--substeps` RK4 steps per observation in training.
 
 Their chaos floor comes from `test_rollouts` in their trainer: a perturbation
 `pert_eps * randn / |zt|`, `|zt|` the norm of the whole batch of true rollouts, added to
@@ -56,20 +56,20 @@ fifth of a core; under light load XLA uses both cores, so the CPU time exceeds t
 time.
 
 What did not help on the magnet (from the width-128 14000-step float64 model, 8.19e-3):
-full-batch L-BFGS
-(`optax.lbfgs`, mean-square loss, 200 iterations) lowered the training mean square from
-1.93e-4 to 1.13e-4 but raised the rollout error to 2.7e-2 (the mean square follows the
-few chunks that pass the magnets; the metric, a geometric mean, the typical ones); 1200
-more Adam steps at 8 RK4 steps per observation instead of 2 (learning rate 1e-3) gave
-1.20e-2. The integrator is not what limits the model: rolled out at 2, 5 or 10 RK4 steps
-per 0.05 s it scores 9.2e-3, 8.2e-3, 8.0e-3, and on the training chunks its median chunk
-error (mean `|r|`) is 1.35e-4 at 2, 4 and 8 steps per observation, against 1.9e-7,
-1.2e-8 and 7.7e-10 for the true system (whose mean over chunks at 2 steps, 1.2e-2, comes
-from the chunks that pass the magnets). Random Fourier features (the MLP also reading
-`sin(B q)`, `cos(B q)`, 64 rows of `B` drawn `N(0, 8^2)`, fixed; width 128), trained
-from scratch in float32 at learning rate 1e-2: after 2500 steps 1.09e-2 against 1.70e-2
-for the plain width-128 model (one run each), but each step 1.5x as long, and 10000 steps
-(1589 s) gave 1.82e-2, worse than the plain model's 6.05e-3 after 16000.
+full-batch L-BFGS (`optax.lbfgs`, mean-square loss, 200 iterations) lowered the training
+mean square from 1.93e-4 to 1.13e-4 but raised the rollout error to 2.7e-2 (the mean
+square follows the few chunks that pass the magnets; the metric, a geometric mean, the
+typical ones); 1200 more Adam steps at 8 RK4 steps per observation instead of 2
+(learning rate 1e-3) gave 1.20e-2. The integrator is not what limits the model: rolled
+out at 2, 5 or 10 RK4 steps per 0.05 s it scores 9.2e-3, 8.2e-3, 8.0e-3, and on the
+training chunks its median chunk error (mean `|r|`) is 1.35e-4 at 2, 4 and 8 steps per
+observation, against 1.9e-7, 1.2e-8 and 7.7e-10 for the true system (whose mean over
+chunks at 2 steps, 1.2e-2, comes from the chunks that pass the magnets). Random Fourier
+features (the MLP also reading `sin(B q)`, `cos(B q)`, 64 rows of `B` drawn `N(0, 8^2)`,
+fixed; width 128), trained from scratch in float32 at learning rate 1e-2: after 2500
+steps 1.09e-2 against 1.70e-2 for the plain width-128 model (one run each), but each
+step 1.5x as long, and 10000 steps (1589 s) gave 1.82e-2, worse than the plain model's
+6.05e-3 after 16000.
 
 `--dtype float32` trains in float32 (evaluated and saved in float64): a width-128 magnet
 step took 83 ms against 214 ms in float64 (100 chunks, same run conditions, this 2-core
