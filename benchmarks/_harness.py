@@ -78,7 +78,8 @@ class Timing(NamedTuple):
         return max(self.first - self.median, 0.0)
 
 
-def _call(fn):
+def timed_call(fn):
+    """`(seconds, result)` of `fn()`, its result waited for (`jax.block_until_ready`)."""
     import jax
 
     start = time.perf_counter()
@@ -93,7 +94,7 @@ def timing(
     first call, or `warmup()` (the same programs on less work) when given, is timed
     apart; then `repeats` calls under `no_retrace`: only one when the first took over `slow` s,
     fewer once they took `budget` s in all, more (up to `most`) while under `fast` s."""
-    first, result = _call(warmup or fn)
+    first, result = timed_call(warmup or fn)
     times, repeats = [], 1 if first > slow else repeats
     with no_retrace(what or getattr(fn, "__name__", "the timed function")):
         while (
@@ -101,7 +102,7 @@ def timing(
             or (len(times) < repeats and sum(times) < budget)
             or (len(times) < (most or repeats) and sum(times) < fast)
         ):
-            seconds, result = _call(fn)
+            seconds, result = timed_call(fn)
             times.append(seconds)
     return Timing(first, statistics.median(times), min(times), tuple(times), result)
 
@@ -109,12 +110,12 @@ def timing(
 def timings(fns, repeats=5, what=None):
     """`[Timing]` of each of `fns`, called first each once, then in turn `repeats` times
     (interleaved: a burst of load from other processes hits them all)."""
-    first = [_call(fn) for fn in fns]
+    first = [timed_call(fn) for fn in fns]
     times, results = [[] for _ in fns], [result for _, result in first]
     with no_retrace(what or "the timed functions"):
         for _ in range(repeats):
             for k, fn in enumerate(fns):
-                seconds, results[k] = _call(fn)
+                seconds, results[k] = timed_call(fn)
                 times[k].append(seconds)
     return [
         Timing(f, statistics.median(t), min(t), tuple(t), r)

@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 
 jax.config.update("jax_enable_x64", True)
-from _harness import _call, load, machine, publish, pyplot, save_figure, table  # noqa: E402
+from _harness import load, machine, publish, pyplot, save_figure, table, timed_call  # noqa: E402
 
 import sphere_mech as sm  # noqa: E402
 import sphere_mech._system as system_module  # noqa: E402
@@ -64,7 +64,7 @@ def measure(spec, repeats):
             for cached in (False, True):
                 system_module._jitted_rates = CACHED if cached else UNCACHED
                 jax.clear_caches()  # no trace or program kept from the other turn
-                times[cached].append(_call(fn)[0])
+                times[cached].append(timed_call(fn)[0])
         out[name] = tuple(statistics.median(times[c]) for c in (False, True))
     system_module._jitted_rates = CACHED
     compiled, trace = out["compile (forward)"], out["forward"]
