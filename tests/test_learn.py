@@ -84,6 +84,26 @@ def test_learn_float32(tmp_path):
     assert np.array_equal(back.inertia_factor, result.model.inertia_factor)
 
 
+@pytest.mark.slow  # two more compilations: about 40 s
+def test_learn_per_chunk_times_match_shared_times():
+    """Chunks given their own times `(B, T)` (each shifted by its own offset: the system is
+    autonomous) train as with the times shared `(T,)`, whose time stepping is not batched:
+    the same losses and model. Step and offsets are binary fractions, so that each chunk's
+    step times are exact and both runs take the same steps."""
+    dt = 1 / 16
+    ts, states = _chunks(64, 4, dt)
+    model = sm.LearnedLagrangian(1, key=jax.random.PRNGKey(1), width=8, depth=1)
+    sim = dict(solver=sm.Projected(sm.RK4()), dt0=dt)
+    opts = dict(steps=4, batch_size=16, learning_rate=1e-2, simulate_options=sim)
+    shared = sm.learn(model, ts, states, **opts)
+    own = sm.learn(model, ts + 0.25 * jnp.arange(64)[:, None], states, **opts)
+    assert np.all(np.diff(shared.losses) != 0)
+    np.testing.assert_allclose(own.losses, shared.losses, rtol=1e-12)
+    leaves = lambda m: jax.tree.leaves(eqx.filter(m, eqx.is_inexact_array))
+    for a, b in zip(leaves(own.model), leaves(shared.model), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-15)
+
+
 def test_learn_rejects_bad_input():
     ts = jnp.arange(3) * 0.05
     q = sm.normalize(jax.random.normal(jax.random.PRNGKey(0), (4, 3, 1, 3)))

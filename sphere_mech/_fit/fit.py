@@ -145,7 +145,7 @@ def _check_observe(observe, system, ts, observations, y0):
 
 def _guess_states(system, args, segment_t0, y0, sim):
     """States at the starts of segments 2..K simulated with `params0` (NaN: `y0` at rest)."""
-    one = lambda t, q0, v0: simulate_at(system, args, (q0, v0), t[0], t[-1], t[1:], sim)
+    one = lambda t, q0, v0: simulate_at(system, args, (q0, v0), t[0], t[-1], t[1:], sim)[0]
     q, v = jax.vmap(one)(segment_t0, *y0)
     q = jtu.tree_map(lambda x, x0: jnp.where(jnp.isfinite(x), x, x0[:, None]), q, y0[0])
     return q, jtu.tree_map(lambda x: jnp.where(jnp.isfinite(x), x, 0.0), v)

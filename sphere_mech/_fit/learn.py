@@ -168,7 +168,8 @@ def learn(
     - `model`: a sphere_mech system that is an equinox Module with the parameters as its
       floating-point array leaves, e.g. `LearnedLagrangian` (or any system: its other
       leaves are kept).
-    - `ts`: observation times `(T,)` shared by every chunk, or `(B, T)`.
+    - `ts`: observation times `(T,)` shared by every chunk, or `(B, T)`, each chunk's own
+      (slower: the solver's time stepping is then batched too).
     - `states`: the observed chunks `(q, v)`, each of shape `(B, T, n, 3)` (the system's
       state variable `v`; dicts of such arrays on a mixed space); `(q, v)[:, 0]` starts
       each chunk. Cast to the model's floating dtype (float32 or float64).
@@ -201,21 +202,32 @@ def learn(
     q, v = jtu.tree_map(lambda x: jnp.asarray(x, dtype), tuple(states))
     num_chunks, num_times = jtu.tree_leaves(q)[0].shape[:2]
     ts = jnp.asarray(ts, dtype)
-    if ts.shape == (num_times,):
-        ts = jnp.broadcast_to(ts, (num_chunks, num_times))
-    if ts.shape != (num_chunks, num_times) or num_times < 2:
+    shared = ts.shape == (num_times,)
+    if not (shared or ts.shape == (num_chunks, num_times)) or num_times < 2:
         raise ValueError(
             f"ts must have shape (T,) or (B, T) with T >= 2 matching states' (B, T) = "
             f"{(num_chunks, num_times)}, got {ts.shape}."
         )
+    ts = jnp.broadcast_to(ts, (num_chunks, num_times))
     y0 = jtu.tree_map(lambda x: x[:, 0], (q, v))
     observed = jax.vmap(jax.vmap(lambda q_, v_: _state_vector(None, None, q_, v_)))(q, v)
-    data = (split_segments(ts, observed, 1), y0)
+    seg_ts, obs, t0, t1, mask = split_segments(ts, observed, 1)
+    # one segment per chunk: with `ts` shared, the first chunk's times are every chunk's
+    times = (seg_ts[0, 0], t0[0, 0], t1[0, 0]) if shared else (seg_ts, t0, t1)
     u0, static = eqx.partition(model, eqx.is_inexact_array)
     flags = (False,) * len(jtu.tree_leaves(u0))
     sim = _default_sim(ts, simulate_options)
     residuals = Residuals(
-        _identity, model.state_space, _state_vector, flags, static, False, jnp.ones(()), sim, "grad"
+        _identity,
+        model.state_space,
+        _state_vector,
+        flags,
+        static,
+        False,
+        jnp.ones(()),
+        sim,
+        "grad",
+        shared_times=shared,
     )
     optimizer = optax.adam(learning_rate) if optimizer is None else optimizer
     batch_size = min(batch_size, num_chunks)
@@ -225,9 +237,15 @@ def learn(
     def loss_fn(u, batch):
         return loss(residuals((u, None), batch)[0])
 
+    def minibatch(index):
+        pick = lambda tree: jtu.tree_map(lambda x: x[index], tree)
+        ts_, t0_, t1_ = times if shared else pick(times)
+        obs_, mask_, y0_ = pick((obs, mask, y0))
+        return (ts_, obs_, t0_, t1_, mask_), y0_
+
     @eqx.filter_jit
     def step(u, opt_state, index):
-        batch = jtu.tree_map(lambda x: x[index], data)
+        batch = minibatch(index)
         loss, grad = jax.value_and_grad(loss_fn)(u, batch)
         updates, opt_state = optimizer.update(grad, opt_state, u)
         return optax.apply_updates(u, updates), opt_state, loss

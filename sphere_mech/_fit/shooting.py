@@ -53,9 +53,13 @@ def model_output(model: Callable, params: PyTree) -> tuple[AbstractSystem, PyTre
 
 
 def simulate_at(system, args, state, t0, t1, ts, sim: dict):
-    """`(q, v)` at `ts` of `simulate` from `state` at `t0` to `t1`, never raising."""
-    saveat = diffrax.SaveAt(ts=ts)
-    return simulate(system, state, t1, t0=t0, args=args, saveat=saveat, throw=False, **sim).ys
+    """`(q, v)` at `ts` and `(q, v)` at `t1` of `simulate` from `state` at `t0`, never
+    raising. The end state is the solve's last (`SaveAt(t1=True)`), not one more time in
+    `ts` (an interpolated save: the magnet task's training step took 34.7 ms with it against
+    27.7 ms without, medians of 40 on this 2-core CPU)."""
+    saveat = diffrax.SaveAt(ts=ts, t1=True)
+    ys = simulate(system, state, t1, t0=t0, args=args, saveat=saveat, throw=False, **sim).ys
+    return jtu.tree_map(lambda x: x[:-1], ys), jtu.tree_map(lambda x: x[-1], ys)
 
 
 def own_options(simulate_options, caller: str) -> dict:
@@ -104,7 +108,12 @@ class Residuals(eqx.Module):
     makes the starts of segments 2..K (1..K with `fit_initial_state`), or `None`. `jac`:
     `"fwd"` or `"bwd"`, each segment's Jacobian built once by `jax.jacfwd` / `jax.jacrev`
     for any tangent (least squares); `"grad"`, the segments differentiated as written
-    (reverse mode through the solver: the gradient of a scalar loss for `learn`)."""
+    (reverse mode through the solver: the gradient of a scalar loss for `learn`).
+    `shared_times`: the data's times `(ts, t0, t1)` are one segment's, `(W,)`, `()`, `()`,
+    every record's (`learn` on chunks observed at the same times, one segment each): they
+    stay unbatched under the `vmap` over records, and so does the solver's time stepping
+    (the magnet task's training step, float32, 100 chunks: 24.0 ms against 28.6 ms with
+    the times batched, medians of 20 on this 2-core CPU)."""
 
     model: Callable
     space: AbstractSpace
@@ -116,6 +125,7 @@ class Residuals(eqx.Module):
     sim: dict
     jac: str = eqx.field(static=True)
     mesh: Mesh | None = eqx.field(static=True, default=None)
+    shared_times: bool = eqx.field(static=True, default=False)
 
     def params(self, u):
         return eqx.combine(map_flagged(jnp.exp, u, self.positive), self.static_params)
@@ -130,11 +140,18 @@ class Residuals(eqx.Module):
     def segment(self, u, state, ts, obs, t0, t1, mask):
         """Masked observation residuals of one segment and its state at `t1`."""
         system, args = model_output(self.model, self.params(u))
-        q, v = simulate_at(system, args, state, t0, t1, jnp.append(ts, t1), self.sim)
-        q_obs, v_obs = jtu.tree_map(lambda x: x[:-1], (q, v))
+        (q_obs, v_obs), end = simulate_at(system, args, state, t0, t1, ts, self.sim)
         pred = jax.vmap(self.observe, in_axes=(None, 0, 0, 0))(system, ts, q_obs, v_obs)
         mask = mask.reshape(mask.shape + (1,) * (pred.ndim - 1))
-        return jnp.where(mask, pred - obs, 0.0), jtu.tree_map(lambda x: x[-1], (q, v))
+        return jnp.where(mask, pred - obs, 0.0), end
+
+    def over_segments(self, fn: Callable, states, data):
+        """`fn(state, ts, obs, t0, t1, mask)` over the segments, leading axes `(B, K)`."""
+        if not self.shared_times:
+            return over_states(fn, self.mesh)(states, *data)
+        ts, obs, t0, t1, mask = data
+        one = lambda s, o, m: fn(s, ts, o, t0, t1, m)
+        return over_states(one, self.mesh)(states, obs, mask)
 
     def __call__(self, unknowns, data):
         (u, z), (segment_data, y0) = unknowns, data
@@ -146,7 +163,7 @@ class Residuals(eqx.Module):
 
 
 def _direct_segments(u, states, *, problem, data):
-    return over_states(lambda s, *d: problem.segment(u, s, *d), problem.mesh)(states, *data)
+    return problem.over_segments(lambda s, *d: problem.segment(u, s, *d), states, data)
 
 
 _segments = eqx.filter_custom_jvp(_direct_segments)
@@ -168,8 +185,7 @@ def _segments_jvp(primals, tangents, *, problem, data):
 
     jacobian = jax.jacfwd if problem.jac == "fwd" else jax.jacrev
     block = jacobian(flat, argnums=(0, 1), has_aux=True)
-    blocks = over_states(lambda s, *d: block(u_flat, s, *d), problem.mesh)
-    (J_u, J_s), out = blocks(s_flat, *data)
+    (J_u, J_s), out = problem.over_segments(lambda s, *d: block(u_flat, s, *d), s_flat, data)
     ds_flat = _ravel_segments(dstates)[0]
     t_out = J_u @ ravel_pytree(du)[0] + jnp.einsum("bkrs,bks->bkr", J_s, ds_flat)
     return out, over_states(_ravel_segments(out)[1])(t_out)
