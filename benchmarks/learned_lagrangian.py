@@ -45,10 +45,13 @@ magnet): their 4.45e-4 corresponds to about 7.5e-6.
 Results (`benchmarks/results/learned_lagrangian/`, `--summary` writes the table and the
 training curves): magnet 2.79e-3 with a width-64 MLP after 36000 steps trained in
 float32 at learning rate 1e-2 (`--dtype float32 --steps 36000 --learning-rate 1e-2`;
-CLNN 1.03e-2; 1342 s wall, 1959 s CPU, load 1.4 to 1.8), not learned to the goal (1e-3).
-Its error falls with the number of steps, so the step time decides: a width-64 step took
-38 ms against 83 to 100 ms at width 128 (progress lines of three runs), and the
-width-128 model had given 6.05e-3 after 16000 float32 steps (1571 s wall); in float64
+CLNN 1.03e-2; 1342 s wall, 1959 s CPU, load 1.4 to 1.8), not learned to the goal (1e-3);
+a second run of 45000 steps (1439 s wall, 2076 s CPU, load 1.3 to 1.5, 32 ms a step
+after `learn`'s residuals dropped an extra interpolated save per chunk) gave 3.01e-3, so
+at width 64 more steps no longer lower the error (the results keep the 36000-step
+model). Up to then its error fell with the number of steps, so the step time decided: a
+width-64 step took 38 ms against 83 to 100 ms at width 128 (progress lines of three
+runs), and the width-128 model had given 6.05e-3 after 16000 float32 steps (1571 s wall); in float64
 (`--steps 14000`) 8.19e-3 (1566 s), 12000 steps 9.90e-3, 6000 1.29e-2. chain3 2.40e-4
 and chain5 5.72e-4 after 6000 float64 steps (CLNN 3.26e-4 and 9.33e-4; 785 and 1079 s
 wall). On this shared 2-core CPU a run under heavy load (2 to 11) got as little as a
@@ -69,7 +72,10 @@ features (the MLP also reading `sin(B q)`, `cos(B q)`, 64 rows of `B` drawn `N(0
 fixed; width 128), trained from scratch in float32 at learning rate 1e-2: after 2500
 steps 1.09e-2 against 1.70e-2 for the plain width-128 model (one run each), but each
 step 1.5x as long, and 10000 steps (1589 s) gave 1.82e-2, worse than the plain model's
-6.05e-3 after 16000.
+6.05e-3 after 16000. At an equal training budget of about 6 minutes (step counts from
+each setting's step time, float32): width 64 with batches of 100, 11000 steps, gave
+7.79e-3 at learning rate 1e-2, 9.25e-3 at 5e-3 and 1.01e-2 at 2e-2; width 32 with
+batches of 50 (a step 9.3 ms against 32 ms), 38000 steps at 1e-2, 9.54e-3.
 
 `--dtype float32` trains in float32 (evaluated and saved in float64): a width-128 magnet
 step took 83 ms against 214 ms in float64 (100 chunks, same run conditions, this 2-core
