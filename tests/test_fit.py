@@ -213,3 +213,22 @@ def test_fit_errors():
         )
     with pytest.raises(ValueError, match="model"):
         sm.fit(lambda p: p, START, ts, obs, mass_positions, y0=y0)
+
+
+def test_shooting_segment_end_is_inf_where_the_solve_stops_early():
+    """A segment's end state (the solve's own, not an interpolated save) is the state at
+    `t1` when the solve gets there and `inf` when it stops before (here `max_steps`), as
+    are the observation times it does not reach: a continuity jump never hides a failure."""
+    from sphere_mech._fit.shooting import simulate_at
+
+    system = sm.ConstantInertiaLagrangian(jnp.eye(1), lambda t, q, a: 9.81 * q[0, 2])
+    q0 = sm.normalize(jnp.array([[1.0, 0.0, -1.0]]))
+    y0 = (q0, jnp.array([[0.0, 1.0, 0.0]]))
+    ts = jnp.array([0.1, 0.5])
+    sim = dict(solver=sm.Projected(diffrax.Dopri5()), rtol=1e-10, atol=1e-10)
+    (q, v), (q1, v1) = simulate_at(system, None, y0, 0.0, 1.0, ts, sim)
+    full = sm.simulate(system, y0, 1.0, saveat=diffrax.SaveAt(ts=jnp.array([1.0])), **sim)
+    np.testing.assert_allclose(q1, full.ys[0][0], rtol=1e-12, atol=1e-14)
+    assert np.all(np.isfinite(q)) and np.all(np.isfinite(v))
+    (q, v), (q1, v1) = simulate_at(system, None, y0, 0.0, 1.0, ts, dict(sim, max_steps=3))
+    assert np.all(np.isinf(q1)) and np.all(np.isinf(v1)) and np.all(np.isinf(q[1]))
