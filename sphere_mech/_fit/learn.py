@@ -218,16 +218,7 @@ def learn(
     flags = (False,) * len(jtu.tree_leaves(u0))
     sim = _default_sim(ts, simulate_options)
     residuals = Residuals(
-        _identity,
-        model.state_space,
-        _state_vector,
-        flags,
-        static,
-        False,
-        jnp.ones(()),
-        sim,
-        "grad",
-        shared_times=shared,
+        _identity, model.state_space, _state_vector, flags, static, False, jnp.ones(()), sim, "grad"
     )
     optimizer = optax.adam(learning_rate) if optimizer is None else optimizer
     batch_size = min(batch_size, num_chunks)
