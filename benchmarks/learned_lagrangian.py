@@ -75,7 +75,17 @@ step 1.5x as long, and 10000 steps (1589 s) gave 1.82e-2, worse than the plain m
 6.05e-3 after 16000. At an equal training budget of about 6 minutes (step counts from
 each setting's step time, float32): width 64 with batches of 100, 11000 steps, gave
 7.79e-3 at learning rate 1e-2, 9.25e-3 at 5e-3 and 1.01e-2 at 2e-2; width 32 with
-batches of 50 (a step 9.3 ms against 32 ms), 38000 steps at 1e-2, 9.54e-3.
+batches of 50 (a step 9.3 ms against 32 ms), 38000 steps at 1e-2, 9.54e-3. Two priors
+on the potential, width 64, 11000 steps at 1e-2: the task's mirror symmetry (the MLP
+reading `(64 x^2, 64 y^2, 8 z)`, `LearnedLagrangian(features=...)`: the potential
+symmetric under the reflections in the x-z and y-z planes exactly) gave 3.58e-3 (398 s,
+about the plain model's step time), and 8 learnable softened sources (their inverse
+distances `0.1 / sqrt(|q - c_k|^2 + e_k^2)` as 8 more MLP inputs and `sum_k a_k phi_k^3`
+added, centers, softenings and amplitudes trained; a script outside the library) 5.56e-3
+(477 s). But trained for the whole budget, 40000 steps (1343 s wall, 1923 s CPU, load
+1.4 to 1.5), the mirror-symmetric model reached 3.48e-3, no better than the plain
+model's 2.79e-3 to 3.01e-3: both stop at a minibatch loss of about 4e-4, so the
+symmetry makes the start faster, not the end lower.
 
 `--dtype float32` trains in float32 (evaluated and saved in float64): a width-128 magnet
 step took 83 ms against 214 ms in float64 (100 chunks, same run conditions, this 2-core

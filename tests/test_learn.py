@@ -104,6 +104,32 @@ def test_learn_per_chunk_times_match_shared_times():
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-15)
 
 
+def _axial_invariants(q):
+    """`(x^2 + y^2, z)` of the one unit vector: invariant under rotations about z."""
+    return jnp.stack([q[0, 0] ** 2 + q[0, 1] ** 2, q[0, 2]])
+
+
+def test_learned_lagrangian_features_give_their_symmetry():
+    """With `features` the MLP reads them (here 2 axial invariants), so the potential has
+    their symmetry exactly; the default model (3 coordinates) does not."""
+    key = jax.random.PRNGKey(1)
+    axial = sm.LearnedLagrangian(1, key=key, width=8, depth=2, features=_axial_invariants)
+    plain = sm.LearnedLagrangian(1, key=key, width=8, depth=2)
+    assert axial.potential_net.in_size == 2 and plain.potential_net.in_size == 3
+    q = sm.normalize(jax.random.normal(jax.random.PRNGKey(2), (16, 1, 3)))
+    angle = jax.random.uniform(jax.random.PRNGKey(3), (16,), maxval=2 * np.pi)
+    c, s = jnp.cos(angle), jnp.sin(angle)
+    zero, one = jnp.zeros_like(c), jnp.ones_like(c)
+    R = jnp.stack([jnp.stack([c, -s, zero], -1), jnp.stack([s, c, zero], -1)], 1)
+    R = jnp.concatenate([R, jnp.stack([zero, zero, one], -1)[:, None]], 1)
+    turned = jnp.einsum("bij,bkj->bki", R, q)
+    U = lambda m, p: jax.vmap(lambda x: m.potential(0.0, x, None))(p)
+    np.testing.assert_allclose(U(axial, turned), U(axial, q), rtol=1e-12, atol=1e-14)
+    assert float(jnp.max(jnp.abs(U(plain, turned) - U(plain, q)))) > 1e-3
+    with pytest.raises(ValueError, match="features must return a 1-D array"):
+        sm.LearnedLagrangian(1, key=key, features=lambda q: q)
+
+
 def test_learn_rejects_bad_input():
     ts = jnp.arange(3) * 0.05
     q = sm.normalize(jax.random.normal(jax.random.PRNGKey(0), (4, 3, 1, 3)))

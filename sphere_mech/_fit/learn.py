@@ -51,9 +51,15 @@ class LearnedLagrangian(AbstractConstantInertiaLagrangian):
     - `activation`: the MLP's activation, smooth (the equations differentiate `U` and
       training differentiates them again); default `jax.nn.softplus` (`jax.nn.silu`
       resolves sharp features better).
-    - `input_scale`: the factor on `q` before the MLP: a potential that varies over a
+    - `input_scale`: the factor on the MLP's input: a potential that varies over a
       distance `d` on the sphere (a magnet close to the path) is learned far faster with
       `input_scale` about `1 / d` than with the default 1.
+    - `features`: the MLP's input as a function of the `(n, 3)` unit vectors, a 1-D
+      array (default their `3n` coordinates, `q.ravel()`); the MLP reads
+      `input_scale * features(q)`. Invariants of a symmetry the system is known to have
+      (e.g. `(x^2, y^2, z)` for reflections in the x-z and y-z planes) give a potential
+      with that symmetry exactly. A static function: a module-level one, so that a saved
+      model can be rebuilt with it.
     - `dtype`: the parameters' floating dtype (default JAX's default float): `learn`
       trains in this dtype.
     """
@@ -62,6 +68,7 @@ class LearnedLagrangian(AbstractConstantInertiaLagrangian):
     potential_linear: Array
     potential_net: eqx.nn.MLP
     input_scale: float = eqx.field(static=True)
+    features: Callable[[Array], Array] = eqx.field(static=True)
     forces: None = None
 
     def __init__(
@@ -74,6 +81,7 @@ class LearnedLagrangian(AbstractConstantInertiaLagrangian):
         inertia=None,
         activation: Callable = jax.nn.softplus,
         input_scale: float = 1.0,
+        features: Callable[[Array], Array] | None = None,
         dtype=None,
     ):
         dtype = jnp.zeros(()).dtype if dtype is None else jnp.dtype(dtype)
@@ -87,8 +95,12 @@ class LearnedLagrangian(AbstractConstantInertiaLagrangian):
         self.inertia_factor = jnp.asarray(factor, dtype=dtype)
         self.potential_linear = jnp.zeros((n, 3), dtype)
         self.input_scale = float(input_scale)
+        self.features = _coordinates if features is None else features
+        size = jax.eval_shape(self.features, jax.ShapeDtypeStruct((n, 3), dtype)).shape
+        if len(size) != 1:
+            raise ValueError(f"features must return a 1-D array, got shape {size}.")
         self.potential_net = eqx.nn.MLP(
-            3 * n, "scalar", width, depth, activation=activation, dtype=dtype, key=key
+            size[0], "scalar", width, depth, activation=activation, dtype=dtype, key=key
         )
         self.forces = None
 
@@ -100,7 +112,12 @@ class LearnedLagrangian(AbstractConstantInertiaLagrangian):
     def potential(self, t, q, args):
         q = jnp.asarray(q, self.inertia_factor.dtype)
         linear = jnp.sum(self.potential_linear * q)
-        return linear + self.potential_net(self.input_scale * jnp.reshape(q, (-1,)))
+        return linear + self.potential_net(self.input_scale * self.features(q))
+
+
+def _coordinates(q):
+    """The default features: the unit vectors' `3n` coordinates."""
+    return jnp.reshape(q, (-1,))
 
 
 class LearnResult(eqx.Module):
