@@ -117,12 +117,9 @@ def test_learned_lagrangian_features_give_their_symmetry():
     plain = sm.LearnedLagrangian(1, key=key, width=8, depth=2)
     assert axial.potential_net.in_size == 2 and plain.potential_net.in_size == 3
     q = sm.normalize(jax.random.normal(jax.random.PRNGKey(2), (16, 1, 3)))
-    angle = jax.random.uniform(jax.random.PRNGKey(3), (16,), maxval=2 * np.pi)
-    c, s = jnp.cos(angle), jnp.sin(angle)
-    zero, one = jnp.zeros_like(c), jnp.ones_like(c)
-    R = jnp.stack([jnp.stack([c, -s, zero], -1), jnp.stack([s, c, zero], -1)], 1)
-    R = jnp.concatenate([R, jnp.stack([zero, zero, one], -1)[:, None]], 1)
-    turned = jnp.einsum("bij,bkj->bki", R, q)
+    angle = jax.random.uniform(jax.random.PRNGKey(3), (16, 1), maxval=2 * np.pi)
+    c, s, (x, y, z) = jnp.cos(angle), jnp.sin(angle), jnp.moveaxis(q, -1, 0)
+    turned = jnp.stack([c * x - s * y, s * x + c * y, z], -1)  # about z
     U = lambda m, p: jax.vmap(lambda x: m.potential(0.0, x, None))(p)
     np.testing.assert_allclose(U(axial, turned), U(axial, q), rtol=1e-12, atol=1e-14)
     assert float(jnp.max(jnp.abs(U(plain, turned) - U(plain, q)))) > 1e-3
