@@ -122,15 +122,22 @@ def rk4_batch_row(n, dtype, repeats):
     return timings([lambda f=f: f(lengths) for f in programs], repeats)
 
 
-def rk4_batch(repeats=7):
-    """The batched RK4 rows, before and after the stage-by-stage reverse mode."""
+def batch_rows(row, repeats):
+    """`(n, B, dtype, *row(n, dtype, repeats))` for the batched RK4 cases (n = 2 with
+    B = 256, n = 8 with B = 64; float32, float64), and the load average around them."""
     rows, loads = [], [load()]
     for n in BATCH:
         for dtype in (jnp.float32, jnp.float64):
-            times = rk4_batch_row(n, dtype, repeats)
+            times = row(n, dtype, repeats)
             loads.append(load())
             rows.append((n, BATCH[n], jnp.dtype(dtype).name, *times))
             print(f"  {rows[-1][:3]}: {times[0].median * 1e3:.2f} ms", flush=True)
+    return rows, loads
+
+
+def rk4_batch(repeats=7):
+    """The batched RK4 rows, before and after the stage-by-stage reverse mode."""
+    rows, loads = batch_rows(rk4_batch_row, repeats)
     text = table(
         [
             "n",
@@ -311,13 +318,7 @@ def bare_row(n, dtype, repeats):
 
 def bare(repeats=7):
     """The batched RK4 rows against the plain scan."""
-    rows, loads = [], [load()]
-    for n in BATCH:
-        for dtype in (jnp.float32, jnp.float64):
-            times = [t.median for t in bare_row(n, dtype, repeats)]
-            loads.append(load())
-            rows.append((n, BATCH[n], jnp.dtype(dtype).name, times))
-            print(f"  {rows[-1][:3]}: {times[0] * 1e3:.2f} ms", flush=True)
+    rows, loads = batch_rows(bare_row, repeats)
     text = table(
         [
             "n",
@@ -335,12 +336,12 @@ def bare(repeats=7):
                 n,
                 b,
                 dt,
-                f"{t[0] * 1e3:.2f}",
-                f"{t[1] / t[0]:.1f}",
-                f"{t[2] * 1e3:.2f}",
-                *(f"{x / t[2]:.1f}" for x in t[3:]),
+                f"{t[0].median * 1e3:.2f}",
+                f"{t[1].median / t[0].median:.1f}",
+                f"{t[2].median * 1e3:.2f}",
+                *(f"{x.median / t[2].median:.1f}" for x in t[3:]),
             )
-            for n, b, dt, t in rows
+            for n, b, dt, *t in rows
         ],
     )
     publish(
