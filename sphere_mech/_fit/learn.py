@@ -9,6 +9,7 @@ needs gradients of a scalar loss, minibatches and an optimizer's state. Both bui
 same `Residuals`: each chunk is one record with one segment starting at its first
 observed state."""
 
+import math
 import time
 from collections.abc import Callable
 
@@ -139,6 +140,10 @@ def _state_vector(system, t, q, v):
     return jnp.concatenate([ravel_pytree(q)[0], ravel_pytree(v)[0]])
 
 
+# the most optimizer steps in one compiled block
+_MAX_BLOCK = 100
+
+
 def _identity(model):
     return model
 
@@ -208,6 +213,10 @@ def learn(
     - `checkpoint_every`: also write it every so many steps.
     - `print_every`: print a progress line (step, loss, seconds) every so many steps.
 
+    The steps run in blocks, each one compiled `jax.lax.scan` of up to 100 steps (their
+    length the greatest common divisor of `steps`, `print_every`, `checkpoint_every` and
+    100), so that a progress line or checkpoint falls at the end of a block.
+
     **Returns:** a `LearnResult` (the trained model, the losses, the wall time).
     """
     start = time.perf_counter()
@@ -251,34 +260,42 @@ def learn(
         obs_, mask_, y0_ = pick((obs, mask, y0))
         return (ts_, obs_, t0_, t1_, mask_), y0_
 
-    @eqx.filter_jit
-    def step(u, opt_state, index):
-        batch = minibatch(index)
-        loss, grad = jax.value_and_grad(loss_fn)(u, batch)
+    def step(carry, index):
+        u, opt_state = carry
+        loss, grad = jax.value_and_grad(loss_fn)(u, minibatch(index))
         updates, opt_state = optimizer.update(grad, opt_state, u)
-        return optax.apply_updates(u, updates), opt_state, loss
+        return (optax.apply_updates(u, updates), opt_state), loss
+
+    @eqx.filter_jit
+    def run_block(u, opt_state, indices):
+        return jax.lax.scan(step, (u, opt_state), indices)
 
     def save(u):
         if checkpoint is not None:
             eqx.tree_serialise_leaves(checkpoint, eqx.combine(u, static))
 
+    # the minibatches' order, drawn on the host: each epoch a permutation, the remainder
+    # of one that does not fill a minibatch dropped
     rng = np.random.default_rng(seed)
-    order, position = rng.permutation(num_chunks), 0
+    per_epoch = num_chunks // batch_size
+    epochs = -(-steps // per_epoch)
+    order = np.concatenate(
+        [rng.permutation(num_chunks)[: per_epoch * batch_size] for _ in range(epochs)]
+    )
+    order = order[: steps * batch_size].reshape(steps, batch_size)
+    # steps run in blocks, each one compiled `lax.scan` (one dispatch per block, not per
+    # step); a block ends at every progress line and checkpoint
+    block = math.gcd(steps, print_every or steps, checkpoint_every or steps, _MAX_BLOCK)
     u, opt_state, losses = u0, optimizer.init(u0), []
-    for i in range(steps):
-        if position + batch_size > num_chunks:
-            order, position = rng.permutation(num_chunks), 0
-        index = jnp.asarray(order[position : position + batch_size])
-        position += batch_size
-        u, opt_state, loss = step(u, opt_state, index)
-        losses.append(loss)
-        if print_every and ((i + 1) % print_every == 0 or i + 1 == steps):
+    for end in range(block, steps + 1, block):
+        (u, opt_state), block_losses = run_block(u, opt_state, order[end - block : end])
+        losses.append(block_losses)
+        if print_every and (end % print_every == 0 or end == steps):
             elapsed = time.perf_counter() - start
-            print(f"learn: step {i + 1}/{steps}  loss {float(loss):.3e}  {elapsed:.1f} s")
-        if checkpoint_every and (i + 1) % checkpoint_every == 0:
+            loss = float(block_losses[-1])
+            print(f"learn: step {end}/{steps}  loss {loss:.3e}  {elapsed:.1f} s")
+        if checkpoint_every and end % checkpoint_every == 0:
             save(u)
     save(u)
-    # one transfer of the host-side list: `jnp.stack` of 16000 scalars took 98 s (one
-    # concatenation of that many operands compiled), `jax.device_get` 0.5 s
-    losses = np.asarray(jax.device_get(losses))
+    losses = np.concatenate(jax.device_get(losses))
     return LearnResult(eqx.combine(u, static), losses, time.perf_counter() - start)
