@@ -43,20 +43,21 @@ scales linearly with its size (1e-4 gives 4.4e-3, 1e-5 5.9e-4, 1e-6 9.5e-5 on th
 magnet): their 4.45e-4 corresponds to about 7.5e-6.
 
 Results (`benchmarks/results/learned_lagrangian/`, `--summary` writes the table and the
-training curves): magnet 2.79e-3 with a width-64 MLP after 36000 steps trained in
-float32 at learning rate 1e-2 (`--dtype float32 --steps 36000 --learning-rate 1e-2`;
-CLNN 1.03e-2; 1342 s wall, 1959 s CPU, load 1.4 to 1.8), not learned to the goal (1e-3);
-a second run of 45000 steps (1439 s wall, 2076 s CPU, load 1.3 to 1.5, 32 ms a step
-after `learn`'s residuals dropped an extra interpolated save per chunk) gave 3.01e-3, so
-at width 64 more steps no longer lower the error (the results keep the 36000-step
-model). Up to then its error fell with the number of steps, so the step time decided: a
-width-64 step took 38 ms against 83 to 100 ms at width 128 (progress lines of three
-runs), and the width-128 model had given 6.05e-3 after 16000 float32 steps (1571 s wall); in float64
-(`--steps 14000`) 8.19e-3 (1566 s), 12000 steps 9.90e-3, 6000 1.29e-2. chain3 2.40e-4
-and chain5 5.72e-4 after 6000 float64 steps (CLNN 3.26e-4 and 9.33e-4; 785 and 1079 s
-wall). On this shared 2-core CPU a run under heavy load (2 to 11) got as little as a
-fifth of a core; under light load XLA uses both cores, so the CPU time exceeds the wall
-time.
+training curves): magnet 2.59e-3 with a width-64 MLP after 28000 steps trained in
+float32 at learning rate 1e-2 and 4 RK4 steps per observation (`--dtype float32 --steps
+28000 --learning-rate 1e-2 --substeps 4`; CLNN 1.03e-2; 1779 s wall, 2563 s CPU, load
+1.4 to 1.5), not learned to the goal (1e-3). At 2 steps per observation 36000 steps had
+given 2.79e-3 (1342 s wall, 1959 s CPU, load 1.4 to 1.8); a second run of 45000 steps
+(1439 s wall, 2076 s CPU, load 1.3 to 1.5, 32 ms a step after `learn`'s residuals
+dropped an extra interpolated save per chunk) gave 3.01e-3, so at 2 steps per
+observation and width 64 more steps no longer lower the error. Up to then its error fell
+with the number of steps, so the step time decided: a width-64 step took 38 ms against
+83 to 100 ms at width 128 (progress lines of three runs), and the width-128 model had
+given 6.05e-3 after 16000 float32 steps (1571 s wall); in float64 (`--steps 14000`)
+8.19e-3 (1566 s), 12000 steps 9.90e-3, 6000 1.29e-2. chain3 2.40e-4 and chain5 5.72e-4
+after 6000 float64 steps (CLNN 3.26e-4 and 9.33e-4; 785 and 1079 s wall). On this shared
+2-core CPU a run under heavy load (2 to 11) got as little as a fifth of a core; under
+light load XLA uses both cores, so the CPU time exceeds the wall time.
 
 What did not help on the magnet (from the width-128 14000-step float64 model, 8.19e-3):
 full-batch L-BFGS (`optax.lbfgs`, mean-square loss, 200 iterations) lowered the training
@@ -93,8 +94,17 @@ over the 800 chunks) of 1.2e-2 at 2 substeps, 1.5e-3 at 4 and 4.9e-4 at 8 (media
 against the learned model's 4e-4 at 2: there the model fits the coarse steps' dynamics,
 not the true potential. Trained at `--substeps 4` (28000 steps, 67 ms a step against
 about 33 ms at 2), the plain model reached 2.59e-3 at a final loss of 2.5e-4, but in
-1929 s wall (2774 s CPU, load 1.1 to 1.5), over the 30-minute budget; the results keep
-the 36000-step model trained at 2 substeps.
+1929 s wall (2774 s CPU, load 1.1 to 1.5), over the 30-minute budget; once `learn` ran
+its steps in compiled blocks the same run (the same losses step for step) took 1779 s
+wall, and the results hold it. Its errors by place (the acceleration of the learned
+model against the true one at the 4000 training states): median 1.3e-3 (2e-4 of the
+acceleration) farther than 0.5 from both magnets, 1.5e-2 (1.7e-3) at 0.15 to 0.2, 0.5
+(1.2e-2) at 0.1 to 0.15 (57 states); the same on 800 held-out chunks, whose median
+chunk error (mean `|r|`, integrated accurately) is 4.5e-5 against 3.5e-5 on the training
+chunks: the model is not overfitted. Fine-tuning the 36000-step model for 3000 steps
+(learning rate 3e-4, cosine decay) gave 2.63e-3 with the loss `mean(log(mean |r| +
+1e-6))` over chunks (the metric's geometric mean: every chunk weighs alike) against 2.75e-3
+with L1; 1000 steps at 8 RK4 steps per observation (constant 1e-4) 3.09e-3.
 
 `--dtype float32` trains in float32 (evaluated and saved in float64): a width-128 magnet
 step took 83 ms against 214 ms in float64 (100 chunks, same run conditions, this 2-core

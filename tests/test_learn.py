@@ -104,6 +104,23 @@ def test_learn_per_chunk_times_match_shared_times():
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-15)
 
 
+@pytest.mark.slow  # two more compilations: about 30 s
+def test_learn_blocks_match_single_steps(capsys):
+    """The steps run in compiled blocks (here 6, one per progress line) or one at a time
+    (`print_every=1`): the same minibatches in the same order, so the same losses; the
+    minibatches cycle through epochs (64 chunks, batches of 24: 2 per epoch)."""
+    ts, states = _chunks(64, 4, 0.05)
+    model = sm.LearnedLagrangian(1, key=jax.random.PRNGKey(1), width=8, depth=1)
+    opts = dict(steps=12, batch_size=24, learning_rate=1e-2, simulate_options=TRAIN_SIM)
+    blocks = sm.learn(model, ts, states, print_every=6, **opts)
+    lines = capsys.readouterr().out.splitlines()
+    assert [line.split()[2] for line in lines] == ["6/12", "12/12"]
+    single = sm.learn(model, ts, states, print_every=1, **opts)
+    assert len(capsys.readouterr().out.splitlines()) == 12
+    assert np.all(np.diff(blocks.losses) != 0)
+    np.testing.assert_allclose(blocks.losses, single.losses, rtol=1e-10)
+
+
 def _axial_invariants(q):
     """`(x^2 + y^2, z)` of the one unit vector: invariant under rotations about z."""
     return jnp.stack([q[0, 0] ** 2 + q[0, 1] ** 2, q[0, 2]])
