@@ -33,7 +33,8 @@ back as a library system (state `(q, qdot)`: the links' unit vectors in the task
 Model (`MODEL`): `sm.LearnedLagrangian` with its linear term (gravity) and a depth-3 silu
 MLP of width 128 (64 on the magnet, whose inputs are scaled by 8: the dipoles' potential
 varies over about 0.1 on the sphere). Adam with warmup then cosine decay, gradient
-clipping, L1 loss, minibatches of 100 chunks, `--substeps` RK4 steps per observation in training.
+clipping, L1 loss, minibatches of 100 chunks, `--substeps` fixed steps of `--solver` (RK4,
+Tsit5 or Dopri8; default RK4) per observation in training.
 
 Their chaos floor comes from `test_rollouts` in their trainer: a perturbation
 `pert_eps * randn / |zt|`, `|zt|` the norm of the whole batch of true rollouts, added to
@@ -138,6 +139,8 @@ MODEL = {
     "chain5": dict(width=128, depth=3, activation=jax.nn.silu),
 }
 """Each task's `LearnedLagrangian` (gravity is its linear term; the MLP learns the rest)."""
+SOLVERS = {"rk4": sm.RK4(), "tsit5": diffrax.Tsit5(), "dopri8": diffrax.Dopri8()}
+"""`--solver`: the training solver, at fixed steps."""
 TEST_DT, TEST_POINTS, CHUNK_STARTS = 0.05, 100, 20
 
 
@@ -310,7 +313,13 @@ def main(argv=None):
     parser.add_argument("--learning-rate", type=float, default=3e-3)
     parser.add_argument("--warmup", type=int, default=100, help="steps of linear warmup")
     parser.add_argument(
-        "--substeps", type=int, default=2, help="RK4 steps per observation interval in training"
+        "--substeps", type=int, default=2, help="solver steps per observation interval in training"
+    )
+    parser.add_argument(
+        "--solver",
+        choices=sorted(SOLVERS),
+        default="rk4",
+        help="the training solver (fixed steps, wrapped in sm.Projected)",
     )
     parser.add_argument("--floor-perturbation", type=float, default=1e-5)
     parser.add_argument(
@@ -337,7 +346,11 @@ def main(argv=None):
     )
     optimizer = optax.chain(optax.clip_by_global_norm(1.0), optax.adam(schedule))
     l1 = lambda r: jnp.mean(jnp.abs(r))  # robust to the few chunks that pass the magnets
-    sim = dict(solver=sm.Projected(sm.RK4()), dt0=tk.dt / args.substeps)
+    sim = dict(
+        solver=sm.Projected(SOLVERS[args.solver]),
+        dt0=tk.dt / args.substeps,
+        stepsize_controller=diffrax.ConstantStepSize(),
+    )
     start, cpu_start = time.perf_counter(), time.process_time()
     result = sm.learn(
         new_model(tk, dtype=args.dtype),
@@ -376,6 +389,7 @@ def main(argv=None):
         "learning_rate": args.learning_rate,
         "batch_size": args.batch_size,
         "substeps": args.substeps,
+        "solver": args.solver,
         "dtype": args.dtype,
         "losses_every_10": [float(x) for x in result.losses[::10]],
     }
