@@ -121,6 +121,23 @@ def test_learn_blocks_match_single_steps(capsys):
     np.testing.assert_allclose(blocks.losses, single.losses, rtol=1e-10)
 
 
+@pytest.mark.slow  # one more compilation: about 25 s
+def test_learn_skips_steps_whose_loss_is_not_finite():
+    """One chunk's observation is NaN: every minibatch holding it (one of 4 per epoch) has
+    a NaN loss and gradient; those steps are skipped and counted, the others train, and
+    the model stays finite (an update with them would make every parameter NaN)."""
+    ts, (q, v) = _chunks(64, 4, 0.05)
+    q = q.at[5, 2].set(jnp.nan)
+    model = sm.LearnedLagrangian(1, key=jax.random.PRNGKey(1), width=8, depth=1)
+    opts = dict(steps=8, batch_size=16, learning_rate=1e-2, simulate_options=TRAIN_SIM)
+    result = sm.learn(model, ts, (q, v), **opts)
+    assert result.skipped == 2 and int(np.sum(np.isnan(result.losses))) == 2
+    leaves = lambda m: jax.tree.leaves(eqx.filter(m, eqx.is_inexact_array))
+    assert all(bool(jnp.all(jnp.isfinite(x))) for x in leaves(result.model))
+    trained = leaves(result.model)[0]
+    assert not np.array_equal(trained, leaves(model)[0])
+
+
 def _axial_invariants(q):
     """`(x^2 + y^2, z)` of the one unit vector: invariant under rotations about z."""
     return jnp.stack([q[0, 0] ** 2 + q[0, 1] ** 2, q[0, 2]])

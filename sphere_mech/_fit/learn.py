@@ -127,11 +127,14 @@ class LearnResult(eqx.Module):
     **Attributes:**
     - `model`: the trained model (same structure as the model given).
     - `losses`: `(steps,)`, the minibatch loss at each step (before its update).
+    - `skipped`: the number of steps skipped because their loss or gradient was not
+      finite.
     - `wall_time`: seconds spent training (compilation included).
     """
 
     model: PyTree
     losses: np.ndarray
+    skipped: int
     wall_time: float
 
 
@@ -213,6 +216,10 @@ def learn(
     - `checkpoint_every`: also write it every so many steps.
     - `print_every`: print a progress line (step, loss, seconds) every so many steps.
 
+    A step whose loss or gradient is not finite (a chunk's solve failed: e.g. a model that
+    blows up under the training solver's fixed steps) is skipped, the model and the
+    optimizer's state kept as they were; `LearnResult.skipped` counts them.
+
     The steps run in blocks, each one compiled `jax.lax.scan` of up to 100 steps (their
     length the greatest common divisor of `steps`, `print_every`, `checkpoint_every` and
     100), so that a progress line or checkpoint falls at the end of a block.
@@ -263,8 +270,12 @@ def learn(
     def step(carry, index):
         u, opt_state = carry
         loss, grad = jax.value_and_grad(loss_fn)(u, minibatch(index))
-        updates, opt_state = optimizer.update(grad, opt_state, u)
-        return (optax.apply_updates(u, updates), opt_state), loss
+        updates, new_state = optimizer.update(grad, opt_state, u)
+        # a step whose loss or gradient is not finite (a solve failed) is skipped
+        finite = jnp.isfinite(loss) & jnp.all(jnp.isfinite(ravel_pytree(grad)[0]))
+        keep = lambda new, old: jnp.where(finite, new, old)
+        carry = jtu.tree_map(keep, (optax.apply_updates(u, updates), new_state), carry)
+        return carry, (loss, finite)
 
     @eqx.filter_jit
     def run_block(u, opt_state, indices):
@@ -286,10 +297,13 @@ def learn(
     # steps run in blocks, each one compiled `lax.scan` (one dispatch per block, not per
     # step); a block ends at every progress line and checkpoint
     block = math.gcd(steps, print_every or steps, checkpoint_every or steps, _MAX_BLOCK)
-    u, opt_state, losses = u0, optimizer.init(u0), []
+    u, opt_state, losses, finite_steps = u0, optimizer.init(u0), [], []
     for end in range(block, steps + 1, block):
-        (u, opt_state), block_losses = run_block(u, opt_state, order[end - block : end])
+        (u, opt_state), (block_losses, block_finite) = run_block(
+            u, opt_state, order[end - block : end]
+        )
         losses.append(block_losses)
+        finite_steps.append(block_finite)
         if print_every and (end % print_every == 0 or end == steps):
             elapsed = time.perf_counter() - start
             loss = float(block_losses[-1])
@@ -298,4 +312,5 @@ def learn(
             save(u)
     save(u)
     losses = np.concatenate(jax.device_get(losses))
-    return LearnResult(eqx.combine(u, static), losses, time.perf_counter() - start)
+    skipped = int(np.sum(~np.concatenate(jax.device_get(finite_steps))))
+    return LearnResult(eqx.combine(u, static), losses, skipped, time.perf_counter() - start)
