@@ -370,6 +370,7 @@ def main(argv=None):
         print_every=max(steps // 20, 1),
     )
     train_time, train_cpu = time.perf_counter() - start, time.process_time() - cpu_start
+    last = result.losses[-max(steps // 20, 1) :]  # the last twentieth, skipped steps left out
     model = as_float64(result.model)
     eqx.tree_serialise_leaves(args.out / f"{args.system}.eqx", model)
     report = {
@@ -385,7 +386,7 @@ def main(argv=None):
         "steps": steps,
         "train_chunks": num_train,
         "test_trajectories": num_test,
-        "final_loss": float(np.nanmean(result.losses[-max(steps // 20, 1) :])),
+        "final_loss": float(np.mean(last[np.isfinite(last)])),
         "skipped_steps": result.skipped,
         "quick": args.quick,
         "device": str(jax.devices()[0]),
