@@ -224,7 +224,8 @@ def learn(
     length the greatest common divisor of `steps`, `print_every`, `checkpoint_every` and
     100), so that a progress line or checkpoint falls at the end of a block.
 
-    **Returns:** a `LearnResult` (the trained model, the losses, the wall time).
+    **Returns:** a `LearnResult` (the trained model, the losses, the skipped steps, the
+    wall time).
     """
     start = time.perf_counter()
     if not isinstance(model, AbstractSystem):
