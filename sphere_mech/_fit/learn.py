@@ -295,16 +295,12 @@ def learn(
         [rng.permutation(num_chunks)[: per_epoch * batch_size] for _ in range(epochs)]
     )
     order = order[: steps * batch_size].reshape(steps, batch_size)
-    # steps run in blocks, each one compiled `lax.scan` (one dispatch per block, not per
-    # step); a block ends at every progress line and checkpoint
+    # one dispatch per block (the docstring says how long)
     block = math.gcd(steps, print_every or steps, checkpoint_every or steps, _MAX_BLOCK)
-    u, opt_state, losses, finite_steps = u0, optimizer.init(u0), [], []
+    u, opt_state, outputs = u0, optimizer.init(u0), []
     for end in range(block, steps + 1, block):
-        (u, opt_state), (block_losses, block_finite) = run_block(
-            u, opt_state, order[end - block : end]
-        )
-        losses.append(block_losses)
-        finite_steps.append(block_finite)
+        (u, opt_state), (block_losses, finite) = run_block(u, opt_state, order[end - block : end])
+        outputs.append((block_losses, finite))
         if print_every and (end % print_every == 0 or end == steps):
             elapsed = time.perf_counter() - start
             loss = float(block_losses[-1])
@@ -312,6 +308,6 @@ def learn(
         if checkpoint_every and end % checkpoint_every == 0:
             save(u)
     save(u)
-    losses = np.concatenate(jax.device_get(losses))
-    skipped = int(np.sum(~np.concatenate(jax.device_get(finite_steps))))
+    losses, finite = (np.concatenate(x) for x in zip(*jax.device_get(outputs), strict=True))
+    skipped = int(np.sum(~finite))
     return LearnResult(eqx.combine(u, static), losses, skipped, time.perf_counter() - start)
