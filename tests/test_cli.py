@@ -250,7 +250,16 @@ def test_error_from_the_installed_command(tmp_path):
     assert f"{path}: effects[1].type" in proc.stderr
 
 
-@pytest.mark.parametrize("example", EXAMPLES, ids=lambda p: p.stem)
+# slow: the examples that a test below runs whole under the same command, with tighter
+# checks (drone_cable: 10 s; quadrotor_cable: 32 s, in test_rotorcraft)
+WHOLE_RUNS = ("drone_cable", "quadrotor_cable")
+
+
+@pytest.mark.parametrize(
+    "example",
+    [pytest.param(p, marks=pytest.mark.slow) if p.stem in WHOLE_RUNS else p for p in EXAMPLES],
+    ids=lambda p: p.stem,
+)
 def test_every_example_runs(example, tmp_path, capsys):
     out = tmp_path / "out"
     assert run_cli(example, out, "--t1", "0.1", "--no-progress") == 0

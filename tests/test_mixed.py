@@ -198,6 +198,8 @@ def test_lie_group_solvers_against_reference(make, solver):
     assert sm.constraint_error(q["chain"]) < 1e-13
 
 
+@pytest.mark.slow  # 30 s; bounded energy and reversibility stay in test_variational and
+# test_rotations, the forced step's order 2 in test_variational_forced_converges_to_reference
 def test_variational_energy_bounded_and_reversible():
     """The unforced cart pendulum: 2000 steps of h = 0.02 keep the energy error bounded
     and O(h^2) (no drift), |q| = 1 to rounding; stepping back returns the initial state.

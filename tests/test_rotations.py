@@ -365,6 +365,8 @@ def carrier_lierk():
     }
 
 
+@pytest.mark.slow  # 38 s; test_rigid_base checks a body carrying a chain against the same
+# kind of Cartesian + quaternion reference
 def test_rigid_body_carrying_a_pendulum_against_a_cartesian_quaternion_dae(carrier_lierk):
     """A free body (position, attitude) carrying a pendulum hung from a point `d` off its
     centre of mass, on `{"base": Euclidean(3), "attitude": Rotations(1), "pendulum":
@@ -480,6 +482,8 @@ def test_variational_time_reversible_on_rotations(order):
     assert float(jnp.max(jnp.abs(back[1] - W0))) < 1e-12
 
 
+@pytest.mark.slow  # 31 s; forced variational steps stay in test_mixed (order 2 against
+# a reference), the variational orders on `Rotations` here
 def test_variational_body_torque_in_forms_1_and_2():
     """A constant body torque (forced Lagrange-d'Alembert step, `h/2 tau` at both ends) on
     the free body: order 2 against scipy's `J Omegadot = J Omega x Omega + tau`, the same
@@ -496,6 +500,7 @@ def test_variational_body_torque_in_forms_1_and_2():
     assert abs(fitted_order(dts, errors) - 2) < 0.3, errors
 
 
+@pytest.mark.slow  # 33 s; test_rigid_base steps `Variational` on the same kind of product
 def test_variational_on_a_product_with_rotations_agrees_with_lierk(carrier_lierk):
     """The carrier (`Euclidean(3) x Rotations(1) x Spheres(1)`, form 2) over 1.5 s: the
     order-4 variational step at h = 0.0025 against `LieRK(Dopri8())` at tolerance 1e-12."""
@@ -511,6 +516,8 @@ def test_variational_on_a_product_with_rotations_agrees_with_lierk(carrier_lierk
     assert orthogonality_error(q["attitude"]) < 1e-15
 
 
+@pytest.mark.slow  # 34 s; the variational step's implicit differentiation stays in
+# test_variational (on the spheres)
 def test_variational_gradient_on_rotations_matches_central_differences():
     """`jax.jacrev` through the Newton solves of the Lie group variational step (implicit
     differentiation) against central differences, in the initial body angular velocity."""
@@ -535,9 +542,10 @@ def test_variational_float32_on_rotations():
     assert float(jnp.max(jnp.abs(R - R64))) < 1e-3
 
 
-@pytest.mark.parametrize(
-    "segments", [1, pytest.param(3, marks=pytest.mark.slow)], ids=["single", "multiple shooting"]
-)
+# 74 s; `fit` through a Lie group solver stays in test_fit_models, a fit on `Rotations` in
+# notebook 08 (the cable quadrotor's payload and yaw coefficient)
+@pytest.mark.slow
+@pytest.mark.parametrize("segments", [1, 3], ids=["single", "multiple shooting"])
 def test_fit_a_3d_pendulum_from_its_attitude(segments):
     """Recover `m g` and `J3` from the centre of mass's observed path (form 2, body
     `Omega`); with multiple shooting the segment states are rotations in the tangent

@@ -75,7 +75,8 @@ def test_new_float_args_compile_once():
     assert TRACES["count"] == before  # no new trace: no new compilation
 
 
-@pytest.mark.parametrize("order", [2, 4])
+# order 4 (slow: 20 s) passes `args` and the term through the same code as order 2
+@pytest.mark.parametrize("order", [2, pytest.param(4, marks=pytest.mark.slow)])
 def test_variational_through_diffeqsolve_with_user_args(order):
     solver = sm.Variational(order)
     ours = sm.simulate(SYSTEM, (Q0, V0), 1.0, args=jnp.asarray(9.81), solver=solver, dt0=0.1)
