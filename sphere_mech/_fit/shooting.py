@@ -177,10 +177,13 @@ _segments = eqx.filter_custom_jvp(_direct_segments)
 @_segments.def_jvp
 def _segments_jvp(primals, tangents, *, problem, data):
     """Segment `k` depends only on `u` and its own initial state: its Jacobian (`dim(u)`
-    plus `6n` columns on (S^2)^n, by `jac`) is built once from the primals and applied to
-    any tangent, so the `vmap` over basis tangents costs the same for any number of segments."""
+    columns, plus `6n` on (S^2)^n when the states are unknowns, by `jac`) is built once
+    from the primals and applied to any tangent, so the `vmap` over basis tangents costs the
+    same for any number of segments. Fixed states (single shooting from `y0`) have a
+    symbolic zero tangent and get no columns (the cable quadrotor of notebook 08: 2 columns
+    instead of 44)."""
     u, states = primals
-    du, dstates = (fill_zeros(t, p) for t, p in zip(tangents, primals, strict=True))
+    states_fixed = not jtu.tree_leaves(tangents[1])
     u_flat, unravel_u = ravel_pytree(u)
     s_flat, unravel_s = _ravel_segments(states)
 
@@ -189,10 +192,12 @@ def _segments_jvp(primals, tangents, *, problem, data):
         return ravel_pytree(out)[0], out
 
     jacobian = jax.jacfwd if problem.jac == "fwd" else jax.jacrev
-    block = jacobian(flat, argnums=(0, 1), has_aux=True)
-    (J_u, J_s), out = problem.over_segments(lambda s, *d: block(u_flat, s, *d), s_flat, data)
-    ds_flat = _ravel_segments(dstates)[0]
-    t_out = J_u @ ravel_pytree(du)[0] + jnp.einsum("bkrs,bks->bkr", J_s, ds_flat)
+    block = jacobian(flat, argnums=(0,) if states_fixed else (0, 1), has_aux=True)
+    blocks, out = problem.over_segments(lambda s, *d: block(u_flat, s, *d), s_flat, data)
+    t_out = blocks[0] @ ravel_pytree(fill_zeros(tangents[0], u))[0]
+    if not states_fixed:
+        ds_flat = _ravel_segments(fill_zeros(tangents[1], states))[0]
+        t_out = t_out + jnp.einsum("bkrs,bks->bkr", blocks[1], ds_flat)
     return out, over_states(_ravel_segments(out)[1])(t_out)
 
 
