@@ -149,8 +149,9 @@ def observe_drone(scene, t, q, v):
     return jnp.concatenate([q["base"], scene.positions(q)[-1]])
 
 
-@pytest.mark.slow  # 59 s; notebook 06 runs the same fit on the same scene, and
-# test_gradient_through_base_scene_matches_finite_differences checks its derivatives
+@pytest.mark.slow  # 59 s; notebook 06 fits the same two parameters on the same scene (3 s
+# of noisy data), test_gradient_through_base_scene_matches_finite_differences checks the
+# derivatives in them
 def test_fit_recovers_payload_and_cable_damping():
     """`fit` recovers the payload mass and the cable's damping (both started 50 % off)
     from the drone's and the payload's positions over a 2 s step, noise-free (from a

@@ -182,8 +182,8 @@ def _segments_jvp(primals, tangents, *, problem, data):
     same for any number of segments. Fixed states (single shooting from `y0`) have a
     symbolic zero tangent and get no columns (the cable quadrotor of notebook 08: 2 columns
     instead of 44)."""
-    u, states = primals
-    states_fixed = not jtu.tree_leaves(tangents[1])
+    (u, states), (du, dstates) = primals, tangents
+    states_fixed = not jtu.tree_leaves(dstates)
     u_flat, unravel_u = ravel_pytree(u)
     s_flat, unravel_s = _ravel_segments(states)
 
@@ -194,9 +194,9 @@ def _segments_jvp(primals, tangents, *, problem, data):
     jacobian = jax.jacfwd if problem.jac == "fwd" else jax.jacrev
     block = jacobian(flat, argnums=(0,) if states_fixed else (0, 1), has_aux=True)
     blocks, out = problem.over_segments(lambda s, *d: block(u_flat, s, *d), s_flat, data)
-    t_out = blocks[0] @ ravel_pytree(fill_zeros(tangents[0], u))[0]
+    t_out = blocks[0] @ ravel_pytree(fill_zeros(du, u))[0]
     if not states_fixed:
-        ds_flat = _ravel_segments(fill_zeros(tangents[1], states))[0]
+        ds_flat = _ravel_segments(fill_zeros(dstates, states))[0]
         t_out = t_out + jnp.einsum("bkrs,bks->bkr", blocks[1], ds_flat)
     return out, over_states(_ravel_segments(out)[1])(t_out)
 
