@@ -213,6 +213,11 @@ def test_fit_errors():
         )
     with pytest.raises(ValueError, match="model"):
         sm.fit(lambda p: p, START, ts, obs, mass_positions, y0=y0)
+    with pytest.raises(TypeError, match="Gauss-Newton-type"):
+        best = optx.BestSoFarLeastSquares(optx.LevenbergMarquardt(rtol=1e-6, atol=1e-9))
+        sm.fit(damped_chain, START, ts, obs, mass_positions, y0=y0, solver=best)
+    with pytest.raises(ValueError, match="max_steps must be a positive integer"):
+        sm.fit(damped_chain, START, ts, obs, mass_positions, y0=y0, max_steps=0)
 
 
 def test_shooting_segment_end_is_inf_where_the_solve_stops_early():

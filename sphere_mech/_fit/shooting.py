@@ -179,11 +179,11 @@ def _segments_jvp(primals, tangents, *, problem, data):
     """Segment `k` depends only on `u` and its own initial state: its Jacobian (`dim(u)`
     columns, plus `6n` on (S^2)^n when the states are unknowns, by `jac`) is built once
     from the primals and applied to any tangent, so the `vmap` over basis tangents costs the
-    same for any number of segments. Fixed states (single shooting from `y0`) have a
-    symbolic zero tangent and get no columns (the cable quadrotor of notebook 08: 2 columns
-    instead of 44)."""
+    same for any number of segments. An argument with a symbolic zero tangent gets no
+    columns: fixed states (single shooting from `y0`; the cable quadrotor of notebook 08: 2
+    columns instead of 44), or fixed parameters (`fit`'s states' columns)."""
     (u, states), (du, dstates) = primals, tangents
-    states_fixed = not jtu.tree_leaves(dstates)
+    moving = tuple(i for i, t in enumerate(tangents) if jtu.tree_leaves(t))
     u_flat, unravel_u = ravel_pytree(u)
     s_flat, unravel_s = _ravel_segments(states)
 
@@ -192,10 +192,13 @@ def _segments_jvp(primals, tangents, *, problem, data):
         return ravel_pytree(out)[0], out
 
     jacobian = jax.jacfwd if problem.jac == "fwd" else jax.jacrev
-    block = jacobian(flat, argnums=(0,) if states_fixed else (0, 1), has_aux=True)
+    block = jacobian(flat, argnums=moving, has_aux=True)
     blocks, out = problem.over_segments(lambda s, *d: block(u_flat, s, *d), s_flat, data)
-    t_out = blocks[0] @ ravel_pytree(fill_zeros(du, u))[0]
-    if not states_fixed:
+    blocks = dict(zip(moving, blocks, strict=True))
+    t_out = 0.0
+    if 0 in blocks:  # the parameters' tangent, shared by the segments
+        t_out = t_out + blocks[0] @ ravel_pytree(fill_zeros(du, u))[0]
+    if 1 in blocks:  # each segment's own state's
         ds_flat = _ravel_segments(fill_zeros(dstates, states))[0]
         t_out = t_out + jnp.einsum("bkrs,bks->bkr", blocks[1], ds_flat)
     return out, over_states(_ravel_segments(out)[1])(t_out)
