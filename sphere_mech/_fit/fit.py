@@ -208,11 +208,11 @@ def _tangent_chart(space: AbstractSpace, to_linear, z):
 def _linearize(residuals, sol, data, dof, to_linear):
     """The Jacobian, the parameters' covariance, `s^2` and the loss, as `FitResult`
     describes them. The residuals and the parameters' columns are the solver's own last
-    linearization, at its solution (`fit` compiles one Jacobian of the solves, not two: a
-    first call 28 % shorter, in the test of `fit` through `LieRK`); only the states'
-    columns (multiple shooting) are built here, in the tangent chart. (The residuals depend
-    on the states through `retract` alone, so the parameters' columns at the solver's
-    ambient states are those at the chart's.)"""
+    linearization, at its solution, so single shooting compiles one Jacobian of the solves,
+    not two (the first call of the test of `fit` through `LieRK`: 24 s against 35 s). Only
+    the states' columns (multiple shooting) are built here, in the tangent chart. (The
+    residuals depend on the states through `retract` alone, so the parameters' columns at
+    the solver's ambient states are those at the chart's.)"""
     (u, z), f_info = sol.value, sol.state.f_info
     u_flat, unravel_u = ravel_pytree(u)
     ravel = lambda tree: ravel_pytree(tree)[0]
