@@ -213,3 +213,20 @@ def test_fit_through_a_lie_group_solver(pendulum_clean):
     )
     assert bool(result.converged)
     assert abs(float(result.params / TRUE_PENDULUM["l"]) - 1.0) < 1e-4, result.params
+
+
+@pytest.mark.slow  # 105 s for both; jac="fwd" is what the default suite's fit tests use
+@pytest.mark.parametrize("segments", [1, 2])
+def test_reverse_mode_jacobian_fits_the_same(pendulum_clean, segments):
+    """`jac="bwd"` (each segment's Jacobian by `jax.jacrev`, reverse mode through the
+    solver) gives the same fit as `jac="fwd"`: estimates, standard errors, loss, and the
+    Jacobian, single shooting and two segments with the initial state fitted."""
+    obs = pendulum_clean + NOISE * jr.normal(jr.PRNGKey(3), pendulum_clean.shape)
+    kw = dict(positive=True, segments=segments, fit_initial_state=segments == 2)
+    fwd, bwd = (_fit_pendulum(obs, jac=jac, **kw) for jac in ("fwd", "bwd"))
+    assert bool(fwd.converged) and bool(bwd.converged)
+    for a, b in [(fwd.params, bwd.params), (fwd.stderr, bwd.stderr)]:
+        for k in TRUE_PENDULUM:
+            assert max_rel_error(a[k], b[k]) < 1e-9, (k, a[k], b[k])
+    assert max_rel_error(fwd.loss, bwd.loss) < 1e-9
+    assert max_rel_error(fwd.jacobian, bwd.jacobian) < 1e-7
