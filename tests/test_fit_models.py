@@ -198,6 +198,29 @@ def test_fit_covariance_against_finite_differences(pendulum_clean, getkey):
     assert max_rel_error(stderr, np.sqrt(np.diag(expected))) < 1e-6
 
 
+def test_float32_fit_with_x64_on(pendulum_clean):
+    """Float32 parameters, states and data with float64 enabled (as here): the fit runs its
+    simulations in float32 and its least squares in float64 (optimistix's damping is
+    float64; this raised a lineax structure error before), and returns float32 parameters
+    near the truth of the noise-free data, at float32's resolution."""
+    f32 = lambda tree: jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), tree)
+    result = sm.fit(
+        pendulum,
+        f32(START_PENDULUM),
+        f32(TS_PENDULUM),
+        f32(pendulum_clean),
+        bob,
+        y0=f32((Q_PENDULUM, V_PENDULUM)),
+        positive=True,
+        simulate_options=dict(rtol=1e-6, atol=1e-7),
+    )
+    assert bool(result.converged)
+    for k, v in TRUE_PENDULUM.items():
+        assert result.params[k].dtype == jnp.float32
+        assert abs(float(result.params[k] / v) - 1.0) < 1e-4, (k, result.params[k])
+    assert result.covariance.dtype == jnp.float64
+
+
 def test_fit_through_a_lie_group_solver(pendulum_clean):
     """`fit` differentiates through `LieRK` (adaptive, SE(3) action): noise-free data of the
     damped pendulum give back its length."""

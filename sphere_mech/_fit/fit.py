@@ -19,6 +19,7 @@ from .._solve import state_pair
 from .._spaces import AbstractSpace
 from .shooting import (
     Residuals,
+    dtypes_of,
     map_flagged,
     model_output,
     over_states,
@@ -353,6 +354,7 @@ def fit(
             "fit: jac='bwd' (reverse mode) fails through a solve split over several devices "
             "(diffrax #765); use jac='fwd' (default) or devices=jax.devices()[:1]."
         )
+    unknowns0 = (map_flagged(jnp.log, dynamic, flags), z0)
     residuals = Residuals(
         model,
         space,
@@ -362,14 +364,18 @@ def fit(
         fit_initial_state,
         jnp.asarray(continuity),
         sim,
+        dtypes_of(unknowns0),
         jac,
         mesh,
     )
-    unknowns0 = (map_flagged(jnp.log, dynamic, flags), z0)
     dof = _degrees_of_freedom(space, observations, unknowns0, segments)
-    (u, z), loss, initial_loss, num_steps, result, linear = _solve(
-        residuals, solver, unknowns0, (segment_data, y0), max_steps, dof, system0.to_linear
+    # the least squares in JAX's default float (`Residuals.own`)
+    wide = jax.dtypes.canonicalize_dtype(jnp.float64)
+    wide_unknowns0 = jtu.tree_map(lambda x: x.astype(jnp.promote_types(x.dtype, wide)), unknowns0)
+    unknowns, loss, initial_loss, num_steps, result, linear = _solve(
+        residuals, solver, wide_unknowns0, (segment_data, y0), max_steps, dof, system0.to_linear
     )
+    u, z = residuals.own(unknowns)
     jacobian, covariance, variance = linear
     states = jtu.tree_map(lambda s: s if batched else s[0], residuals.states(z, y0))
     converged = result == optx.RESULTS.successful

@@ -28,7 +28,7 @@ from .._misc import tree_dtype
 from .._solvers.projected import Projected
 from .._solvers.rk4 import RK4
 from .._system import AbstractSystem
-from .shooting import Residuals, own_options, split_segments
+from .shooting import Residuals, dtypes_of, own_options, split_segments
 
 
 class LearnedLagrangian(AbstractConstantInertiaLagrangian):
@@ -252,7 +252,16 @@ def learn(
     flags = (False,) * len(jtu.tree_leaves(u0))
     sim = _default_sim(ts, simulate_options)
     residuals = Residuals(
-        _identity, model.state_space, _state_vector, flags, static, False, jnp.ones(()), sim, "grad"
+        _identity,
+        model.state_space,
+        _state_vector,
+        flags,
+        static,
+        False,
+        jnp.ones(()),
+        sim,
+        dtypes_of((u0, None)),
+        "grad",
     )
     optimizer = optax.adam(learning_rate) if optimizer is None else optimizer
     batch_size = min(batch_size, num_chunks)

@@ -14,7 +14,7 @@ from jax.sharding import Mesh
 from jaxtyping import Array, PyTree
 
 from .._batch import map_on_devices
-from .._misc import fill_zeros
+from .._misc import fill_zeros, tree_dtype
 from .._results import RESULTS
 from .._simulate import simulate
 from .._spaces import AbstractSpace
@@ -97,6 +97,11 @@ def over_states(fn: Callable, mesh: Mesh | None = None) -> Callable:
     return mapped
 
 
+def dtypes_of(tree):
+    """Zero-size arrays of the dtypes of `tree`'s leaves (`Residuals.like`)."""
+    return jtu.tree_map(lambda x: jnp.zeros((0,), x.dtype), tree)
+
+
 def with_first(y0, rest):
     """`y0` as segment 0 before `rest` (leading axes `(B, K - 1)`, or `None`)."""
     first = jtu.tree_map(lambda y: y[:, None], y0)
@@ -129,8 +134,16 @@ class Residuals(eqx.Module):
     fit_initial_state: bool = eqx.field(static=True)
     continuity: Array
     sim: dict
+    like: PyTree  # zero-size arrays of the unknowns' own dtypes (see `own`)
     jac: str = eqx.field(static=True)
     mesh: Mesh | None = eqx.field(static=True, default=None)
+
+    def own(self, unknowns):
+        """`(u, z)` in their own dtypes. `fit`'s least squares runs in JAX's default float
+        (float64 with x64 on) on float32 parameters and states too: optimistix's
+        Levenberg-Marquardt adds its float64 damping to the unknowns, which float32
+        unknowns cannot match (a lineax structure error, before)."""
+        return jtu.tree_map(lambda x, ref: x.astype(ref.dtype), unknowns, self.like)
 
     def params(self, u):
         return eqx.combine(map_flagged(jnp.exp, u, self.positive), self.static_params)
@@ -159,12 +172,14 @@ class Residuals(eqx.Module):
         return over_states(one, self.mesh)(states, obs, mask)
 
     def __call__(self, unknowns, data):
-        (u, z), (segment_data, y0) = unknowns, data
+        """The residuals in the dtype of `unknowns` as given, computed in their own."""
+        (u, z), (segment_data, y0) = self.own(unknowns), data
         states = self.states(z, y0)
         segments = _direct_segments if self.jac == "grad" else _segments
         res, ends = segments(u, states, problem=self, data=segment_data)
         w = jnp.sqrt(self.continuity).astype(res.dtype)
-        return res, jtu.tree_map(lambda e, s: w * (e[:, :-1] - s[:, 1:]), ends, states)
+        out = res, jtu.tree_map(lambda e, s: w * (e[:, :-1] - s[:, 1:]), ends, states)
+        return jtu.tree_map(lambda x: x.astype(tree_dtype(unknowns)), out)
 
 
 def _direct_segments(u, states, *, problem, data):
