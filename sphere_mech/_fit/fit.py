@@ -19,7 +19,6 @@ from .._solve import state_pair
 from .._spaces import AbstractSpace
 from .shooting import (
     Residuals,
-    dtypes_of,
     map_flagged,
     model_output,
     over_states,
@@ -364,7 +363,7 @@ def fit(
         fit_initial_state,
         jnp.asarray(continuity),
         sim,
-        dtypes_of(unknowns0),
+        jtu.tree_map(jnp.result_type, unknowns0),
         jac,
         mesh,
     )

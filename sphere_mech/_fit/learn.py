@@ -28,7 +28,7 @@ from .._misc import tree_dtype
 from .._solvers.projected import Projected
 from .._solvers.rk4 import RK4
 from .._system import AbstractSystem
-from .shooting import Residuals, dtypes_of, own_options, split_segments
+from .shooting import Residuals, own_options, split_segments
 
 
 class LearnedLagrangian(AbstractConstantInertiaLagrangian):
@@ -260,7 +260,7 @@ def learn(
         False,
         jnp.ones(()),
         sim,
-        dtypes_of((u0, None)),
+        jtu.tree_map(jnp.result_type, (u0, None)),
         "grad",
     )
     optimizer = optax.adam(learning_rate) if optimizer is None else optimizer

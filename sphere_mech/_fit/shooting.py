@@ -97,11 +97,6 @@ def over_states(fn: Callable, mesh: Mesh | None = None) -> Callable:
     return mapped
 
 
-def dtypes_of(tree):
-    """Zero-size arrays of the dtypes of `tree`'s leaves (`Residuals.like`)."""
-    return jtu.tree_map(lambda x: jnp.zeros((0,), x.dtype), tree)
-
-
 def with_first(y0, rest):
     """`y0` as segment 0 before `rest` (leading axes `(B, K - 1)`, or `None`)."""
     first = jtu.tree_map(lambda y: y[:, None], y0)
@@ -134,7 +129,7 @@ class Residuals(eqx.Module):
     fit_initial_state: bool = eqx.field(static=True)
     continuity: Array
     sim: dict
-    like: PyTree  # zero-size arrays of the unknowns' own dtypes (see `own`)
+    dtypes: PyTree  # the unknowns' own: `jtu.tree_map(jnp.result_type, (u, z))`
     jac: str = eqx.field(static=True)
     mesh: Mesh | None = eqx.field(static=True, default=None)
 
@@ -143,7 +138,7 @@ class Residuals(eqx.Module):
         (float64 with x64 on) on float32 parameters and states too: optimistix's
         Levenberg-Marquardt adds its float64 damping to the unknowns, which float32
         unknowns cannot match (a lineax structure error, before)."""
-        return jtu.tree_map(lambda x, ref: x.astype(ref.dtype), unknowns, self.like)
+        return jtu.tree_map(lambda x, dtype: x.astype(dtype), unknowns, self.dtypes)
 
     def params(self, u):
         return eqx.combine(map_flagged(jnp.exp, u, self.positive), self.static_params)
@@ -179,7 +174,8 @@ class Residuals(eqx.Module):
         res, ends = segments(u, states, problem=self, data=segment_data)
         w = jnp.sqrt(self.continuity).astype(res.dtype)
         out = res, jtu.tree_map(lambda e, s: w * (e[:, :-1] - s[:, 1:]), ends, states)
-        return jtu.tree_map(lambda x: x.astype(tree_dtype(unknowns)), out)
+        dtype = tree_dtype(unknowns)
+        return jtu.tree_map(lambda x: x.astype(dtype), out)
 
 
 def _direct_segments(u, states, *, problem, data):
