@@ -15,7 +15,6 @@ COMMON = """
 import os, sys
 import diffrax, equinox as eqx, jax, jax.numpy as jnp, numpy as np
 jax.config.update("jax_enable_x64", True)
-jax.config.update("jax_disable_most_optimizations", True)  # as in conftest.py
 import sphere_mech as sm
 if len(sys.argv) > 1:  # rank and port: join the other process first
     jax.distributed.initialize(f"localhost:{sys.argv[2]}", 2, process_id=int(sys.argv[1]))
@@ -123,6 +122,13 @@ print("ok")
 )
 
 
+def _env(devices: int) -> dict:
+    """One CPU process with `devices` devices, compiling as the suite's other processes do
+    (the suite's `XLA_FLAGS` kept: ../conftest.py)."""
+    flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={devices}"
+    return dict(JAX_PLATFORMS="cpu", XLA_FLAGS=flags.strip())
+
+
 def _run(script, *argv, env=None):
     env = dict(os.environ, **(env or {}))
     cmd = [sys.executable, "-c", textwrap.dedent(script), *map(str, argv)]
@@ -142,8 +148,7 @@ def _finish(proc, timeout=240):
 
 
 def test_gradient_through_a_batch_sharded_over_two_cpu_devices():
-    flags = "--xla_force_host_platform_device_count=2"
-    _finish(_run(TWO_DEVICES, env=dict(XLA_FLAGS=flags, JAX_PLATFORMS="cpu")))
+    _finish(_run(TWO_DEVICES, env=_env(2)))
 
 
 def _free_port() -> int:
@@ -154,8 +159,7 @@ def _free_port() -> int:
 
 def test_two_processes_on_localhost():
     port = _free_port()
-    env = dict(JAX_PLATFORMS="cpu", XLA_FLAGS="--xla_force_host_platform_device_count=1")
-    procs = [_run(TWO_PROCESSES, rank, port, env=env) for rank in (0, 1)]
+    procs = [_run(TWO_PROCESSES, rank, port, env=_env(1)) for rank in (0, 1)]
     outs = [_finish(p) for p in procs]
     messages = [line for out in outs for line in out.splitlines() if line.startswith("MESSAGE")]
     assert len(messages) == 2 and messages[0] == messages[1]
@@ -165,9 +169,7 @@ def test_two_processes_on_localhost():
 
 @pytest.mark.slow
 def test_fit_split_over_two_devices_and_over_two_processes():
-    flags = "--xla_force_host_platform_device_count=2"
-    _finish(_run(FIT, env=dict(XLA_FLAGS=flags, JAX_PLATFORMS="cpu")), timeout=900)
+    _finish(_run(FIT, env=_env(2)), timeout=900)
     port = _free_port()
-    env = dict(JAX_PLATFORMS="cpu", XLA_FLAGS="--xla_force_host_platform_device_count=1")
-    for proc in [_run(FIT, rank, port, env=env) for rank in (0, 1)]:
+    for proc in [_run(FIT, rank, port, env=_env(1)) for rank in (0, 1)]:
         _finish(proc, timeout=900)
