@@ -2,6 +2,8 @@
 the models and data several test modules use, and the cross-check of the four forms.
 Test modules import from here, never from each other."""
 
+import os
+
 import diffrax
 import equinox as eqx
 import jax
@@ -477,3 +479,10 @@ base = [0.0]
 t1 = 1.0
 {simulate}
 """
+
+
+def cpu_devices(count: int) -> dict:
+    """The environment of a subprocess with `count` CPU devices that compiles as the suite's
+    other processes do (../conftest.py's `XLA_FLAGS` kept, the device count added)."""
+    flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={count}"
+    return dict(JAX_PLATFORMS="cpu", XLA_FLAGS=flags.strip())

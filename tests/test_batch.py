@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import cpu_devices
 
 import sphere_mech as sm
 
@@ -157,8 +158,6 @@ def test_no_recompilation_when_values_change(masses):
 
 SHARDED = textwrap.dedent(
     """
-    import os
-    os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=2"
     import diffrax, jax, jax.numpy as jnp, numpy as np
     jax.config.update("jax_enable_x64", True)
     import sphere_mech as sm
@@ -187,7 +186,7 @@ SHARDED = textwrap.dedent(
 
 
 def test_sharded_equals_unsharded_on_two_cpu_devices():
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    env = dict(os.environ, **cpu_devices(2))
     out = subprocess.run(
         [sys.executable, "-c", SHARDED], env=env, capture_output=True, text=True, timeout=300
     )

@@ -10,6 +10,7 @@ import sys
 import textwrap
 
 import pytest
+from helpers import cpu_devices
 
 COMMON = """
 import os, sys
@@ -122,13 +123,6 @@ print("ok")
 )
 
 
-def _env(devices: int) -> dict:
-    """One CPU process with `devices` devices, compiling as the suite's other processes do
-    (the suite's `XLA_FLAGS` kept: ../conftest.py)."""
-    flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={devices}"
-    return dict(JAX_PLATFORMS="cpu", XLA_FLAGS=flags.strip())
-
-
 def _run(script, *argv, env=None):
     env = dict(os.environ, **(env or {}))
     cmd = [sys.executable, "-c", textwrap.dedent(script), *map(str, argv)]
@@ -148,7 +142,7 @@ def _finish(proc, timeout=240):
 
 
 def test_gradient_through_a_batch_sharded_over_two_cpu_devices():
-    _finish(_run(TWO_DEVICES, env=_env(2)))
+    _finish(_run(TWO_DEVICES, env=cpu_devices(2)))
 
 
 def _free_port() -> int:
@@ -159,7 +153,7 @@ def _free_port() -> int:
 
 def test_two_processes_on_localhost():
     port = _free_port()
-    procs = [_run(TWO_PROCESSES, rank, port, env=_env(1)) for rank in (0, 1)]
+    procs = [_run(TWO_PROCESSES, rank, port, env=cpu_devices(1)) for rank in (0, 1)]
     outs = [_finish(p) for p in procs]
     messages = [line for out in outs for line in out.splitlines() if line.startswith("MESSAGE")]
     assert len(messages) == 2 and messages[0] == messages[1]
@@ -169,7 +163,7 @@ def test_two_processes_on_localhost():
 
 @pytest.mark.slow
 def test_fit_split_over_two_devices_and_over_two_processes():
-    _finish(_run(FIT, env=_env(2)), timeout=900)
+    _finish(_run(FIT, env=cpu_devices(2)), timeout=900)
     port = _free_port()
-    for proc in [_run(FIT, rank, port, env=_env(1)) for rank in (0, 1)]:
+    for proc in [_run(FIT, rank, port, env=cpu_devices(1)) for rank in (0, 1)]:
         _finish(proc, timeout=900)
