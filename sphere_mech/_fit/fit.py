@@ -14,7 +14,7 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, PyTree
 
 from .._batch import batch_devices, batch_mesh
-from .._misc import as_arrays, tree_add, tree_dtype
+from .._misc import as_arrays, tree_add
 from .._solve import state_pair
 from .._spaces import AbstractSpace
 from .shooting import (
@@ -190,39 +190,50 @@ def _degrees_of_freedom(space, observations, unknowns0, segments):
     return observations.size + size * num_records * (segments - 1 - num_states) - num_params
 
 
-def _tangent_chart(space: AbstractSpace, to_linear, z):
-    """`(w0, chart)`: the segment states as a function of tangent coordinates `w (B, K, 2,
-    d)` (`dq`, `dv` in the state space's tangent basis at `q`, `dq` turned into a move of
-    `q` by the system's `to_linear`) around the retracted states (`w0 = 0`)."""
-    if z is None:
-        return jnp.zeros((0,)), lambda w: None
-    q, v = over_states(space.retract)(*z)
-    basis = over_states(space.tangent_basis)(q)
-    move_q = over_states(lambda T, x, dx: tree_add(x, to_linear(x, space.from_tangent(T, dx))))
-    move_v = over_states(lambda T, x, dx: tree_add(x, space.from_tangent(T, dx)))
-    chart = lambda w: (move_q(basis, q, w[..., 0, :]), move_v(basis, v, w[..., 1, :]))
-    shape = jtu.tree_leaves(q)[0].shape[:2] + (2, _tangent_size(space, (q, v)))
-    return jnp.zeros(shape, tree_dtype(q)), chart
+def _chart_at(space: AbstractSpace, to_linear, x):
+    """One state's chart around `x = (q, v)` on the space: tangent coordinates `w (2, d)`
+    (`dq`, `dv` in the space's tangent basis at `q`, `dq` turned into a move of `q` by the
+    system's `to_linear`) to the moved state."""
+    q, v = x
+    basis = space.tangent_basis(q)
+    move_q = lambda dq: tree_add(q, to_linear(q, space.from_tangent(basis, dq)))
+    return lambda w: (move_q(w[0]), tree_add(v, space.from_tangent(basis, w[1])))
+
+
+def _lift_at(space: AbstractSpace, to_linear, z):
+    """`L (a, 2 d)`: for the solver's raveled state `z` (`a` numbers, off the space in
+    general), the moves `dz = L w` that `retract`'s derivative at `z` maps to the chart's
+    moves at `retract(z)` (`_chart_at`, `w` raveled). The residuals depend on the states
+    through `retract` alone, so the solver's Jacobian at `z` times `L` is the Jacobian in
+    the chart: no solve is differentiated again. `L` is the pseudo-inverse of `retract`'s
+    Jacobian (its null space: the moves `retract` takes back) applied to the chart's."""
+    z_flat, unravel = ravel_pytree(z)
+    retract = lambda flat: ravel_pytree(space.retract(*unravel(flat)))[0]
+    chart = _chart_at(space, to_linear, space.retract(*z))
+    size = _tangent_size(space, jtu.tree_map(lambda x: x[None, None], z))
+    moves = jax.jacfwd(lambda w: retract(ravel_pytree(chart(w))[0]))(jnp.zeros((2, size)))
+    return jnp.linalg.pinv(jax.jacfwd(retract)(z_flat)) @ moves.reshape(z_flat.size, -1)
 
 
 def _linearize(residuals, sol, data, dof, to_linear):
     """The Jacobian, the parameters' covariance, `s^2` and the loss, as `FitResult`
-    describes them. The residuals and the parameters' columns are the solver's own last
-    linearization, at its solution, so single shooting compiles one Jacobian of the solves,
-    not two (the first call of the test of `fit` through `LieRK`: 24 s against 35 s). Only
-    the states' columns (multiple shooting) are built here, in the tangent chart. (The
-    residuals depend on the states through `retract` alone, so the parameters' columns at
-    the solver's ambient states are those at the chart's.)"""
+    describes them, from the solver's own last linearization at its solution: its
+    residuals, its parameters' columns, and its states' columns (multiple shooting) taken
+    into the tangent chart by `_lift_at`. So `fit` compiles one Jacobian of the solves, not
+    two (the first call of the test of `fit` through `LieRK`: 24 s against 35 s)."""
     (u, z), f_info = sol.value, sol.state.f_info
     u_flat, unravel_u = ravel_pytree(u)
     ravel = lambda tree: ravel_pytree(tree)[0]
     no_dz = jtu.tree_map(jnp.zeros_like, z)
     columns = [jax.jacfwd(lambda x: ravel(f_info.jac.mv((unravel_u(x), no_dz))))(u_flat)]
     if z is not None:
-        w0, chart = _tangent_chart(residuals.space, to_linear, z)
-        w_flat, unravel_w = ravel_pytree(w0)
-        states_residuals = lambda w: ravel(residuals((u, chart(unravel_w(w))), data))
-        columns.append(jax.jacfwd(states_residuals)(w_flat))
+        lift = over_states(lambda *state: _lift_at(residuals.space, to_linear, state))(*z)
+        unravel_z = ravel_pytree(jtu.tree_map(lambda x: x[0, 0], z))[1]
+        move = over_states(lambda lift, w: unravel_z(lift @ w))
+        no_du = jtu.tree_map(jnp.zeros_like, u)
+        w0 = jnp.zeros(lift.shape[:2] + lift.shape[-1:], lift.dtype)
+        states_columns = lambda w: ravel(f_info.jac.mv((no_du, move(lift, w.reshape(w0.shape)))))
+        columns.append(jax.jacfwd(states_columns)(w0.reshape(-1)))
     jacobian = jnp.concatenate(columns, axis=1)
     loss = 0.5 * jnp.sum(ravel(f_info.residual) ** 2)
     # (J^T J)^{-1} = R^{-1} R^{-T} from J = QR, not squaring J's condition number (a wide J
