@@ -259,8 +259,9 @@ class _WithInitialLoss(optx.AbstractLeastSquaresSolver):
     """A Gauss-Newton-type `solver` that also keeps the loss at its first step: the
     residuals at the initial guess (optimistix's searches accept the first step). So
     `initial_loss` comes from the loop's own evaluation, not from one more solve in the
-    program: the fit of notebook 08 (suite compile settings, this 2-core CPU) compiled in
-    22.5 s against 39.4 s, its first call 44 s against 65 s."""
+    program: the fit of notebook 08 (suite compile settings, this 2-core CPU, two runs each,
+    taking turns) compiled in 19.0 to 19.6 s against 30.7 to 37.0 s, its first call took
+    36 to 38 s against 51 to 56 s."""
 
     solver: optx.AbstractGaussNewton
 

@@ -84,14 +84,14 @@ def map_flagged(fn: Callable, tree: PyTree, flags: tuple[bool, ...]) -> PyTree:
 
 def over_states(fn: Callable, mesh: Mesh | None = None) -> Callable:
     """`fn` of one state mapped over the leading axes `(B, K)` (records, segments), the
-    `B K` calls split over the devices of `mesh` if one is given."""
-    if mesh is None:
-        return jax.vmap(jax.vmap(fn))
+    `B K` calls split over the devices of `mesh` if one is given. One `vmap` over the `B K`
+    calls, not one per axis: each `vmap` transforms the solver's loops again (the fit of
+    notebook 08 traced in 10.0 to 11.9 s against 12.3 to 13.8 s, suite compile settings)."""
 
     def mapped(*trees):
         B, K = jtu.tree_leaves(trees)[0].shape[:2]
         flat = jtu.tree_map(lambda x: x.reshape((B * K,) + x.shape[2:]), trees)
-        out = map_on_devices(fn, mesh, *flat)
+        out = jax.vmap(fn)(*flat) if mesh is None else map_on_devices(fn, mesh, *flat)
         return jtu.tree_map(lambda x: x.reshape((B, K) + x.shape[1:]), out)
 
     return mapped
