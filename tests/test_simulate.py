@@ -67,7 +67,7 @@ def test_vector_field_traced_once_per_system_and_shapes():
     not once per Runge-Kutta stage and loop pass, and forward mode (`jax.jacfwd`) or
     reverse mode (`jax.grad`) transforms the traced equations instead of tracing them
     again (30, 30 and 30 traces of `L` each before `vector_field` cached them; 3, 0, 3
-    now)."""
+    now). The transformed runs are traced, not compiled (`jax.eval_shape`)."""
     traces = []
 
     def counted(t, q, qdot, g):
@@ -79,8 +79,8 @@ def test_vector_field_traced_once_per_system_and_shapes():
     counts = [len(traces)]
     for run_ in (
         lambda: final(G),
-        lambda: jax.jacfwd(lambda g: final(g, adjoint=diffrax.ForwardMode()))(G),
-        lambda: jax.grad(lambda g: final(g)[1, 2])(G),
+        lambda: jax.eval_shape(jax.jacfwd(lambda g: final(g, adjoint=diffrax.ForwardMode())), G),
+        lambda: jax.eval_shape(jax.grad(lambda g: final(g)[1, 2]), G),
     ):
         run_()
         counts.append(len(traces))
@@ -89,7 +89,9 @@ def test_vector_field_traced_once_per_system_and_shapes():
     # the cache is keyed on what is static: a new function object is traced anew, and
     # Python floats (static, as in `system.rates`) give their own equations
     before = len(traces)
-    sm.simulate(sm.Lagrangian(lambda *a: counted(*a)), (Q0, V0), 0.2, args=G, **opts)
+    jax.eval_shape(
+        lambda: sm.simulate(sm.Lagrangian(lambda *a: counted(*a)), (Q0, V0), 0.2, args=G, **opts)
+    )
     assert len(traces) > before
     low, high = final(1.0), final(9.81)
     assert float(jnp.max(jnp.abs(high - final(G)))) < 1e-12 < float(jnp.max(jnp.abs(low - high)))
