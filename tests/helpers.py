@@ -109,7 +109,7 @@ def exact_observations(system, y0, ts, observe):
         atol=1e-12,
         saveat=diffrax.SaveAt(ts=jnp.asarray(ts)),
     )
-    return jax.vmap(lambda t, q, v: observe(system, t, q, v))(sol.ts, *sol.ys)
+    return jax.jit(jax.vmap(lambda t, q, v: observe(system, t, q, v)))(sol.ts, *sol.ys)
 
 
 # ----------------------------------------------------------------------------------------

@@ -118,7 +118,7 @@ def test_dense_points_on_tangent_bundle_and_continuous(system, y0, inner, action
     )
     n = int(sol.stats["num_accepted_steps"])
     steps = np.asarray(sol.ts)[:n]
-    q, v = jax.vmap(sol.evaluate)(jnp.linspace(0.0, 2.0, 201))
+    q, v = jax.jit(jax.vmap(sol.evaluate))(jnp.linspace(0.0, 2.0, 201))
     spheres = lambda tree: tree["bob"] if isinstance(tree, dict) else tree
     q_s, v_s = spheres(q), spheres(v)
     assert float(jnp.max(jnp.abs(jnp.linalg.norm(q_s, axis=-1) - 1))) < 1e-14
@@ -174,7 +174,7 @@ def test_simulate_with_dense_output_only():
         bench.PENDULUM, _pendulum_state(), 0.7, saveat=diffrax.SaveAt(ts=TS[:20]), **kwargs
     )
     assert dense.result == sm.RESULTS.successful
-    q, v = jax.vmap(dense.evaluate)(TS[:20])
+    q, v = jax.jit(jax.vmap(dense.evaluate))(TS[:20])
     np.testing.assert_allclose(q, saved.ys[0], rtol=0, atol=1e-12)
     np.testing.assert_allclose(v, saved.ys[1], rtol=0, atol=1e-12)
     np.testing.assert_allclose(jnp.linalg.norm(q, axis=-1), 1.0, rtol=0, atol=1e-14)

@@ -95,7 +95,7 @@ def pendulum_clean():
     system = pendulum(TRUE_PENDULUM)
     y0, ts = (Q_PENDULUM, V_PENDULUM), TS_PENDULUM
     sol = sm.simulate(system, y0, ts[-1], saveat=diffrax.SaveAt(ts=ts), rtol=1e-12, atol=1e-14)
-    return jax.vmap(system.chain.positions)(sol.ys[0])[:, 0]
+    return jax.jit(jax.vmap(system.chain.positions))(sol.ys[0])[:, 0]
 
 
 def _fit_pendulum(obs, simulate_options=SIM, **kwargs):

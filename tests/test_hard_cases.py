@@ -61,7 +61,7 @@ def reference(system, y0, t1, solver=None):
 
 
 def energies(system, q, v):
-    return np.asarray(jax.vmap(lambda a, b: system.energy(0.0, a, b, None))(q, v))
+    return np.asarray(jax.jit(jax.vmap(lambda a, b: system.energy(0.0, a, b, None)))(q, v))
 
 
 def max_energy_drift(system, q, v):
@@ -76,7 +76,7 @@ def vertical_angular_momentum(chain, q, v):
         x, xdot = jax.jvp(chain.positions, (q_,), (v_,))
         return jnp.sum(chain.masses() * jnp.cross(x, xdot)[:, 2])
 
-    return np.asarray(jax.vmap(lz)(q, v))
+    return np.asarray(jax.jit(jax.vmap(lz))(q, v))
 
 
 def chain_state(vectors, velocities):

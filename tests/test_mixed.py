@@ -59,7 +59,7 @@ def test_against_cartesian_reference(tight_runs, name):
     q, v = sol.ys
     assert set(q) == {"base", "chain"} and q["chain"].shape == (len(TS), model.n, 3)
     x_ref, r_ref = model.reference(q0, v0, forced=forced)
-    r = jax.vmap(model.positions)(q)
+    r = jax.jit(jax.vmap(model.positions))(q)
     assert np.max(np.abs(q["base"] - x_ref)) < 1e-8
     assert np.max(np.abs(r - r_ref)) < 1e-8
     assert sm.constraint_error(q["chain"]) < 1e-12
@@ -67,7 +67,7 @@ def test_against_cartesian_reference(tight_runs, name):
 
 def test_energy_conserved_without_forces(tight_runs):
     model, system, _, (q0, v0), sol = tight_runs["flying_chain"]
-    energy = jax.vmap(lambda q, v: system.energy(0.0, q, v))(*sol.ys)
+    energy = jax.jit(jax.vmap(lambda q, v: system.energy(0.0, q, v)))(*sol.ys)
     assert np.ptp(energy) < 1e-9 * (1 + abs(float(energy[0])))
     # Independent energy: kinetic plus potential of the Cartesian positions.
     q, v = q0, v0
@@ -194,7 +194,7 @@ def test_lie_group_solvers_against_reference(make, solver):
     ts = np.asarray(sol.ts)[keep]
     x_ref, r_ref = model.reference(q0, v0, forced=True, ts=np.concatenate([[0.0], ts]))
     assert np.max(np.abs(q["base"] - x_ref[1:])) < 1e-8
-    assert np.max(np.abs(jax.vmap(model.positions)(q) - r_ref[1:])) < 1e-8
+    assert np.max(np.abs(jax.jit(jax.vmap(model.positions))(q) - r_ref[1:])) < 1e-8
     assert sm.constraint_error(q["chain"]) < 1e-13
 
 
@@ -212,7 +212,7 @@ def test_variational_energy_bounded_and_reversible():
     )
     t, (q, v) = steps_taken(sol)
     assert len(t) == 2000
-    energy = np.asarray(jax.vmap(lambda q, v: system.energy(0.0, q, v))(q, v))
+    energy = np.asarray(jax.jit(jax.vmap(lambda q, v: system.energy(0.0, q, v)))(q, v))
     error = energy - float(system.energy(0.0, *y0))
     t = np.asarray(t)
     assert np.max(np.abs(error)) < 1e-2 * abs(float(energy[0]))
