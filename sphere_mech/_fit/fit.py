@@ -215,6 +215,11 @@ def _lift_at(space: AbstractSpace, to_linear, z):
     return jnp.linalg.pinv(jax.jacfwd(retract)(z_flat)) @ moves.reshape(z_flat.size, -1)
 
 
+def _half_sum_squares(residual) -> Array:
+    """The loss `1/2 sum r^2` of a pytree of residuals."""
+    return 0.5 * jnp.sum(ravel_pytree(residual)[0] ** 2)
+
+
 def _linearize(residuals, unknowns, f_info, dof, to_linear):
     """The Jacobian, the parameters' covariance, `s^2` and the loss, as `FitResult`
     describes them, from the solver's own last linearization at its solution: its
@@ -235,7 +240,7 @@ def _linearize(residuals, unknowns, f_info, dof, to_linear):
         states_columns = lambda w: ravel(f_info.jac.mv((no_du, move(lift, w.reshape(w0.shape)))))
         columns.append(jax.jacfwd(states_columns)(w0.reshape(-1)))
     jacobian = jnp.concatenate(columns, axis=1)
-    loss = 0.5 * jnp.sum(ravel(f_info.residual) ** 2)
+    loss = _half_sum_squares(f_info.residual)
     # (J^T J)^{-1} = R^{-1} R^{-T} from J = QR, not squaring J's condition number (a wide J
     # gets zero rows: R is then singular and the covariance not finite)
     rows = max(jacobian.shape[1] - jacobian.shape[0], 0)
@@ -284,7 +289,7 @@ class _WithInitialLoss(optx.AbstractLeastSquaresSolver):
     def step(self, fn, y, args, options, state, tags):
         inner, initial_loss = state
         y, new, aux = self.solver.step(fn, y, args, options, inner, tags)
-        loss = 0.5 * jnp.sum(ravel_pytree(new.f_info.residual)[0] ** 2)
+        loss = _half_sum_squares(new.f_info.residual)
         return y, (new, jnp.where(inner.first_step, loss, initial_loss)), aux
 
     def terminate(self, fn, y, args, options, state, tags):
