@@ -356,6 +356,19 @@ def main(argv=None):
         default="rk4",
         help="the training solver (fixed steps, wrapped in sm.Projected)",
     )
+    parser.add_argument(
+        "--refine-steps",
+        type=int,
+        default=0,
+        help="Gauss-Newton steps (sm.refine) after the optimizer's, in the training dtype",
+    )
+    parser.add_argument(
+        "--refine-floor",
+        type=float,
+        default=1e-5,
+        help="sm.refine's floor: minimize the mean over chunks of log(rms^2 + floor^2)",
+    )
+    parser.add_argument("--refine-damping", type=float, default=5e-3)
     parser.add_argument("--floor-perturbation", type=float, default=1e-5)
     parser.add_argument(
         "--dtype",
@@ -400,9 +413,23 @@ def main(argv=None):
         checkpoint_every=max(steps // 10, 1),
         print_every=max(steps // 20, 1),
     )
-    train_time, train_cpu = time.perf_counter() - start, time.process_time() - cpu_start
+    learn_time = time.perf_counter() - start
     last = result.losses[-max(steps // 20, 1) :]  # the last twentieth, skipped steps left out
-    model = as_float64(result.model)
+    refined = None
+    if args.refine_steps:
+        refined = sm.refine(
+            result.model,
+            ts,
+            chunks,
+            steps=args.refine_steps,
+            floor=args.refine_floor,
+            damping=args.refine_damping,
+            simulate_options=sim,
+            checkpoint=args.out / f"{args.system}.eqx",
+            print_every=1,
+        )
+    train_time, train_cpu = time.perf_counter() - start, time.process_time() - cpu_start
+    model = as_float64((refined or result).model)
     eqx.tree_serialise_leaves(args.out / f"{args.system}.eqx", model)
     report = {
         "system": args.system,
@@ -414,7 +441,13 @@ def main(argv=None):
         "clnn_rollout_rel_err": CLNN[args.system],
         "train_time_s": train_time,
         "train_cpu_time_s": train_cpu,
+        "learn_time_s": learn_time,
         "steps": steps,
+        "refine_steps": args.refine_steps,
+        "refine_floor": args.refine_floor,
+        "refine_damping": args.refine_damping,
+        "refine_losses": [] if refined is None else [float(x) for x in refined.losses],
+        "refine_rejected": 0 if refined is None else refined.skipped,
         "train_chunks": num_train,
         "test_trajectories": num_test,
         "final_loss": float(np.mean(last[np.isfinite(last)])),
@@ -457,11 +490,14 @@ def summary(out: Path):
         "train wall time (s) | train CPU time (s) | load (1 min) before / after | model |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
+    steps = lambda r: (
+        f"{r['steps']}" + (f" + {r['refine_steps']} refine" if r.get("refine_steps") else "")
+    )
     for r in reports:
         load = r.get("load_average_1min_before_after", [float("nan")] * 2)
         lines.append(
             f"| {r['system']} | {r['rollout_rel_err']:.2e} | {r['clnn_rollout_rel_err']:.2e} | "
-            f"{r['chaos_floor']:.2e} ({r['floor_perturbation']:g}) | {r['steps']} | "
+            f"{r['chaos_floor']:.2e} ({r['floor_perturbation']:g}) | {steps(r)} | "
             f"{r.get('dtype', 'float64')} | "
             f"{r['train_time_s']:.0f} | {r.get('train_cpu_time_s', float('nan')):.0f} | "
             f"{load[0]:.1f} / {load[1]:.1f} | {r.get('model', '')} |"

@@ -16,6 +16,7 @@ if TYPE_CHECKING:  # the public names; imported on first use (see `__getattr__`)
         LearnedLagrangian as LearnedLagrangian,
         LearnResult as LearnResult,
         learn as learn,
+        refine as refine,
     )
     from ._geometry import (
         constraint_error as constraint_error,

@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from jax.flatten_util import ravel_pytree
 
 import sphere_mech as sm
 
@@ -37,7 +38,7 @@ def learned(tmp_path_factory):
     path = tmp_path_factory.mktemp("learn") / "model.eqx"
     opts = dict(steps=400, batch_size=32, learning_rate=1e-2, simulate_options=TRAIN_SIM)
     result = sm.learn(model, ts, states, checkpoint=path, checkpoint_every=100, **opts)
-    return model, result, path, held_out
+    return model, result, path, held_out, (ts, states)
 
 
 def _potential_error(model):
@@ -49,7 +50,7 @@ def _potential_error(model):
 
 
 def test_learn_recovers_the_pendulum_potential(learned):
-    model, result, path, (ts, (q, v)) = learned
+    model, result, path, (ts, (q, v)), _ = learned
     assert _potential_error(model) > 0.5  # the untrained model is far off
     assert _potential_error(result.model) < 0.03
     assert result.losses.shape == (400,) and result.losses[-1] < 1e-2 * result.losses[0]
@@ -59,6 +60,84 @@ def test_learn_recovers_the_pendulum_potential(learned):
     # the checkpoint holds the trained model
     back = eqx.tree_deserialise_leaves(path, model)
     assert np.array_equal(back.inertia_factor, result.model.inertia_factor)
+
+
+def test_refine_improves_the_learned_potential(learned):
+    """Gauss-Newton steps from `learn`'s model on the same chunks (groups of 96: the last
+    of 3 padded): the least squares falls at each step from the one of a simulation
+    written here, and the learned potential comes 3 times closer to the true one."""
+    _, result, _, _, (ts, (q, v)) = learned
+    refined = sm.refine(
+        result.model, ts, (q, v), steps=3, group_size=96, simulate_options=TRAIN_SIM
+    )
+    sim = sm.simulate_batch(
+        result.model, (q[:, 0], v[:, 0]), ts[-1], saveat=diffrax.SaveAt(ts=ts), **TRAIN_SIM
+    )
+    squares = [jnp.sum((x - y)[:, 1:] ** 2, (2, 3)) for x, y in zip(sim.ys, (q, v), strict=True)]
+    assert refined.losses[0] == pytest.approx(float(jnp.mean(sum(squares))) / 6, rel=1e-9)
+    assert refined.losses.shape == (4,) and np.all(np.diff(refined.losses) < 0)
+    assert _potential_error(refined.model) < _potential_error(result.model) / 3
+
+
+@pytest.mark.slow  # two more compilations: about 40 s
+def test_refine_step_is_the_reweighted_gauss_newton_step():
+    """One step of `refine` with a floor is the damped Gauss-Newton step of its reweighted
+    least squares, here built from `jax.jacfwd` through `sm.simulate_batch` (forward
+    mode, against `refine`'s reverse-mode Jacobians of its shooting residuals), with the
+    weights `1 / (rms_c^2 + floor^2)` and Marquardt's damping (10 times the initial one for
+    each rejected trial); 40 chunks in groups of 16 (the last one padded). Its losses are
+    the mean of `log(rms_c^2 + floor^2)`."""
+    ts, (q, v) = _chunks(40, 4, 0.05)
+    model = sm.LearnedLagrangian(1, key=jax.random.PRNGKey(1), width=8, depth=1)
+    floor, damping = 1e-3, 1e-2
+    refined = sm.refine(
+        model,
+        ts,
+        (q, v),
+        steps=1,
+        floor=floor,
+        damping=damping,
+        group_size=16,
+        simulate_options=TRAIN_SIM,
+    )
+    # each rejected trial multiplies the damping by 10 (the untrained model: 4 of them)
+    damping = damping * 10.0**refined.skipped
+    params, rest = eqx.partition(model, eqx.is_inexact_array)
+    p0, unravel = ravel_pytree(params)
+
+    def residuals(p):
+        sim = sm.simulate_batch(
+            eqx.combine(unravel(p), rest),
+            (q[:, 0], v[:, 0]),
+            ts[-1],
+            saveat=diffrax.SaveAt(ts=ts),
+            adjoint=diffrax.ForwardMode(),
+            **TRAIN_SIM,
+        )
+        r = [(x - y)[:, 1:].reshape(40, -1) for x, y in zip(sim.ys, (q, v), strict=True)]
+        return jnp.concatenate(r, 1)
+
+    r, J = residuals(p0), jax.jacfwd(residuals)(p0)
+    spread = jnp.mean(r**2, -1) + floor**2
+    A = jnp.einsum("c,crp,crs->ps", 1 / spread, J, J)
+    g = jnp.einsum("c,crp,cr->p", 1 / spread, J, r)
+    damped = A + jnp.diag(damping * jnp.diag(A) + 1e-12 * jnp.max(jnp.diag(A)))
+    p1 = ravel_pytree(eqx.filter(refined.model, eqx.is_inexact_array))[0]
+    np.testing.assert_allclose(p1 - p0, jnp.linalg.solve(damped, -g), rtol=1e-7, atol=1e-10)
+    logs = [jnp.mean(jnp.log(jnp.mean(residuals(p) ** 2, -1) + floor**2)) for p in (p0, p1)]
+    np.testing.assert_allclose(refined.losses, logs, rtol=1e-10)
+    assert refined.losses[1] < refined.losses[0]
+
+
+@pytest.mark.slow  # one more compilation (float32): about 30 s
+def test_refine_float32():
+    """`refine` of a float32 model: its Jacobians in float32, their sums in float64; the
+    model stays float32 and the least squares falls at each step."""
+    ts, states = _chunks(64, 4, 0.05, dtype=jnp.float32)
+    model = sm.LearnedLagrangian(1, key=jax.random.PRNGKey(1), width=8, depth=1, dtype="float32")
+    result = sm.refine(model, ts, states, steps=3, simulate_options=TRAIN_SIM)
+    assert result.model.inertia_factor.dtype == jnp.float32
+    assert np.all(np.isfinite(result.losses)) and np.all(np.diff(result.losses) < 0)
 
 
 @pytest.mark.slow  # a second compilation (float32): about 40 s
@@ -170,5 +249,13 @@ def test_learn_rejects_bad_input():
         sm.learn(model, ts[:2], states, steps=1)
     with pytest.raises(ValueError, match="may not set 'adjoint'"):
         sm.learn(model, ts, states, steps=1, simulate_options={"adjoint": None})
+    with pytest.raises(ValueError, match="floor must be positive or None"):
+        sm.refine(model, ts, states, floor=0.0)
+    with pytest.raises(ValueError, match="damping must be positive"):
+        sm.refine(model, ts, states, damping=-1.0)
+    with pytest.raises(ValueError, match="steps and group_size must be positive"):
+        sm.refine(model, ts, states, steps=0)
+    with pytest.raises(ValueError, match="may not set 'adjoint'"):
+        sm.refine(model, ts, states, simulate_options={"adjoint": None})
     with pytest.raises(ValueError, match="inertia must have shape"):
         sm.LearnedLagrangian(2, key=jax.random.PRNGKey(1), inertia=jnp.eye(1))

@@ -1,13 +1,17 @@
 """`learn`: train a model system (an equinox Module, e.g. `LearnedLagrangian`) on many short
 observed trajectory chunks by a first-order optimizer (optax), through the multiple-shooting
-residuals of `shooting.py` (the ones `fit` minimizes), differentiated in reverse mode.
+residuals of `shooting.py` (the ones `fit` minimizes), differentiated in reverse mode;
+`refine`: Gauss-Newton steps on the same chunks from the model `learn` trained.
 
 A sibling of `fit`, not an extension: `fit` solves a small least-squares problem by
 Levenberg-Marquardt with each segment's Jacobian built in full (cheap for a few parameters,
 and the uncertainties come from it), whereas learning has thousands of parameters, so it
-needs gradients of a scalar loss, minibatches and an optimizer's state. Both build the
-same `Residuals`: each chunk is one record with one segment starting at its first
-observed state."""
+needs gradients of a scalar loss, minibatches and an optimizer's state. `refine` is
+Levenberg-Marquardt too, but for thousands of parameters: it sums the normal equations
+over groups of chunks instead of holding the whole Jacobian (optimistix's factors it by QR
+and again at each damping), and reweights the chunks. All three build the same
+`Residuals`: each chunk is one record with one segment starting at its first observed
+state"""
 
 import math
 import time
@@ -151,20 +155,76 @@ def _identity(model):
     return model
 
 
-def _default_sim(ts, simulate_options):
+def _default_sim(ts, simulate_options, name):
     """`simulate`'s options: `Projected(RK4())` at the observations' first spacing unless
     given, reverse-mode adjoint. `max_steps` stays `simulate`'s (its `sqrt(2 max_steps)`
     checkpoints hold every step of a chunk): bounded by a chunk's 8 steps (the tasks of
     `benchmarks/learned_lagrangian.py`, 2 RK4 steps per observation, 100 chunks) the loop
     recomputed steps from 4 checkpoints, and a training step took 1.3x (chain3) to 1.4x
     (magnet) as long."""
-    sim = own_options(simulate_options, "learn")
+    sim = own_options(simulate_options, name)
     ts = np.asarray(ts)
     if "dt0" not in sim:
         sim.setdefault("solver", Projected(RK4()))
         sim["dt0"] = float(np.min(ts[:, 1] - ts[:, 0]))
     sim["adjoint"] = diffrax.RecursiveCheckpointAdjoint()
     return sim
+
+
+class _Chunks(eqx.Module):
+    """`learn`'s and `refine`'s shooting problem: each observed chunk one record with one
+    segment, simulated from its first observed state."""
+
+    residuals: Residuals
+    unknowns: tuple[PyTree, PyTree]  # the model's floating-point leaves, and the rest
+    times: tuple[Array, Array, Array]  # the segments' `(ts, t0, t1)`
+    obs: Array
+    mask: Array
+    y0: PyTree
+    shared: bool = eqx.field(static=True)
+    num: int = eqx.field(static=True)
+
+    @classmethod
+    def build(cls, model, ts, states, simulate_options, jac, name):
+        if not isinstance(model, AbstractSystem):
+            raise ValueError(f"model must be a sphere_mech system, got {type(model).__name__}.")
+        dtype = tree_dtype(eqx.filter(model, eqx.is_inexact_array))
+        q, v = jtu.tree_map(lambda x: jnp.asarray(x, dtype), tuple(states))
+        num_chunks, num_times = jtu.tree_leaves(q)[0].shape[:2]
+        ts = jnp.asarray(ts, dtype)
+        shared = ts.shape == (num_times,)
+        if not (shared or ts.shape == (num_chunks, num_times)) or num_times < 2:
+            raise ValueError(
+                f"ts must have shape (T,) or (B, T) with T >= 2 matching states' (B, T) = "
+                f"{(num_chunks, num_times)}, got {ts.shape}."
+            )
+        ts = jnp.broadcast_to(ts, (num_chunks, num_times))
+        y0 = jtu.tree_map(lambda x: x[:, 0], (q, v))
+        observed = jax.vmap(jax.vmap(lambda q_, v_: _state_vector(None, None, q_, v_)))(q, v)
+        seg_ts, obs, t0, t1, mask = split_segments(ts, observed, 1)
+        # one segment per chunk: with `ts` shared, the first chunk's times are every chunk's
+        times = (seg_ts[0, 0], t0[0, 0], t1[0, 0]) if shared else (seg_ts, t0, t1)
+        u0, static = eqx.partition(model, eqx.is_inexact_array)
+        residuals = Residuals(
+            _identity,
+            model.state_space,
+            _state_vector,
+            (False,) * len(jtu.tree_leaves(u0)),
+            static,
+            False,
+            jnp.ones(()),
+            _default_sim(ts, simulate_options, name),
+            jtu.tree_map(jnp.result_type, (u0, None)),
+            jac,
+        )
+        return cls(residuals, (u0, static), times, obs, mask, y0, shared, num_chunks)
+
+    def pick(self, index):
+        """The residuals' data `(segment data, y0)` of the chunks `index`."""
+        pick = lambda tree: jtu.tree_map(lambda x: x[index], tree)
+        ts, t0, t1 = self.times if self.shared else pick(self.times)
+        obs, mask, y0 = pick((self.obs, self.mask, self.y0))
+        return (ts, obs, t0, t1, mask), y0
 
 
 def learn(
@@ -228,41 +288,10 @@ def learn(
     wall time).
     """
     start = time.perf_counter()
-    if not isinstance(model, AbstractSystem):
-        raise ValueError(f"model must be a sphere_mech system, got {type(model).__name__}.")
     if steps < 1 or batch_size < 1:
         raise ValueError(f"steps and batch_size must be positive, got {steps}, {batch_size}.")
-    dtype = tree_dtype(eqx.filter(model, eqx.is_inexact_array))
-    q, v = jtu.tree_map(lambda x: jnp.asarray(x, dtype), tuple(states))
-    num_chunks, num_times = jtu.tree_leaves(q)[0].shape[:2]
-    ts = jnp.asarray(ts, dtype)
-    shared = ts.shape == (num_times,)
-    if not (shared or ts.shape == (num_chunks, num_times)) or num_times < 2:
-        raise ValueError(
-            f"ts must have shape (T,) or (B, T) with T >= 2 matching states' (B, T) = "
-            f"{(num_chunks, num_times)}, got {ts.shape}."
-        )
-    ts = jnp.broadcast_to(ts, (num_chunks, num_times))
-    y0 = jtu.tree_map(lambda x: x[:, 0], (q, v))
-    observed = jax.vmap(jax.vmap(lambda q_, v_: _state_vector(None, None, q_, v_)))(q, v)
-    seg_ts, obs, t0, t1, mask = split_segments(ts, observed, 1)
-    # one segment per chunk: with `ts` shared, the first chunk's times are every chunk's
-    times = (seg_ts[0, 0], t0[0, 0], t1[0, 0]) if shared else (seg_ts, t0, t1)
-    u0, static = eqx.partition(model, eqx.is_inexact_array)
-    flags = (False,) * len(jtu.tree_leaves(u0))
-    sim = _default_sim(ts, simulate_options)
-    residuals = Residuals(
-        _identity,
-        model.state_space,
-        _state_vector,
-        flags,
-        static,
-        False,
-        jnp.ones(()),
-        sim,
-        jtu.tree_map(jnp.result_type, (u0, None)),
-        "grad",
-    )
+    chunks = _Chunks.build(model, ts, states, simulate_options, "grad", "learn")
+    residuals, num_chunks, (u0, static) = chunks.residuals, chunks.num, chunks.unknowns
     optimizer = optax.adam(learning_rate) if optimizer is None else optimizer
     batch_size = min(batch_size, num_chunks)
 
@@ -271,15 +300,9 @@ def learn(
     def loss_fn(u, batch):
         return loss(residuals((u, None), batch)[0])
 
-    def minibatch(index):
-        pick = lambda tree: jtu.tree_map(lambda x: x[index], tree)
-        ts_, t0_, t1_ = times if shared else pick(times)
-        obs_, mask_, y0_ = pick((obs, mask, y0))
-        return (ts_, obs_, t0_, t1_, mask_), y0_
-
     def step(carry, index):
         u, opt_state = carry
-        loss, grad = jax.value_and_grad(loss_fn)(u, minibatch(index))
+        loss, grad = jax.value_and_grad(loss_fn)(u, chunks.pick(index))
         updates, new_state = optimizer.update(grad, opt_state, u)
         # a step whose loss or gradient is not finite (a solve failed) is skipped
         finite = jnp.isfinite(loss) & jnp.all(jnp.isfinite(ravel_pytree(grad)[0]))
@@ -320,3 +343,141 @@ def learn(
     losses, finite = (np.concatenate(x) for x in zip(*jax.device_get(outputs), strict=True))
     skipped = int(np.sum(~finite))
     return LearnResult(eqx.combine(u, static), losses, skipped, time.perf_counter() - start)
+
+
+def refine(
+    model: AbstractSystem,
+    ts,
+    states,
+    *,
+    steps: int = 10,
+    floor: float | None = None,
+    damping: float = 1e-2,
+    group_size: int = 100,
+    simulate_options: dict | None = None,
+    checkpoint=None,
+    print_every: int | None = None,
+) -> LearnResult:
+    """Refine a model trained by `learn` on the same chunks by Gauss-Newton steps
+    (Levenberg-Marquardt with Marquardt's scaling): each step builds every chunk's
+    Jacobian in the parameters (`jax.jacrev`: a chunk has far fewer residuals than a
+    model has parameters), the normal equations `(J^T W J + damping diag(J^T W J)) dp =
+    -J^T W r` summed over groups of chunks, and solves them by Cholesky. A step that does
+    not lower the objective is retried with 10 times the damping; an accepted one divides
+    it by 3. A first-order optimizer stalls on a small network well before its least
+    squares does (docs/fitting.md has the figures of the magnet task).
+
+    **Arguments:**
+    - `model`, `ts`, `states`, `simulate_options`: as for `learn` (the chunks' first
+      observations start them).
+    - `steps`: Gauss-Newton steps (each one Jacobian of every chunk, and one Cholesky
+      factorization and one simulation of every chunk per damping tried).
+    - `floor`: `None` (default): least squares, `sum_c |r_c|^2` over chunks `c`. A
+      positive number: `sum_c log(rms_c^2 + floor^2)`, `rms_c` chunk `c`'s root mean
+      square residual, minimized by iteratively reweighted least squares (weights
+      `1 / (rms_c^2 + floor^2)` from each step's start, a majorizer, so an accepted step
+      lowers it): every chunk above the floor weighs alike, as in a geometric mean over
+      trajectories, instead of the few fast ones dominating.
+    - `damping`: the initial Marquardt damping.
+    - `group_size`: chunks whose Jacobians are held at once (memory: `group_size` times
+      the residuals of a chunk times the parameters).
+    - `checkpoint`, `print_every`: as for `learn`, `checkpoint` written after each step.
+
+    **Returns:** a `LearnResult`: `losses` the objective (the mean over chunks of
+    `|r_c|^2`, or of `log(rms_c^2 + floor^2)`) at the start of each step and at the end;
+    `skipped` the number of rejected trial steps. It stops early when 8 dampings in a row
+    fail to lower the objective. The Jacobians and the Gram matrix are computed in the
+    model's dtype, their sums and the factorization in JAX's default float.
+    """
+    start = time.perf_counter()
+    if steps < 1 or group_size < 1:
+        raise ValueError(f"steps and group_size must be positive, got {steps}, {group_size}.")
+    if floor is not None and not floor > 0:
+        raise ValueError(f"floor must be positive or None, got {floor!r}.")
+    if not damping > 0:
+        raise ValueError(f"damping must be positive, got {damping!r}.")
+    chunks = _Chunks.build(model, ts, states, simulate_options, "bwd", "refine")
+    problem, (u0, static) = chunks.residuals, chunks.unknowns
+    p0, unravel = ravel_pytree(u0)
+    wide = jnp.promote_types(p0.dtype, jax.dtypes.canonicalize_dtype(jnp.float64))
+    # the chunks in groups; the last one padded with chunk 0 at weight zero
+    group_size = min(group_size, chunks.num)
+    padded = -(-chunks.num // group_size) * group_size
+    groups = (np.arange(padded) % chunks.num).reshape(-1, group_size)
+    real = (np.arange(padded) < chunks.num).reshape(-1, group_size)
+
+    def chunk_residuals(p, index):
+        # `(chunks, rows)`; a chunk's first observation is its start: its residual is zero
+        return problem((unravel(p), None), chunks.pick(index))[0][:, 0, 1:].reshape(len(index), -1)
+
+    @jax.jit
+    def evaluate(p, weights):
+        """The objective at `p`; its weighted least squares with `weights`; the weights
+        that `p` gives and its weighted least squares with them."""
+        r = chunk_residuals(p, np.arange(chunks.num))
+        ms = jnp.mean(r**2, -1)
+        if floor is None:
+            loss, own = jnp.mean(ms), jnp.ones_like(ms)
+        else:
+            loss, own = jnp.mean(jnp.log(ms + floor**2)), 1 / (ms + floor**2)
+        squares = jnp.sum(r**2, -1).astype(wide)
+        own = own.astype(wide)
+        return loss, jnp.sum(weights * squares), own, jnp.sum(own * squares)
+
+    def one_chunk(p, data):
+        def rows(p_):
+            r = problem.segment(unravel(p_), *data)[0][1:].reshape(-1)
+            return r, r
+
+        return jax.jacrev(rows, has_aux=True)(p)
+
+    @jax.jit
+    def normal_equations(p, weights):
+        def add(sums, group):
+            index, keep = group
+            (seg_data, y0) = chunks.pick(index)
+            states = problem.states(None, y0)
+            J, r = problem.over_segments(lambda s, *d: one_chunk(p, (s, *d)), states, seg_data)
+            w = jnp.sqrt(jnp.where(keep, weights[index], 0.0)).astype(p.dtype)
+            Jw = (w[:, None, None, None] * J).reshape(-1, p.size)
+            rw = (w[:, None, None] * r).reshape(-1)
+            return jtu.tree_map(
+                jnp.add, sums, ((Jw.T @ Jw).astype(wide), (Jw.T @ rw).astype(wide))
+            ), None
+
+        zeros = (jnp.zeros((p.size, p.size), wide), jnp.zeros(p.size, wide))
+        return jax.lax.scan(add, zeros, (groups, real))[0]
+
+    @jax.jit
+    def damped_step(p, A, g, lam):
+        d = jnp.diag(A)
+        A = A + jnp.diag(lam * d + 1e-12 * jnp.max(d))
+        dp = jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(A), -g)
+        return p + dp.astype(p.dtype)
+
+    def save(p):
+        if checkpoint is not None:
+            eqx.tree_serialise_leaves(checkpoint, eqx.combine(unravel(p), static))
+
+    p, lam, losses, skipped = p0, damping, [], 0
+    loss, _, weights, current = evaluate(p, jnp.ones(chunks.num, wide))
+    for k in range(steps):
+        losses.append(float(loss))
+        A, g = normal_equations(p, weights)
+        for _ in range(8):
+            trial = damped_step(p, A, g, lam)
+            out = evaluate(trial, weights)
+            if bool(jnp.isfinite(out[1])) and out[1] < current:
+                p, lam, (loss, _, weights, current) = trial, lam / 3, out
+                break
+            skipped, lam = skipped + 1, 10 * lam
+        else:
+            break  # no damping lowered it: at a minimum, as far as the steps resolve
+        if print_every and (k + 1) % print_every == 0:
+            elapsed = time.perf_counter() - start
+            print(f"refine: step {k + 1}/{steps}  loss {float(loss):.4e}  {elapsed:.1f} s")
+        save(p)
+    losses.append(float(loss))
+    save(p)
+    result = eqx.combine(unravel(p), static)
+    return LearnResult(result, np.asarray(losses), skipped, time.perf_counter() - start)
