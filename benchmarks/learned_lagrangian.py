@@ -142,6 +142,17 @@ gave 2.41e-3 (with 1 instead of 0.1: 2.60e-3); trained from scratch with it (bat
 with the penalty, batches of 25, learning rate 1e-3 with cosine decay, 73 ms a step; about
 31 minutes in all) 6.59e-3: midway the minibatch loss rose from 2.3e-3 to 4.5e-2.
 
+Gauss-Newton after Adam (`--refine-steps 40`: `sm.refine`, floor 1e-5, initial damping
+5e-3, float32; `benchmarks/results/learned_lagrangian/refine/`): 1.21e-3 after the same
+28000 Adam steps, in 3989 s wall (4799 s CPU, `top` showing half the machine's time
+stolen by its host), twice the budget; that run's Adam part alone scored 2.07e-3 (1992
+s), and its refine checkpoints after 5, 10, 15, 20, 25, 30 steps 1.97e-3, 1.86e-3,
+1.61e-3, 1.29e-3, 1.24e-3, 1.24e-3. A script before `refine` existed (float64, weights
+`1 / (rms + 1e-5)^2`, from the 2.59e-3 model) had lowered it to 1.73e-3 in 8 steps and
+1.53e-3 in 10 (about 120 s a step: the float64 Gram matrix of 800 chunks' Jacobians took
+about 5 times as long as in float32), and `refine` in float32 from there 1.17e-3 after
+16 more.
+
 `--dtype float32` trains in float32 (evaluated and saved in float64): a width-128 magnet
 step took 83 ms against 214 ms in float64 (100 chunks, same run conditions, this 2-core
 CPU).
