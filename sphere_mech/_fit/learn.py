@@ -126,7 +126,8 @@ def _coordinates(q):
 
 
 class LearnResult(eqx.Module):
-    """What `learn` returns.
+    """What `learn` returns (and `refine`, whose docstring says what its `losses` and
+    `skipped` count).
 
     **Attributes:**
     - `model`: the trained model (same structure as the model given).
