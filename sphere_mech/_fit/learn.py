@@ -385,7 +385,7 @@ def refine(
     - `checkpoint`, `print_every`: as for `learn`, `checkpoint` written after each step.
 
     **Returns:** a `LearnResult`: `losses` the objective (the mean over chunks of
-    `|r_c|^2`, or of `log(rms_c^2 + floor^2)`) at the start of each step and at the end;
+    `|r_c|^2`, or of `log(rms_c^2 + floor^2)`) at the start and after each accepted step;
     `skipped` the number of rejected trial steps. It stops early when 8 dampings in a row
     fail to lower the objective. The Jacobians and the Gram matrix are computed in the
     model's dtype, their sums and the factorization in JAX's default float.
@@ -460,10 +460,10 @@ def refine(
         if checkpoint is not None:
             eqx.tree_serialise_leaves(checkpoint, eqx.combine(unravel(p), static))
 
-    p, lam, losses, skipped = p0, damping, [], 0
+    p, lam, skipped = p0, damping, 0
     loss, _, weights, current = evaluate(p, jnp.ones(chunks.num, wide))
+    losses = [float(loss)]
     for k in range(steps):
-        losses.append(float(loss))
         A, g = normal_equations(p, weights)
         for _ in range(8):
             trial = damped_step(p, A, g, lam)
@@ -474,11 +474,11 @@ def refine(
             skipped, lam = skipped + 1, 10 * lam
         else:
             break  # no damping lowered it: at a minimum, as far as the steps resolve
+        losses.append(float(loss))
         if print_every and (k + 1) % print_every == 0:
             elapsed = time.perf_counter() - start
             print(f"refine: step {k + 1}/{steps}  loss {float(loss):.4e}  {elapsed:.1f} s")
         save(p)
-    losses.append(float(loss))
     save(p)
     result = eqx.combine(unravel(p), static)
     return LearnResult(result, np.asarray(losses), skipped, time.perf_counter() - start)
