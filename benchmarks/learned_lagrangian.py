@@ -155,10 +155,11 @@ about 5 times as long as in float32), and `refine` in float32 from there 1.17e-3
 Within the budget (`--steps 15000 --refine-steps 20 --refine-damping 1e-3`,
 `benchmarks/results/learned_lagrangian/budget/`): 2.53e-3 in 1569 s wall (2222 s CPU;
 `learn` 773 s, `refine` 796 s), no better than 28000 Adam steps (2.59e-3, 1779 s); its
-Adam part alone 4.63e-3, after 9 refine steps 3.88e-3. Cheaper steps between
-refine's (a script: each full step's Cholesky factor reused with the gradient at the new
-point, about 10 s for the gradient of the 800 chunks and up to 3 trial lengths) failed:
-from that Adam model, none of 4 such steps lowered the objective at length 1, 1/2 or 1/4.
+Adam part alone 4.63e-3, after 9 refine steps 3.88e-3. 22000 Adam and 14 refine steps
+(1662 s) gave 3.54e-3. Cheaper steps between refine's (a script: each full step's
+Cholesky factor reused with the gradient at the new point, about 10 s for the gradient of
+the 800 chunks and up to 3 trial lengths) failed: from the 15000-step Adam model, none of
+4 such steps lowered the objective at length 1, 1/2 or 1/4.
 
 `--dtype float32` trains in float32 (evaluated and saved in float64): a width-128 magnet
 step took 83 ms against 214 ms in float64 (100 chunks, same run conditions, this 2-core
