@@ -2,6 +2,9 @@
 simulated chunks (float64) with a checkpoint; float32 training (slow). The default-suite
 test's time is mostly compilation (one solve of the data, one training step, one rollout)."""
 
+import contextlib
+import io
+
 import diffrax
 import equinox as eqx
 import jax
@@ -37,8 +40,11 @@ def learned(tmp_path_factory):
     model = sm.LearnedLagrangian(1, key=jax.random.PRNGKey(1), width=16, depth=2)
     path = tmp_path_factory.mktemp("learn") / "model.eqx"
     opts = dict(steps=400, batch_size=32, learning_rate=1e-2, simulate_options=TRAIN_SIM)
-    result = sm.learn(model, ts, states, checkpoint=path, checkpoint_every=100, **opts)
-    return model, result, path, held_out, (ts, states)
+    with contextlib.redirect_stderr(io.StringIO()) as bar:  # the progress bar
+        result = sm.learn(
+            model, ts, states, checkpoint=path, checkpoint_every=100, progress=True, **opts
+        )
+    return model, result, path, held_out, (ts, states), bar.getvalue()
 
 
 def _potential_error(model):
@@ -50,7 +56,7 @@ def _potential_error(model):
 
 
 def test_learn_recovers_the_pendulum_potential(learned):
-    model, result, path, (ts, (q, v)), _ = learned
+    model, result, path, (ts, (q, v)), _, bar = learned
     assert _potential_error(model) > 0.5  # the untrained model is far off
     assert _potential_error(result.model) < 0.03
     assert result.losses.shape == (400,) and result.losses[-1] < 1e-2 * result.losses[0]
@@ -60,16 +66,25 @@ def test_learn_recovers_the_pendulum_potential(learned):
     # the checkpoint holds the trained model
     back = eqx.tree_deserialise_leaves(path, model)
     assert np.array_equal(back.inertia_factor, result.model.inertia_factor)
+    # the progress bar (`progress=True`) reached the last step
+    assert "learn: 100%" in bar and "400/400" in bar and "loss" in bar
 
 
-def test_refine_improves_the_learned_potential(learned):
+def test_refine_improves_the_learned_potential(learned, capsys):
     """Gauss-Newton steps from `learn`'s model on the same chunks (groups of 96: the last
     of 3 padded): the least squares falls at each step from the one of a simulation
     written here, and the learned potential comes 3 times closer to the true one."""
-    _, result, _, _, (ts, (q, v)) = learned
+    _, result, _, _, (ts, (q, v)), _ = learned
     refined = sm.refine(
-        result.model, ts, (q, v), steps=3, group_size=96, simulate_options=TRAIN_SIM
+        result.model,
+        ts,
+        (q, v),
+        steps=3,
+        group_size=96,
+        simulate_options=TRAIN_SIM,
+        progress=True,
     )
+    assert "refine: 100%" in capsys.readouterr().err
     sim = sm.simulate_batch(
         result.model, (q[:, 0], v[:, 0]), ts[-1], saveat=diffrax.SaveAt(ts=ts), **TRAIN_SIM
     )

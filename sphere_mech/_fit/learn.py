@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
 import optax
+import tqdm
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, PyTree
 
@@ -156,6 +157,19 @@ def _identity(model):
     return model
 
 
+def _bar(show, total, name):
+    """`learn`'s and `refine`'s progress bar over `total` steps (tqdm; does nothing unless
+    `show`)."""
+    return tqdm.tqdm(total=total, desc=name, unit="step", disable=not show)
+
+
+def _advance(bar, steps, loss):
+    """Move `bar` by `steps`, showing `loss` (read from the device only if it is shown)."""
+    if not bar.disable:
+        bar.set_postfix_str(f"loss {float(loss):.3e}", refresh=False)
+        bar.update(steps)
+
+
 def _default_sim(ts, simulate_options, name):
     """`simulate`'s options: `Projected(RK4())` at the observations' first spacing unless
     given, reverse-mode adjoint. `max_steps` stays `simulate`'s (its `sqrt(2 max_steps)`
@@ -243,6 +257,7 @@ def learn(
     checkpoint=None,
     checkpoint_every: int | None = None,
     print_every: int | None = None,
+    progress: bool = False,
 ) -> LearnResult:
     """Train the floating-point parameters of a model system on observed trajectory chunks:
     minimizes (by default) the mean over minibatches of chunks of
@@ -276,6 +291,8 @@ def learn(
       model of the same structure.
     - `checkpoint_every`: also write it every so many steps.
     - `print_every`: print a progress line (step, loss, seconds) every so many steps.
+    - `progress`: show a tqdm progress bar of the steps (with the last loss), moved at
+      the end of each block.
 
     A step whose loss or gradient is not finite (a chunk's solve failed: e.g. a model that
     blows up under the training solver's fixed steps) is skipped, the model and the
@@ -331,15 +348,19 @@ def learn(
     # one dispatch per block (the docstring says how long)
     block = math.gcd(steps, print_every or steps, checkpoint_every or steps, _MAX_BLOCK)
     u, opt_state, outputs = u0, optimizer.init(u0), []
-    for end in range(block, steps + 1, block):
-        (u, opt_state), (block_losses, finite) = run_block(u, opt_state, order[end - block : end])
-        outputs.append((block_losses, finite))
-        if print_every and (end % print_every == 0 or end == steps):
-            elapsed = time.perf_counter() - start
-            loss = float(block_losses[-1])
-            print(f"learn: step {end}/{steps}  loss {loss:.3e}  {elapsed:.1f} s")
-        if checkpoint_every and end % checkpoint_every == 0:
-            save(u)
+    with _bar(progress, steps, "learn") as bar:
+        for end in range(block, steps + 1, block):
+            (u, opt_state), (block_losses, finite) = run_block(
+                u, opt_state, order[end - block : end]
+            )
+            outputs.append((block_losses, finite))
+            if print_every and (end % print_every == 0 or end == steps):
+                elapsed = time.perf_counter() - start
+                loss = float(block_losses[-1])
+                print(f"learn: step {end}/{steps}  loss {loss:.3e}  {elapsed:.1f} s")
+            _advance(bar, block, block_losses[-1])
+            if checkpoint_every and end % checkpoint_every == 0:
+                save(u)
     save(u)
     losses, finite = (np.concatenate(x) for x in zip(*jax.device_get(outputs), strict=True))
     skipped = int(np.sum(~finite))
@@ -358,6 +379,7 @@ def refine(
     simulate_options: dict | None = None,
     checkpoint=None,
     print_every: int | None = None,
+    progress: bool = False,
 ) -> LearnResult:
     """Refine a model trained by `learn` on the same chunks by Gauss-Newton steps
     (Levenberg-Marquardt with Marquardt's scaling): each step builds every chunk's
@@ -382,7 +404,8 @@ def refine(
     - `damping`: the initial Marquardt damping.
     - `group_size`: chunks whose Jacobians are held at once (memory: `group_size` times
       the residuals of a chunk times the parameters).
-    - `checkpoint`, `print_every`: as for `learn`, `checkpoint` written after each step.
+    - `checkpoint`, `print_every`, `progress`: as for `learn`, `checkpoint` written and the
+      bar moved after each step.
 
     **Returns:** a `LearnResult`: `losses` the objective (the mean over chunks of
     `|r_c|^2`, or of `log(rms_c^2 + floor^2)`) at the start and after each accepted step;
@@ -463,22 +486,24 @@ def refine(
     p, lam, skipped = p0, damping, 0
     loss, _, weights, current = evaluate(p, jnp.ones(chunks.num, wide))
     losses = [float(loss)]
-    for k in range(steps):
-        A, g = normal_equations(p, weights)
-        for _ in range(8):
-            trial = damped_step(p, A, g, lam)
-            out = evaluate(trial, weights)
-            if bool(jnp.isfinite(out[1])) and out[1] < current:
-                p, lam, (loss, _, weights, current) = trial, lam / 3, out
-                break
-            skipped, lam = skipped + 1, 10 * lam
-        else:
-            break  # no damping lowered it: at a minimum, as far as the steps resolve
-        losses.append(float(loss))
-        if print_every and (k + 1) % print_every == 0:
-            elapsed = time.perf_counter() - start
-            print(f"refine: step {k + 1}/{steps}  loss {float(loss):.4e}  {elapsed:.1f} s")
-        save(p)
+    with _bar(progress, steps, "refine") as bar:
+        for k in range(steps):
+            A, g = normal_equations(p, weights)
+            for _ in range(8):
+                trial = damped_step(p, A, g, lam)
+                out = evaluate(trial, weights)
+                if bool(jnp.isfinite(out[1])) and out[1] < current:
+                    p, lam, (loss, _, weights, current) = trial, lam / 3, out
+                    break
+                skipped, lam = skipped + 1, 10 * lam
+            else:
+                break  # no damping lowered it: at a minimum, as far as the steps resolve
+            losses.append(float(loss))
+            if print_every and (k + 1) % print_every == 0:
+                elapsed = time.perf_counter() - start
+                print(f"refine: step {k + 1}/{steps}  loss {float(loss):.4e}  {elapsed:.1f} s")
+            _advance(bar, 1, loss)
+            save(p)
     save(p)
     result = eqx.combine(unravel(p), static)
     return LearnResult(result, np.asarray(losses), skipped, time.perf_counter() - start)
