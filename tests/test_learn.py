@@ -83,8 +83,11 @@ def test_refine_improves_the_learned_potential(learned, capsys):
         group_size=96,
         simulate_options=TRAIN_SIM,
         progress=True,
+        print_every=2,
     )
-    assert "refine: 100%" in capsys.readouterr().err
+    out, err = capsys.readouterr()
+    assert "refine: 100%" in err  # the bar, and a line every 2 steps and after the last
+    assert [line.split()[2] for line in out.splitlines()] == ["2/3", "3/3"]
     sim = sm.simulate_batch(
         result.model, (q[:, 0], v[:, 0]), ts[-1], saveat=diffrax.SaveAt(ts=ts), **TRAIN_SIM
     )

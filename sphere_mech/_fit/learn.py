@@ -163,11 +163,18 @@ def _bar(show, total, name):
     return tqdm.tqdm(total=total, desc=name, unit="step", disable=not show)
 
 
-def _advance(bar, steps, loss):
-    """Move `bar` by `steps`, showing `loss` (read from the device only if it is shown)."""
-    if not bar.disable:
-        bar.set_postfix_str(f"loss {float(loss):.3e}", refresh=False)
-        bar.update(steps)
+def _report(bar, name, done, total, moved, loss, start, print_every):
+    """`learn`'s and `refine`'s progress after step `done` of `total`: a line (step, loss,
+    seconds) every `print_every` steps and after the last, and `bar` moved by `moved` steps
+    with the loss; `loss` is read from the device only for these."""
+    line = bool(print_every) and (done % print_every == 0 or done == total)
+    if line or not bar.disable:
+        loss = float(loss)
+        if line:
+            elapsed = time.perf_counter() - start
+            print(f"{name}: step {done}/{total}  loss {loss:.4e}  {elapsed:.1f} s")
+        bar.set_postfix_str(f"loss {loss:.3e}", refresh=False)
+        bar.update(moved)
 
 
 def _default_sim(ts, simulate_options, name):
@@ -290,7 +297,8 @@ def learn(
       at the end; read it back with `eqx.tree_deserialise_leaves(path, like)`, `like` a
       model of the same structure.
     - `checkpoint_every`: also write it every so many steps.
-    - `print_every`: print a progress line (step, loss, seconds) every so many steps.
+    - `print_every`: print a progress line (step, loss, seconds) every so many steps and
+      after the last.
     - `progress`: show a tqdm progress bar of the steps (with the last loss), moved at
       the end of each block.
 
@@ -354,11 +362,7 @@ def learn(
                 u, opt_state, order[end - block : end]
             )
             outputs.append((block_losses, finite))
-            if print_every and (end % print_every == 0 or end == steps):
-                elapsed = time.perf_counter() - start
-                loss = float(block_losses[-1])
-                print(f"learn: step {end}/{steps}  loss {loss:.3e}  {elapsed:.1f} s")
-            _advance(bar, block, block_losses[-1])
+            _report(bar, "learn", end, steps, block, block_losses[-1], start, print_every)
             if checkpoint_every and end % checkpoint_every == 0:
                 save(u)
     save(u)
@@ -499,10 +503,7 @@ def refine(
             else:
                 break  # no damping lowered it: at a minimum, as far as the steps resolve
             losses.append(float(loss))
-            if print_every and (k + 1) % print_every == 0:
-                elapsed = time.perf_counter() - start
-                print(f"refine: step {k + 1}/{steps}  loss {float(loss):.4e}  {elapsed:.1f} s")
-            _advance(bar, 1, loss)
+            _report(bar, "refine", k + 1, steps, 1, loss, start, print_every)
             save(p)
     save(p)
     result = eqx.combine(unravel(p), static)
