@@ -218,6 +218,16 @@ def test_fit_errors():
         sm.fit(damped_chain, START, ts, obs, mass_positions, y0=y0, solver=best)
     with pytest.raises(ValueError, match="max_steps must be a positive integer"):
         sm.fit(damped_chain, START, ts, obs, mass_positions, y0=y0, max_steps=0)
+    # the data, before any solve: y0 as simulate_batch checks it, observations finite
+    with pytest.raises(ValueError, match=r"^fit: q is not on the spheres"):
+        sm.fit(damped_chain, START, ts, obs, mass_positions, y0=(2 * y0[0], y0[1]))
+    nan = obs.at[4, 1, 2].set(jnp.nan)
+    with pytest.raises(ValueError, match=r"^fit: observation 4 is NaN or infinite"):
+        sm.fit(damped_chain, START, ts, nan, mass_positions, y0=y0)
+    batch = jax.tree.map(lambda x: jnp.stack([x, x, x]), y0)
+    message = r"^fit: 1 of 3 records have a non-finite observation \(indices 2\); record 2: "
+    with pytest.raises(ValueError, match=message + "observation 4 is NaN"):
+        sm.fit(damped_chain, START, ts, jnp.stack([obs, obs, nan]), mass_positions, y0=batch)
 
 
 def test_shooting_segment_end_is_inf_where_the_solve_stops_early():

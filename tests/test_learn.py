@@ -220,15 +220,16 @@ def test_learn_blocks_match_single_steps(capsys):
 
 @pytest.mark.slow  # one more compilation: about 25 s
 def test_learn_skips_steps_whose_loss_is_not_finite():
-    """One chunk's observation is NaN: every minibatch holding it (one of 4 per epoch) has
-    a NaN loss and gradient; those steps are skipped and counted, the others train, and
-    the model stays finite (an update with them would make every parameter NaN)."""
+    """One chunk starts 1e150 times too fast, so the model's solve of it overflows: every
+    minibatch holding it (one of 4 per epoch) has a non-finite loss and gradient; those
+    steps are skipped and counted, the others train, and the model stays finite (an
+    update with them would make every parameter NaN)."""
     ts, (q, v) = _chunks(64, 4, 0.05)
-    q = q.at[5, 2].set(jnp.nan)
+    v = v.at[5].multiply(1e150)
     model = sm.LearnedLagrangian(1, key=jax.random.PRNGKey(1), width=8, depth=1)
     opts = dict(steps=8, batch_size=16, learning_rate=1e-2, simulate_options=TRAIN_SIM)
     result = sm.learn(model, ts, (q, v), **opts)
-    assert result.skipped == 2 and int(np.sum(np.isnan(result.losses))) == 2
+    assert result.skipped == 2 and int(np.sum(~np.isfinite(result.losses))) == 2
     leaves = lambda m: jax.tree.leaves(eqx.filter(m, eqx.is_inexact_array))
     assert all(bool(jnp.all(jnp.isfinite(x))) for x in leaves(result.model))
     trained = leaves(result.model)[0]
@@ -277,3 +278,22 @@ def test_learn_rejects_bad_input():
         sm.refine(model, ts, states, simulate_options={"adjoint": None})
     with pytest.raises(ValueError, match="inertia must have shape"):
         sm.LearnedLagrangian(2, key=jax.random.PRNGKey(1), inertia=jnp.eye(1))
+    # the chunks, before any solve: their first states as simulate_batch checks initial
+    # states (the same words), every observation finite, the model's number of links
+    bad = (q.at[2, 0].multiply(2.0), states[1])
+    message = r"^learn: 1 of 4 initial states are invalid \(indices 2\); initial state 2: "
+    with pytest.raises(ValueError, match=message + "q is not on the spheres"):
+        sm.learn(model, ts, bad, steps=1)
+    with pytest.raises(ValueError, match=message.replace("learn", "refine")):
+        sm.refine(model, ts, bad)
+    nan = (q.at[1, 2, 0, 1].set(jnp.nan), states[1])
+    message = r"^learn: 1 of 4 chunks have a non-finite observation \(indices 1\); chunk 1: "
+    with pytest.raises(ValueError, match=message + "observation 2 is NaN or infinite"):
+        sm.learn(model, ts, nan, steps=1)
+    two = sm.LearnedLagrangian(2, key=jax.random.PRNGKey(1), width=4, depth=1)
+    with pytest.raises(ValueError, match=r"the state has 1 spheres but the system has 2"):
+        sm.learn(two, ts, states, steps=1)
+    with pytest.raises(ValueError, match=r"the state has 1 spheres but the system has 2"):
+        sm.simulate(two, (q[0, 0], states[1][0, 0]), 0.1)
+    with pytest.raises(ValueError, match="same leading axes"):
+        sm.learn(model, ts, (q, states[1][:, :2]), steps=1)

@@ -19,6 +19,7 @@ from .._solve import state_pair
 from .._spaces import AbstractSpace
 from .shooting import (
     Residuals,
+    check_data,
     map_flagged,
     model_output,
     over_states,
@@ -341,7 +342,9 @@ def fit(
       `eqx.nn.MLP`, ...); its floating-point array leaves are fitted, the others kept.
     - `ts`: increasing observation times `(T,)` (or `(B, T)`, one row per record); the
       simulation starts at `ts[0]`.
-    - `observations`: `(T, ...)`, or `(B, T, ...)` for a batch of `B` records.
+    - `observations`: `(T, ...)`, or `(B, T, ...)` for a batch of `B` records, finite
+      (checked before any solve, as `y0` is, the way `simulate_batch` checks initial
+      states: a `ValueError` naming the record and observation).
     - `observe`: `observe(system, t, q, v) -> array` of the shape of one observation
       (e.g. the tip position), of one state (dicts on a mixed space).
     - `y0`: initial state `(q0, v0)` at `ts[0]`, `(n, 3)` arrays, or `(B, n, 3)` for a
@@ -398,6 +401,7 @@ def fit(
     system0, args0 = model_output(model, params0)
     space = system0.state_space
     ts, observations, y0, batched = _as_batch(space, ts, observations, y0)
+    check_data(system0, y0, observations, "fit", "record")
     segment_data = split_segments(ts, observations, segments)
     _check_observe(observe, system0, ts, observations, y0)
     z0 = _initial_unknown_states(

@@ -32,8 +32,9 @@ from .._inertia import AbstractConstantInertiaLagrangian
 from .._misc import tree_dtype
 from .._solvers.projected import Projected
 from .._solvers.rk4 import RK4
+from .._spaces import AbstractSpace, Spheres
 from .._system import AbstractSystem
-from .shooting import Residuals, own_options, split_segments
+from .shooting import Residuals, check_data, own_options, split_segments
 
 
 class LearnedLagrangian(AbstractConstantInertiaLagrangian):
@@ -109,6 +110,11 @@ class LearnedLagrangian(AbstractConstantInertiaLagrangian):
             size[0], "scalar", width, depth, activation=activation, dtype=dtype, key=key
         )
         self.forces = None
+
+    @property
+    def space(self) -> AbstractSpace:
+        """`Spheres(n)`, `n` the number of links of `inertia_factor`."""
+        return Spheres(self.inertia_factor.shape[0])
 
     def inertia(self, args):
         F = self.inertia_factor
@@ -212,7 +218,14 @@ class _Chunks(eqx.Module):
             raise ValueError(f"model must be a sphere_mech system, got {type(model).__name__}.")
         dtype = tree_dtype(eqx.filter(model, eqx.is_inexact_array))
         q, v = jtu.tree_map(lambda x: jnp.asarray(x, dtype), tuple(states))
-        num_chunks, num_times = jtu.tree_leaves(q)[0].shape[:2]
+        leading = {x.shape[:2] for x in jtu.tree_leaves((q, v))}
+        if len(leading) != 1 or len(next(iter(leading))) != 2:
+            raise ValueError(
+                "states must be (q, v) with the same leading axes (B, T) on every array, got "
+                f"shapes {jtu.tree_map(jnp.shape, (q, v))}."
+            )
+        model.state_space.check_shapes(*jtu.tree_map(lambda x: x[0, 0], (q, v)), model.state_name)
+        num_chunks, num_times = next(iter(leading))
         ts = jnp.asarray(ts, dtype)
         shared = ts.shape == (num_times,)
         if not (shared or ts.shape == (num_chunks, num_times)) or num_times < 2:
@@ -223,6 +236,7 @@ class _Chunks(eqx.Module):
         ts = jnp.broadcast_to(ts, (num_chunks, num_times))
         y0 = jtu.tree_map(lambda x: x[:, 0], (q, v))
         observed = jax.vmap(jax.vmap(lambda q_, v_: _state_vector(None, None, q_, v_)))(q, v)
+        check_data(model, y0, observed, name, "chunk")
         seg_ts, obs, t0, t1, mask = split_segments(ts, observed, 1)
         # one segment per chunk: with `ts` shared, the first chunk's times are every chunk's
         times = (seg_ts[0, 0], t0[0, 0], t1[0, 0]) if shared else (seg_ts, t0, t1)
@@ -280,7 +294,9 @@ def learn(
       (slower: the solver's time stepping is then batched too).
     - `states`: the observed chunks `(q, v)`, each of shape `(B, T, n, 3)` (the system's
       state variable `v`; dicts of such arrays on a mixed space); `(q, v)[:, 0]` starts
-      each chunk. Cast to the model's floating dtype (float32 or float64).
+      each chunk. Cast to the model's floating dtype (float32 or float64). Checked before
+      any solve (`ValueError`): the first states as `simulate_batch` checks initial
+      states, every observation finite.
     - `steps`: optimizer steps, each on one minibatch.
     - `batch_size`: chunks per minibatch, drawn without replacement each epoch.
     - `seed`: the seed of the minibatches' order (NumPy's `default_rng`).

@@ -15,8 +15,9 @@ from jaxtyping import Array, PyTree
 
 from .._batch import map_on_devices
 from .._misc import fill_zeros, tree_dtype
-from .._results import RESULTS
+from .._results import RESULTS, describe_failures, gathered
 from .._simulate import simulate
+from .._solve import initial_states
 from .._spaces import AbstractSpace
 from .._system import AbstractSystem
 
@@ -38,6 +39,27 @@ def split_segments(ts: Array, observations: Array, segments: int) -> tuple[Array
     mask = jnp.broadcast_to(index < ends[:, None], (num_records,) + index.shape)
     index = np.minimum(index, ends[:, None] - 1)
     return ts[:, index], observations[:, index], ts[:, bounds[:-1]], ts[:, bounds[1:]], mask
+
+
+def check_data(system, y0, observations, caller: str, record: str) -> None:
+    """The one check of the data of `fit`, `learn` and `refine`, before any solve
+    (`ValueError`): the records' initial states `y0` (a leading axis of records) as
+    `simulate_batch` checks its initial states (`initial_states`, the same words), and the
+    observations `(B, T, ...)` finite. Traced observations pass."""
+    initial_states(system.state_space, system.state_name, y0, caller, True)
+    if isinstance(observations, jax.core.Tracer):
+        return
+    values = gathered(observations)
+    finite = np.isfinite(values.reshape(values.shape[:2] + (-1,))).all(-1)  # (B, T)
+    bad = np.flatnonzero(~finite.all(1))
+    if bad.size:
+        failed = f"{record}s have a non-finite observation"
+        where = describe_failures(bad, finite.shape[0], failed, record)
+        index = np.flatnonzero(~finite[bad[0]])[0]
+        raise ValueError(
+            f"{caller}:{where} observation {index} is NaN or infinite (observations must "
+            "be finite: drop or fill missing ones)."
+        )
 
 
 def model_output(model: Callable, params: PyTree) -> tuple[AbstractSystem, PyTree]:
