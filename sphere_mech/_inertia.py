@@ -351,6 +351,19 @@ class AbstractConstantInertiaLagrangian(_AbstractFixedDense):
         return Spheres()
 
 
+def check_spd_inertia(M) -> np.ndarray:
+    """A concrete inertia matrix `M` as NumPy floats, checked symmetric positive-definite
+    (`ValueError`; NaN fails)."""
+    M = np.asarray(M, dtype=float)
+    smallest = np.linalg.eigvalsh(M)[0] if np.all(np.isfinite(M)) else np.nan
+    if not (np.max(np.abs(M - M.T)) <= 1e-10 * np.max(np.abs(M)) and smallest > 0):
+        raise ValueError(
+            f"inertia must be a symmetric positive-definite matrix "
+            f"(got smallest eigenvalue {smallest:g} of {M.tolist()})."
+        )
+    return M
+
+
 class ConstantInertiaLagrangian(_AbstractFixedDense):
     """`L = 1/2 sum_jk M_jk qdot_j . qdot_k - U(t, q, args)` on the fast path: the answers of
     `Lagrangian(L)` without any Hessian.
@@ -375,13 +388,7 @@ class ConstantInertiaLagrangian(_AbstractFixedDense):
             if len(shape) != 2 or shape[0] != shape[1]:
                 raise ValueError(f"inertia must be a square (n, n) matrix, got shape {shape}.")
             if not isinstance(self.inertia_matrix, jax.core.Tracer):  # concrete: check now
-                M = np.asarray(self.inertia_matrix, dtype=float)
-                smallest = np.linalg.eigvalsh(M)[0] if np.all(np.isfinite(M)) else np.nan
-                if not (np.max(np.abs(M - M.T)) <= 1e-10 * np.max(np.abs(M)) and smallest > 0):
-                    raise ValueError(
-                        f"inertia must be a symmetric positive-definite matrix "
-                        f"(got smallest eigenvalue {smallest:g} of {M.tolist()})."
-                    )
+                check_spd_inertia(self.inertia_matrix)
         else:
             check_function(self.inertia_matrix, "inertia", "inertia(args)", 1)
         check_function(self.potential_fn, "potential", "U(t, q, args)", 3)

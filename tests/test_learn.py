@@ -259,7 +259,7 @@ def test_learned_lagrangian_features_give_their_symmetry():
         sm.LearnedLagrangian(1, key=key, features=lambda q: q)
 
 
-def test_learn_rejects_bad_input():
+def test_learn_rejects_bad_input(tmp_path):
     ts = jnp.arange(3) * 0.05
     q = sm.normalize(jax.random.normal(jax.random.PRNGKey(0), (4, 3, 1, 3)))
     states = (q, jnp.zeros_like(q))
@@ -272,12 +272,33 @@ def test_learn_rejects_bad_input():
         sm.refine(model, ts, states, floor=0.0)
     with pytest.raises(ValueError, match="damping must be positive"):
         sm.refine(model, ts, states, damping=-1.0)
-    with pytest.raises(ValueError, match="steps and group_size must be positive"):
+    with pytest.raises(ValueError, match="refine: steps must be a positive integer, got 0"):
         sm.refine(model, ts, states, steps=0)
+    with pytest.raises(ValueError, match="learn: steps must be a positive integer, got 2.5"):
+        sm.learn(model, ts, states, steps=2.5)
+    with pytest.raises(ValueError, match="learn: checkpoint_every must be a positive integer"):
+        sm.learn(model, ts, states, steps=1, checkpoint_every=-1)
+    # before any training, not at the first write
+    missing = tmp_path / "missing" / "model.eqx"
+    with pytest.raises(ValueError, match="learn: checkpoint .* folder that does not exist"):
+        sm.learn(model, ts, states, steps=1, checkpoint=missing)
+    with pytest.raises(ValueError, match="refine: checkpoint .* folder that does not exist"):
+        sm.refine(model, ts, states, checkpoint=missing)
+    with pytest.raises(ValueError, match=r"loss\(r\) must return a scalar \(r: \(4, 1, 3, 6\)\)"):
+        sm.learn(model, ts, states, steps=1, loss=lambda r: r)
     with pytest.raises(ValueError, match="may not set 'adjoint'"):
         sm.refine(model, ts, states, simulate_options={"adjoint": None})
     with pytest.raises(ValueError, match="inertia must have shape"):
         sm.LearnedLagrangian(2, key=jax.random.PRNGKey(1), inertia=jnp.eye(1))
+    # the inertia checked as ConstantInertiaLagrangian checks it (the same words)
+    for inertia in (-jnp.eye(1), jnp.full((1, 1), jnp.nan), jnp.array([[1.0, 0.5], [0, 1]])):
+        n = inertia.shape[0]
+        with pytest.raises(ValueError, match="inertia must be a symmetric positive-definite"):
+            sm.LearnedLagrangian(n, key=jax.random.PRNGKey(1), inertia=inertia)
+        with pytest.raises(ValueError, match="inertia must be a symmetric positive-definite"):
+            sm.ConstantInertiaLagrangian(inertia, lambda t, q, a: 0.0)
+    with pytest.raises(ValueError, match="width must be an integer >= 1, got 0"):
+        sm.LearnedLagrangian(1, key=jax.random.PRNGKey(1), width=0)
     # the chunks, before any solve: their first states as simulate_batch checks initial
     # states (the same words), every observation finite, the model's number of links
     bad = (q.at[2, 0].multiply(2.0), states[1])

@@ -16,6 +16,7 @@ state"""
 import math
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import diffrax
 import equinox as eqx
@@ -28,7 +29,7 @@ import tqdm
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, PyTree
 
-from .._inertia import AbstractConstantInertiaLagrangian
+from .._inertia import AbstractConstantInertiaLagrangian, check_spd_inertia
 from .._misc import tree_dtype
 from .._solvers.projected import Projected
 from .._solvers.rk4 import RK4
@@ -92,10 +93,13 @@ class LearnedLagrangian(AbstractConstantInertiaLagrangian):
         dtype=None,
     ):
         dtype = jnp.zeros(()).dtype if dtype is None else jnp.dtype(dtype)
+        for name, value, least in (("n", n, 1), ("width", width, 1), ("depth", depth, 0)):
+            if not (isinstance(value, int | np.integer) and value >= least):
+                raise ValueError(f"{name} must be an integer >= {least}, got {value!r}.")
         M = np.eye(n) if inertia is None else np.asarray(inertia, dtype=float)
         if M.shape != (n, n):
             raise ValueError(f"inertia must have shape ({n}, {n}), got {M.shape}.")
-        C = np.linalg.cholesky(M)  # raises for a matrix that is not SPD
+        C = np.linalg.cholesky(check_spd_inertia(M))
         factor = np.tril(C, -1) + np.diag(np.log(np.diag(C)))
         if not input_scale > 0:
             raise ValueError(f"input_scale must be positive, got {input_scale}.")
@@ -181,6 +185,20 @@ def _report(bar, name, done, total, moved, loss, start, print_every):
             print(f"{name}: step {done}/{total}  loss {loss:.4e}  {elapsed:.1f} s")
         bar.set_postfix_str(f"loss {loss:.3e}", refresh=False)
         bar.update(moved)
+
+
+def _check_options(name, checkpoint, every: dict, counts: dict):
+    """`learn`'s and `refine`'s own checks, before any work (`ValueError`): `counts`
+    positive integers, `every` (`print_every`, ...) `None` or positive integers, and the
+    folder of `checkpoint` existing (else a run would fail at its first write)."""
+    every = {key: value for key, value in every.items() if value is not None}
+    for key, value in (counts | every).items():
+        if not (isinstance(value, int | np.integer) and value >= 1):
+            raise ValueError(f"{name}: {key} must be a positive integer, got {value!r}.")
+    if checkpoint is not None and not Path(checkpoint).parent.is_dir():
+        raise ValueError(
+            f"{name}: checkpoint {str(checkpoint)!r} is in a folder that does not exist."
+        )
 
 
 def _default_sim(ts, simulate_options, name):
@@ -309,9 +327,9 @@ def learn(
     - `simulate_options`: keyword arguments for `simulate` (`solver`, `dt0`,
       `max_steps`, ...); default fixed steps of `Projected(RK4())` at the observation
       spacing. The adjoint is `diffrax.RecursiveCheckpointAdjoint()`.
-    - `checkpoint`: a path: the model is written there with `eqx.tree_serialise_leaves`
-      at the end; read it back with `eqx.tree_deserialise_leaves(path, like)`, `like` a
-      model of the same structure.
+    - `checkpoint`: a path in an existing folder (checked before training): the model is
+      written there with `eqx.tree_serialise_leaves` at the end; read it back with
+      `eqx.tree_deserialise_leaves(path, like)`, `like` a model of the same structure.
     - `checkpoint_every`: also write it every so many steps.
     - `print_every`: print a progress line (step, loss, seconds) every so many steps and
       after the last.
@@ -330,14 +348,18 @@ def learn(
     wall time).
     """
     start = time.perf_counter()
-    if steps < 1 or batch_size < 1:
-        raise ValueError(f"steps and batch_size must be positive, got {steps}, {batch_size}.")
+    every = dict(print_every=print_every, checkpoint_every=checkpoint_every)
+    _check_options("learn", checkpoint, every, dict(steps=steps, batch_size=batch_size))
     chunks = _Chunks.build(model, ts, states, simulate_options, "grad", "learn")
     residuals, num_chunks, (u0, static) = chunks.residuals, chunks.num, chunks.unknowns
     optimizer = optax.adam(learning_rate) if optimizer is None else optimizer
     batch_size = min(batch_size, num_chunks)
 
     loss = (lambda r: jnp.mean(r**2)) if loss is None else loss
+    r = jax.ShapeDtypeStruct((batch_size,) + chunks.obs.shape[1:], chunks.obs.dtype)
+    out = jax.eval_shape(loss, r)
+    if not (isinstance(out, jax.ShapeDtypeStruct) and out.shape == ()):
+        raise ValueError(f"learn: loss(r) must return a scalar (r: {r.shape}), got {out}.")
 
     def loss_fn(u, batch):
         return loss(residuals((u, None), batch)[0])
@@ -434,8 +456,8 @@ def refine(
     model's dtype, their sums and the factorization in JAX's default float.
     """
     start = time.perf_counter()
-    if steps < 1 or group_size < 1:
-        raise ValueError(f"steps and group_size must be positive, got {steps}, {group_size}.")
+    counts = dict(steps=steps, group_size=group_size)
+    _check_options("refine", checkpoint, dict(print_every=print_every), counts)
     if floor is not None and not floor > 0:
         raise ValueError(f"floor must be positive or None, got {floor!r}.")
     if not damping > 0:
