@@ -4,8 +4,22 @@
 import jax
 import jax.numpy as jnp
 import jax.random as jr
+import numpy as np
 
 from ._custom_types import Points, Scalar, Tangents
+
+
+def _check_trailing(x, shape: tuple, name: str, fn: str) -> None:
+    """`x`'s last axes are `shape` (`ValueError` at trace time otherwise)."""
+    if jnp.shape(x)[jnp.ndim(x) - len(shape) :] != shape or jnp.ndim(x) < len(shape):
+        want = ", ".join(["..."] + [str(d) for d in shape])
+        raise ValueError(f"{fn}: {name} must have shape ({want}), got {jnp.shape(x)}.")
+
+
+def _check_count(n, fn: str) -> None:
+    """`n` a positive integer (`ValueError` otherwise)."""
+    if not (isinstance(n, int | np.integer) and not isinstance(n, bool) and n >= 1):
+        raise ValueError(f"{fn}: n must be a positive integer, got {n!r}.")
 
 
 def hat(x: jax.Array) -> jax.Array:
@@ -15,6 +29,7 @@ def hat(x: jax.Array) -> jax.Array:
     - `x`: vectors, shape `(..., 3)`.
 
     **Returns:** the skew-symmetric matrices, shape `(..., 3, 3)`."""
+    _check_trailing(x, (3,), "x", "hat")
     x1, x2, x3 = x[..., 0], x[..., 1], x[..., 2]
     z = jnp.zeros_like(x1)
     rows = [[z, -x3, x2], [x3, z, -x1], [-x2, x1, z]]
@@ -131,6 +146,7 @@ def rotation_matrix(w: jax.Array) -> jax.Array:
     - `w`: rotation vectors (axis times angle in rad), `(..., 3)`.
 
     **Returns:** the rotation matrices, `(..., 3, 3)`."""
+    _check_trailing(w, (3,), "w", "rotation_matrix")
     sinc, cosc, _ = _rodrigues_coefficients(jnp.sum(w * w, axis=-1))
     W = hat(w)
     return jnp.eye(3, dtype=w.dtype) + sinc[..., None, None] * W + cosc[..., None, None] * (W @ W)
@@ -165,6 +181,7 @@ def random_points(key: jax.Array, n: int, *, dtype=None) -> Points:
     - `dtype`: the floating dtype (default JAX's, float64 with x64 enabled).
 
     **Returns:** an `(n, 3)` array of unit vectors."""
+    _check_count(n, "random_points")
     return normalize(jr.normal(key, (n, 3), dtype=dtype))
 
 
@@ -180,6 +197,7 @@ def random_state(
       floating dtype (default JAX's).
 
     **Returns:** `(q, v)`, two `(n, 3)` arrays with `|q_i| = 1` and `q_i . v_i = 0`."""
+    _check_count(n, "random_state")
     kq, kv = jr.split(key)
     q = random_points(kq, n, dtype=dtype)
     return q, project(q, speed * jr.normal(kv, (n, 3), dtype=dtype))
@@ -193,6 +211,7 @@ def vee(M: jax.Array) -> jax.Array:
 
     **Returns:** vectors, `(..., 3)`.
     """
+    _check_trailing(M, (3, 3), "M", "vee")
     return 0.5 * jnp.stack(
         [M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0], M[..., 1, 0] - M[..., 0, 1]],
         axis=-1,

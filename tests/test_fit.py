@@ -218,6 +218,12 @@ def test_fit_errors():
         sm.fit(damped_chain, START, ts, obs, mass_positions, y0=y0, solver=best)
     with pytest.raises(ValueError, match="max_steps must be a positive integer"):
         sm.fit(damped_chain, START, ts, obs, mass_positions, y0=y0, max_steps=0)
+    for continuity in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="continuity must be a finite number > 0"):
+            sm.fit(damped_chain, START, ts, obs, mass_positions, y0=y0, continuity=continuity)
+    nan_observe = lambda s, t, q, v: mass_positions(s, t, q, v) * jnp.nan
+    with pytest.raises(ValueError, match="observe.* is NaN or infinite at the first record"):
+        sm.fit(damped_chain, START, ts, obs, nan_observe, y0=y0)
     # the data, before any solve: y0 as simulate_batch checks it, observations finite
     with pytest.raises(ValueError, match=r"^fit: q is not on the spheres"):
         sm.fit(damped_chain, START, ts, obs, mass_positions, y0=(2 * y0[0], y0[1]))

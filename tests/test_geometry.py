@@ -78,3 +78,21 @@ def test_random_points_and_states(getkey):
     assert q.dtype == v.dtype == jnp.float32
     assert float(jnp.max(jnp.abs(jnp.sum(q * v, -1)))) < 1e-5
     assert float(jnp.mean(jnp.linalg.norm(v, axis=-1))) > 1.0
+
+
+def test_shapes_and_counts_are_checked():
+    """A vector or matrix of the wrong size raises (it used to give a 3x3 matrix or a
+    vector from the first entries); so does a count that is not a positive integer."""
+    with pytest.raises(ValueError, match=r"hat: x must have shape \(\.\.\., 3\), got \(4,\)"):
+        sm.hat(jnp.ones(4))
+    with pytest.raises(ValueError, match=r"rotation_matrix: w must have shape \(\.\.\., 3\)"):
+        sm.rotation_matrix(jnp.ones((5, 2)))
+    with pytest.raises(ValueError, match=r"vee: M must have shape \(\.\.\., 3, 3\), got \(2, 2\)"):
+        sm.vee(jnp.ones((2, 2)))
+    for n in (0, -1, 2.0):
+        with pytest.raises(ValueError, match="random_state: n must be a positive integer"):
+            sm.random_state(jax.random.PRNGKey(0), n)
+        with pytest.raises(ValueError, match="random_points: n must be a positive integer"):
+            sm.random_points(jax.random.PRNGKey(0), n)
+    assert sm.random_state(jax.random.PRNGKey(0), np.int64(2))[0].shape == (2, 3)
+    assert sm.vee(sm.hat(jnp.ones((4, 3)))).shape == (4, 3)

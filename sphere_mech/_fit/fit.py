@@ -9,12 +9,14 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
+import numpy as np
 import optimistix as optx
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, PyTree
 
 from .._batch import batch_devices, batch_mesh
 from .._misc import as_arrays, tree_add
+from .._results import gathered
 from .._solve import state_pair
 from .._spaces import AbstractSpace
 from .shooting import (
@@ -135,12 +137,18 @@ def _as_batch(space: AbstractSpace, ts, observations, y0):
 
 
 def _check_observe(observe, system, ts, observations, y0):
-    out = eqx.filter_eval_shape(observe, system, ts[0, 0], *jtu.tree_map(lambda y: y[0], y0))
+    first = (system, ts[0, 0], *jtu.tree_map(lambda y: y[0], y0))
+    out = eqx.filter_eval_shape(observe, *first)
     shape = out.shape if isinstance(out, jax.ShapeDtypeStruct) else type(out).__name__
     if shape != observations.shape[2:]:
         raise ValueError(
             f"observe(system, t, q, v) returns {shape} but each observation has shape "
             f"{observations.shape[2:]}."
+        )
+    value = observe(*first)
+    if not (isinstance(value, jax.core.Tracer) or np.all(np.isfinite(gathered(value)))):
+        raise ValueError(
+            "observe(system, t, q, v) is NaN or infinite at the first record's initial state."
         )
 
 
@@ -359,7 +367,7 @@ def fit(
     - `fit_initial_state`: also fit `y0` (taken then as the initial guess).
     - `positive`: `True`, or a pytree of bools matching `params0`: those parameters
       (`> 0` in `params0`) are fitted as `log(p)`, so they stay positive.
-    - `continuity`: weight of the continuity penalties.
+    - `continuity`: weight (finite, > 0) of the continuity penalties.
     - `solver`: an optimistix Gauss-Newton-type least-squares solver
       (`optx.AbstractGaussNewton`: `GaussNewton`, `LevenbergMarquardt`,
       `IndirectLevenbergMarquardt`, `Dogleg`); default `optx.LevenbergMarquardt(rtol=1e-6,
@@ -392,6 +400,8 @@ def fit(
         )
     if not isinstance(max_steps, int) or max_steps < 1:
         raise ValueError(f"max_steps must be a positive integer, got {max_steps!r}.")
+    if not (isinstance(continuity, jax.core.Tracer) or 0 < float(continuity) < np.inf):
+        raise ValueError(f"continuity must be a finite number > 0, got {continuity!r}.")
     sim = own_options(simulate_options, "fit")
     default = diffrax.ForwardMode() if jac == "fwd" else diffrax.RecursiveCheckpointAdjoint()
     sim["adjoint"] = default if adjoint is None else adjoint
