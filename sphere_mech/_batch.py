@@ -40,8 +40,12 @@ def _pad(tree, size):
 
 
 def batch_devices(devices, size: int) -> list:
-    """`devices` (default: all of JAX's default backend, of every process), at most `size`."""
-    return (jax.devices() if devices is None else list(devices))[:size]
+    """`devices` (default: all of JAX's default backend, of every process), at most `size`;
+    an empty sequence raises."""
+    devices = jax.devices() if devices is None else list(devices)
+    if not devices:
+        raise ValueError("devices must be a non-empty sequence of JAX devices, or None (all).")
+    return devices[:size]
 
 
 def batch_mesh(devices: list) -> Mesh | None:

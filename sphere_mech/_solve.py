@@ -96,6 +96,7 @@ def options(
             f"{type(solver).__name__} with fixed steps needs a step size: pass dt0=..."
         )
     saveat = diffrax.SaveAt(t1=True) if saveat is None else saveat
+    check_save_times(saveat, t0, t1, dtype)
     meter = diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter()
     return Options(solver, controller, saveat, adjoint, meter, event, max_steps, batched)
 
@@ -311,6 +312,32 @@ def solve_with(adjoint, system, y0, t0, t1, dt0, args, opts: Options) -> diffrax
     return eqx.tree_at(
         lambda s: (s.result, s.ts, s.ys), sol, (result, ts, ys), is_leaf=lambda x: x is None
     )
+
+
+def check_save_times(saveat: diffrax.SaveAt, t0, t1, dtype) -> None:
+    """Concrete save times (`SaveAt(ts=...)`, traced ones pass) checked before the run, in
+    the state's dtype, as diffrax checks them during it, and finite (a NaN time passed
+    diffrax's checks and saved `inf`); else an `OptionError`."""
+    t0, t1 = _concrete(t0), _concrete(t1)
+    for ts in _save_times(saveat):
+        if isinstance(ts, jax.core.Tracer):
+            continue
+        ts = np.asarray(ts, dtype=np.dtype(dtype)).ravel()
+        if not np.all(np.isfinite(ts)):
+            raise OptionError("saveat", f"saveat.ts must be finite times (got {ts[:10]})")
+        if t0 is None or t1 is None or ts.size == 0:
+            continue
+        direction = 1.0 if t1 >= t0 else -1.0
+        if np.any(np.diff(direction * ts) < 0):
+            order = "increasing" if direction > 0 else "decreasing (t1 < t0)"
+            raise OptionError("saveat", f"saveat.ts must be {order} (got {ts[:10]})")
+        lo, hi = sorted(np.asarray([t0, t1], dtype=ts.dtype))
+        if ts.min() < lo or ts.max() > hi:
+            raise OptionError(
+                "saveat",
+                f"saveat.ts must lie between t0 = {t0:g} and t1 = {t1:g} (got "
+                f"{ts.min():g} to {ts.max():g})",
+            )
 
 
 def _save_times(saveat: diffrax.SaveAt) -> list:

@@ -76,6 +76,8 @@ def test_batched_system_and_args_and_chunks(chain, masses):
         np.testing.assert_allclose(sol.ys[0][i], ref.ys[0], rtol=0, atol=1e-12)
     with pytest.raises(ValueError, match="leading batch axis"):
         sm.simulate_batch(system, y0, 1.0, args=gs[:2], **FIXED)
+    with pytest.raises(ValueError, match="devices must be a non-empty sequence"):
+        sm.simulate_batch(system, y0, 1.0, args=gs, devices=[], **FIXED)
 
 
 def test_nan_trajectory_is_reported_and_isolated(masses):

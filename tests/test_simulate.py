@@ -252,6 +252,14 @@ def test_initial_state_checks():
             r"Python: .*got 'Tsit6'$",
         ),
         (dict(solver=sm.LieRK), r"^solver must be a diffrax solver instance"),
+        # save times: diffrax checked order and range only while running, and a NaN not at
+        # all (it saved inf)
+        (dict(saveat=diffrax.SaveAt(ts=jnp.array([jnp.nan]))), r"^saveat.ts must be finite"),
+        (
+            dict(saveat=diffrax.SaveAt(ts=jnp.array([0.5, 1.5]))),
+            r"^saveat.ts must lie between t0 = 0 and t1 = 1 \(got 0.5 to 1.5\)$",
+        ),
+        (dict(saveat=diffrax.SaveAt(ts=jnp.array([0.5, 0.2]))), r"^saveat.ts must be increasing"),
     ],
 )
 def test_option_values_are_checked_before_tracing(options, message):
