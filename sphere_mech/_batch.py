@@ -11,7 +11,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ._adjoint import forward_mode_hint
-from ._misc import rows
+from ._misc import check_integer, rows
 from ._results import RESULTS, raise_on_failure
 from ._simulate import simulate
 from ._solve import prepare, shared_signature, solve
@@ -118,8 +118,7 @@ def _chunk_size(chunk_size, n, local, platform):
         if platform != "cpu":
             return local
         chunk_size = 2 ** int(math.log2(max(1, CPU_CHUNK_LINKS // n)))
-    if chunk_size < 1:
-        raise ValueError(f"chunk_size must be a positive integer, got {chunk_size}.")
+    check_integer(chunk_size, "chunk_size")
     return min(chunk_size, local)
 
 

@@ -4,22 +4,16 @@
 import jax
 import jax.numpy as jnp
 import jax.random as jr
-import numpy as np
 
 from ._custom_types import Points, Scalar, Tangents
+from ._misc import check_integer
 
 
 def _check_trailing(x, shape: tuple, name: str, fn: str) -> None:
     """`x`'s last axes are `shape` (`ValueError` at trace time otherwise)."""
-    if jnp.shape(x)[jnp.ndim(x) - len(shape) :] != shape or jnp.ndim(x) < len(shape):
+    if jnp.ndim(x) < len(shape) or jnp.shape(x)[-len(shape) :] != shape:
         want = ", ".join(["..."] + [str(d) for d in shape])
         raise ValueError(f"{fn}: {name} must have shape ({want}), got {jnp.shape(x)}.")
-
-
-def _check_count(n, fn: str) -> None:
-    """`n` a positive integer (`ValueError` otherwise)."""
-    if not (isinstance(n, int | np.integer) and not isinstance(n, bool) and n >= 1):
-        raise ValueError(f"{fn}: n must be a positive integer, got {n!r}.")
 
 
 def hat(x: jax.Array) -> jax.Array:
@@ -181,7 +175,7 @@ def random_points(key: jax.Array, n: int, *, dtype=None) -> Points:
     - `dtype`: the floating dtype (default JAX's, float64 with x64 enabled).
 
     **Returns:** an `(n, 3)` array of unit vectors."""
-    _check_count(n, "random_points")
+    check_integer(n, "random_points: n")
     return normalize(jr.normal(key, (n, 3), dtype=dtype))
 
 
@@ -197,7 +191,7 @@ def random_state(
       floating dtype (default JAX's).
 
     **Returns:** `(q, v)`, two `(n, 3)` arrays with `|q_i| = 1` and `q_i . v_i = 0`."""
-    _check_count(n, "random_state")
+    check_integer(n, "random_state: n")
     kq, kv = jr.split(key)
     q = random_points(kq, n, dtype=dtype)
     return q, project(q, speed * jr.normal(kv, (n, 3), dtype=dtype))

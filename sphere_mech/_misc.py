@@ -9,6 +9,14 @@ import jax.numpy as jnp
 import numpy as np
 
 
+def check_integer(value, name: str, least: int = 1) -> None:
+    """`value` an integer (not a bool) >= `least`, else a `ValueError` naming it: "`name`
+    must be a positive integer" (`least` 1) or "an integer >= `least`", with the value."""
+    if not (isinstance(value, int | np.integer) and not isinstance(value, bool)) or value < least:
+        kind = "a positive integer" if least == 1 else f"an integer >= {least}"
+        raise ValueError(f"{name} must be {kind}, got {value!r}.")
+
+
 def tree_add(a, b):
     """`a + b` leaf by leaf."""
     return jax.tree.map(operator.add, a, b)

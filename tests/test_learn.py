@@ -297,7 +297,7 @@ def test_learn_rejects_bad_input(tmp_path):
             sm.LearnedLagrangian(n, key=jax.random.PRNGKey(1), inertia=inertia)
         with pytest.raises(ValueError, match="inertia must be a symmetric positive-definite"):
             sm.ConstantInertiaLagrangian(inertia, lambda t, q, a: 0.0)
-    with pytest.raises(ValueError, match="width must be an integer >= 1, got 0"):
+    with pytest.raises(ValueError, match="width must be a positive integer, got 0"):
         sm.LearnedLagrangian(1, key=jax.random.PRNGKey(1), width=0)
     # the chunks, before any solve: their first states as simulate_batch checks initial
     # states (the same words), every observation finite, the model's number of links

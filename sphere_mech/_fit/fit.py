@@ -15,7 +15,7 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, PyTree
 
 from .._batch import batch_devices, batch_mesh
-from .._misc import as_arrays, tree_add
+from .._misc import as_arrays, check_integer, tree_add
 from .._results import gathered
 from .._solve import state_pair
 from .._spaces import AbstractSpace
@@ -398,8 +398,7 @@ def fit(
             "LevenbergMarquardt, IndirectLevenbergMarquardt, Dogleg): the Jacobian and the "
             f"covariance are its last linearization; got {type(solver).__name__}."
         )
-    if not isinstance(max_steps, int) or max_steps < 1:
-        raise ValueError(f"max_steps must be a positive integer, got {max_steps!r}.")
+    check_integer(max_steps, "max_steps")
     if not (isinstance(continuity, jax.core.Tracer) or 0 < float(continuity) < np.inf):
         raise ValueError(f"continuity must be a finite number > 0, got {continuity!r}.")
     sim = own_options(simulate_options, "fit")

@@ -30,7 +30,7 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, PyTree
 
 from .._inertia import AbstractConstantInertiaLagrangian, check_spd_inertia
-from .._misc import tree_dtype
+from .._misc import check_integer, tree_dtype
 from .._solvers.projected import Projected
 from .._solvers.rk4 import RK4
 from .._spaces import AbstractSpace, Spheres
@@ -94,8 +94,7 @@ class LearnedLagrangian(AbstractConstantInertiaLagrangian):
     ):
         dtype = jnp.zeros(()).dtype if dtype is None else jnp.dtype(dtype)
         for name, value, least in (("n", n, 1), ("width", width, 1), ("depth", depth, 0)):
-            if not (isinstance(value, int | np.integer) and value >= least):
-                raise ValueError(f"{name} must be an integer >= {least}, got {value!r}.")
+            check_integer(value, name, least)
         M = np.eye(n) if inertia is None else np.asarray(inertia, dtype=float)
         if M.shape != (n, n):
             raise ValueError(f"inertia must have shape ({n}, {n}), got {M.shape}.")
@@ -193,8 +192,7 @@ def _check_options(name, checkpoint, every: dict, counts: dict):
     folder of `checkpoint` existing (else a run would fail at its first write)."""
     every = {key: value for key, value in every.items() if value is not None}
     for key, value in (counts | every).items():
-        if not (isinstance(value, int | np.integer) and value >= 1):
-            raise ValueError(f"{name}: {key} must be a positive integer, got {value!r}.")
+        check_integer(value, f"{name}: {key}")
     if checkpoint is not None and not Path(checkpoint).parent.is_dir():
         raise ValueError(
             f"{name}: checkpoint {str(checkpoint)!r} is in a folder that does not exist."

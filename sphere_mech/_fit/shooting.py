@@ -14,7 +14,7 @@ from jax.sharding import Mesh
 from jaxtyping import Array, PyTree
 
 from .._batch import map_on_devices
-from .._misc import fill_zeros, tree_dtype
+from .._misc import check_integer, fill_zeros, tree_dtype
 from .._results import RESULTS, describe_failures, gathered
 from .._simulate import simulate
 from .._solve import initial_states
@@ -27,8 +27,7 @@ def split_segments(ts: Array, observations: Array, segments: int) -> tuple[Array
     mask)` with leading axes `(B, K)`. Segment `k` runs from observation `bounds[k]` to
     `bounds[k + 1]` and owns those before the next segment's first, padded (`mask` False)."""
     num_records, num_times = ts.shape
-    if not isinstance(segments, int) or segments < 1:
-        raise ValueError(f"segments must be a positive integer, got {segments!r}.")
+    check_integer(segments, "segments")
     if segments > num_times - 1:
         raise ValueError(
             f"segments={segments} needs at least {segments + 1} observation times, got {num_times}."
