@@ -18,6 +18,7 @@ import jax
 import numpy as np
 
 from ._drawing import Skeleton, cube, positions, skeleton, wireframe
+from ._misc import check_integer
 from ._system import AbstractSystem
 
 MAX_FRAMES = 150
@@ -287,7 +288,6 @@ def animate(
             f"sol: expected states at two times or more, got {len(t)}; "
             "save them with saveat=diffrax.SaveAt(ts=...)"
         )
-    if not (isinstance(frames, int) and frames >= 2):
-        raise ValueError(f"frames: expected an integer >= 2, got {frames!r}")
+    check_integer(frames, "frames", 2)
     skel = skeleton(system_or_scene, x.shape[1])
     return Animation(player(skel, t, x, frames=frames))
