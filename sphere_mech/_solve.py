@@ -119,8 +119,12 @@ def _concrete(x) -> float | None:
 def check_values(t0, t1, dt0, rtol, atol, max_steps) -> None:
     """The one check of concrete option values (traced ones pass): finite times, a finite
     nonzero `dt0` with the sign of `t1 - t0`, finite `rtol`, `atol` > 0, an integer
-    `max_steps` >= 1 or `None`; else an `OptionError`."""
-    t0, t1, dt0, rtol, atol = map(_concrete, (t0, t1, dt0, rtol, atol))
+    `max_steps` >= 1 or `None`; else an `OptionError`. Each time and tolerance a scalar."""
+    named = dict(t0=t0, t1=t1, dt0=dt0, rtol=rtol, atol=atol)
+    for name, x in named.items():
+        if x is not None and jnp.ndim(x) != 0:
+            raise OptionError(name, f"{name} must be a scalar (got shape {jnp.shape(x)})")
+    t0, t1, dt0, rtol, atol = map(_concrete, named.values())
     for name, t in (("t0", t0), ("t1", t1)):
         if t is not None and not math.isfinite(t):
             raise OptionError(name, f"{name} must be a finite time (got {t:g})")

@@ -245,6 +245,7 @@ def test_initial_state_checks():
         (dict(atol=float("nan")), r"^atol must be a finite number > 0 \(got nan\)$"),
         (dict(max_steps=0), r"^max_steps must be an integer >= 1 or None \(got 0\)$"),
         (dict(t0=float("inf")), r"^t0 must be a finite time \(got inf\)$"),
+        (dict(t0=jnp.zeros(2)), r"^t0 must be a scalar \(got shape \(2,\)\)$"),
         (dict(solver=42), r"^solver must be a diffrax solver instance.*\(got 42\)$"),
         (
             dict(solver="Tsit6"),
