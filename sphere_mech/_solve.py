@@ -64,7 +64,7 @@ def options(
     event=None,
 ) -> "Options":
     """`simulate`'s options (`simulate_batch`'s if `batched`), checked and completed."""
-    check_values(t0, t1, dt0, rtol, atol, max_steps)
+    check_values(t0, t1, dt0, rtol, atol, max_steps, saveat, dtype)
     solver = default_solver() if solver is None else as_solver(solver)
     if stepsize_controller is not None:
         if rtol is not None or atol is not None:
@@ -96,7 +96,6 @@ def options(
             f"{type(solver).__name__} with fixed steps needs a step size: pass dt0=..."
         )
     saveat = diffrax.SaveAt(t1=True) if saveat is None else saveat
-    check_save_times(saveat, t0, t1, dtype)
     meter = diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter()
     return Options(solver, controller, saveat, adjoint, meter, event, max_steps, batched)
 
@@ -116,10 +115,13 @@ def _concrete(x) -> float | None:
     return float(x)
 
 
-def check_values(t0, t1, dt0, rtol, atol, max_steps) -> None:
+def check_values(t0, t1, dt0, rtol, atol, max_steps, saveat=None, dtype=float) -> None:
     """The one check of concrete option values (traced ones pass): finite times, a finite
     nonzero `dt0` with the sign of `t1 - t0`, finite `rtol`, `atol` > 0, an integer
-    `max_steps` >= 1 or `None`; else an `OptionError`. Each time and tolerance a scalar."""
+    `max_steps` >= 1 or `None`, and `saveat`'s save times in the state's `dtype` finite,
+    between `t0` and `t1` and in the direction of integration (diffrax checks the last two
+    only while running, and passes a NaN time, saving `inf`); else an `OptionError`. Each
+    time and tolerance a scalar."""
     named = dict(t0=t0, t1=t1, dt0=dt0, rtol=rtol, atol=atol)
     for name, x in named.items():
         if x is not None and jnp.ndim(x) != 0:
@@ -145,6 +147,25 @@ def check_values(t0, t1, dt0, rtol, atol, max_steps) -> None:
         raise OptionError(
             "max_steps", f"max_steps must be an integer >= 1 or None (got {max_steps!r})"
         )
+    for ts in [] if saveat is None else _save_times(saveat):
+        if isinstance(ts, jax.core.Tracer):
+            continue
+        ts = np.asarray(ts, dtype=np.dtype(dtype)).ravel()
+        if not np.all(np.isfinite(ts)):
+            raise OptionError("saveat", f"saveat.ts must be finite times (got {ts[:10]})")
+        if t0 is None or t1 is None or ts.size == 0:
+            continue
+        direction = 1.0 if t1 >= t0 else -1.0
+        if np.any(np.diff(direction * ts) < 0):
+            order = "increasing" if direction > 0 else "decreasing (t1 < t0)"
+            raise OptionError("saveat", f"saveat.ts must be {order} (got {ts[:10]})")
+        lo, hi = sorted(np.asarray([t0, t1], dtype=ts.dtype))
+        if ts.min() < lo or ts.max() > hi:
+            raise OptionError(
+                "saveat",
+                f"saveat.ts must lie between t0 = {t0:g} and t1 = {t1:g} (got "
+                f"{ts.min():g} to {ts.max():g})",
+            )
 
 
 class Run(eqx.Module):
@@ -316,32 +337,6 @@ def solve_with(adjoint, system, y0, t0, t1, dt0, args, opts: Options) -> diffrax
     return eqx.tree_at(
         lambda s: (s.result, s.ts, s.ys), sol, (result, ts, ys), is_leaf=lambda x: x is None
     )
-
-
-def check_save_times(saveat: diffrax.SaveAt, t0, t1, dtype) -> None:
-    """Concrete save times (`SaveAt(ts=...)`, traced ones pass) checked before the run, in
-    the state's dtype, as diffrax checks them during it, and finite (a NaN time passed
-    diffrax's checks and saved `inf`); else an `OptionError`."""
-    t0, t1 = _concrete(t0), _concrete(t1)
-    for ts in _save_times(saveat):
-        if isinstance(ts, jax.core.Tracer):
-            continue
-        ts = np.asarray(ts, dtype=np.dtype(dtype)).ravel()
-        if not np.all(np.isfinite(ts)):
-            raise OptionError("saveat", f"saveat.ts must be finite times (got {ts[:10]})")
-        if t0 is None or t1 is None or ts.size == 0:
-            continue
-        direction = 1.0 if t1 >= t0 else -1.0
-        if np.any(np.diff(direction * ts) < 0):
-            order = "increasing" if direction > 0 else "decreasing (t1 < t0)"
-            raise OptionError("saveat", f"saveat.ts must be {order} (got {ts[:10]})")
-        lo, hi = sorted(np.asarray([t0, t1], dtype=ts.dtype))
-        if ts.min() < lo or ts.max() > hi:
-            raise OptionError(
-                "saveat",
-                f"saveat.ts must lie between t0 = {t0:g} and t1 = {t1:g} (got "
-                f"{ts.min():g} to {ts.max():g})",
-            )
 
 
 def _save_times(saveat: diffrax.SaveAt) -> list:
