@@ -9,12 +9,54 @@ instead of 113 s) and with XLA's older CPU code generator
 fit tests, measured on jaxlib 0.10.2 on a 2-core CPU). XLA aborts on a flag it does not
 know, so that flag is set only for the jaxlib minor version it was measured on. The
 suite's tolerances hold under both (491 passed); users' programs compile with JAX's
-defaults (and the benchmarks measure those)."""
+defaults (and the benchmarks measure those).
 
+Which file runs when: with `--dist loadfile` each file is one unit of work, and a worker
+that finishes early idles while the other runs what is left. The files are therefore
+handed out longest first, from the seconds each took when last measured
+(`tests/durations.json`; a file not in it goes first). `--store-durations` writes the
+seconds of the files a run ran back into that file."""
+
+import json
+import math
 import os
+from collections import Counter
 from importlib.metadata import version
+from pathlib import Path
 
 os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] = "1"
 if version("jaxlib").split(".")[:2] == ["0", "10"]:
     flags = os.environ.get("XLA_FLAGS", "")
     os.environ["XLA_FLAGS"] = f"{flags} --xla_cpu_use_fusion_emitters=false".strip()
+
+DURATIONS = Path(__file__).parent / "tests" / "durations.json"
+_seconds = Counter()  # per file, this run (on xdist's controller: every worker's reports)
+
+
+def _file(nodeid: str) -> str:
+    return nodeid.split("::")[0]
+
+
+def pytest_addoption(parser):
+    parser.addoption(
+        "--store-durations",
+        action="store_true",
+        help=f"write each file's seconds in this run to {DURATIONS.name} (the order files run in)",
+    )
+
+
+def pytest_collection_modifyitems(config, items):
+    seconds = json.loads(DURATIONS.read_text()) if DURATIONS.exists() else {}
+    items.sort(key=lambda item: -seconds.get(_file(item.nodeid), math.inf))  # stable
+
+
+def pytest_runtest_logreport(report):
+    _seconds[_file(report.nodeid)] += report.duration
+
+
+def pytest_sessionfinish(session):
+    if session.config.getoption("store_durations") and "PYTEST_XDIST_WORKER" not in os.environ:
+        seconds = json.loads(DURATIONS.read_text()) if DURATIONS.exists() else {}
+        seconds.update({name: round(s, 1) for name, s in _seconds.items()})
+        ranked = dict(sorted(seconds.items(), key=lambda item: -item[1]))
+        DURATIONS.write_text(json.dumps(ranked, indent=1) + "\n")

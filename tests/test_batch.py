@@ -124,7 +124,7 @@ def test_invalid_initial_state_is_reported_and_isolated(chain, on_error):
             assert np.all(np.isinf(a[3:5]))
         assert np.asarray(sol.stats["num_steps"])[3:5].tolist() == [0, 0]
         with pytest.raises(ValueError, match=r"^simulate_batch: 2 of 6 initial states are "
-                           r"invalid \(indices 3, 4\); initial state 3: q contains NaN"):
+                           r"invalid \\(indices 3, 4\\); initial state 3: q contains NaN"):
             sm.simulate_batch(chain, bad, 1.0, **kw)
         print("ok")
     """)
