@@ -39,7 +39,11 @@ step), and forward mode (`jax.jacfwd`, n columns). Whether the ratio comes from 
 library's loop and adjoint or from the vector field's derivative; writes
 benchmarks/results/gradients_bare.md.
 
-    python benchmarks/gradients.py [--quick | --rk4-batch | --where | --bare]
+`--chunks`: the batched RK4 row at B = 1024, n = 8, float64, at 16, 64 (the default at
+n = 8), 256 and 1024 trajectories per `vmap` (`simulate_batch`'s `chunk_size`): whether
+how the batch is split moves the ratio; writes benchmarks/results/gradients_chunks.md.
+
+    python benchmarks/gradients.py [--quick | --rk4-batch | --where | --bare | --chunks]
 """
 
 import argparse
@@ -72,9 +76,9 @@ def _states(n, batch, dtype):
     return q.astype(dtype), v.astype(dtype)
 
 
-def loss_fn(n, dtype, solver_name, batch, solver=None):
-    """`loss(lengths, adjoint)` of one case (with `solver` in place of the case's), and
-    its initial lengths."""
+def loss_fn(n, dtype, solver_name, batch, solver=None, chunk_size=None):
+    """`loss(lengths, adjoint)` of one case (with `solver` in place of the case's, and
+    `simulate_batch`'s `chunk_size`), and its initial lengths."""
     default_solver, dt0, t1 = SOLVERS[solver_name]
     solver = solver or default_solver
     q, v = _states(n, batch or 1, dtype)
@@ -84,7 +88,7 @@ def loss_fn(n, dtype, solver_name, batch, solver=None):
         chain = sm.chain_pendulum(jnp.ones(n, dtype), lengths, 9.81)
         kw = dict(solver=solver, dt0=dt0, adjoint=adjoint)
         if batch:
-            q1 = sm.simulate_batch(chain, (q, v), t1, **kw).ys[0][:, -1]
+            q1 = sm.simulate_batch(chain, (q, v), t1, chunk_size=chunk_size, **kw).ys[0][:, -1]
             return jnp.sum(jax.vmap(chain.positions)(q1) @ weights)
         q1 = sm.simulate(chain, (q[0], v[0]), t1, **kw).ys[0][-1]
         return jnp.sum(chain.positions(q1) @ weights)
@@ -358,13 +362,60 @@ def bare(repeats=7):
     )
 
 
+def chunks(repeats=5, n=8, batch=1024, sizes=(16, 64, 256, 1024)):
+    """The batched RK4 row at B = 1024, n = 8, float64, with each of `sizes` trajectories
+    per `vmap` (`simulate_batch`'s `chunk_size`; its default at n = 8: 64)."""
+    name, dtype = "RK4 (fixed, dt 1e-3)", jnp.float64
+    rows, loads = [], [load()]
+    for size in sizes:
+        loss, lengths = loss_fn(n, dtype, name, batch, chunk_size=size)
+        forward = eqx.filter_jit(lambda x, loss=loss: loss(x, None))
+        gradient = eqx.filter_jit(jax.value_and_grad(lambda x, loss=loss: loss(x, None)))
+        calls = [lambda f=f, x=lengths: f(x) for f in (forward, gradient)]
+        rows.append((size, *timings(calls, repeats)))
+        loads.append(load())
+        print(f"  chunk {size}: {rows[-1][1].median * 1e3:.1f} ms", flush=True)
+    fastest = min(f.median for _, f, _ in rows)
+    text = table(
+        [
+            "chunk size",
+            "forward [ms]",
+            "value_and_grad [ms]",
+            "value_and_grad / forward",
+            "value_and_grad / fastest forward",
+        ],
+        [
+            (
+                size,
+                f"{f.median * 1e3:.1f}",
+                f"{g.median * 1e3:.1f}",
+                f"{g.median / f.median:.1f}",
+                f"{g.median / fastest:.1f}",
+            )
+            for size, f, g in rows
+        ],
+    )
+    publish(
+        f"The batched RK4 row at B = {batch}, n = {n}, float64 (`simulate_batch`, "
+        "`Projected(RK4())`, dt0 = 1e-3 over 0.3 s, the default adjoint) with each chunk "
+        f"size; medians of {repeats} repeats, a row's two programs taking turns.\n\n"
+        f"Machine: {MACHINE} (2-core CPU shared with other processes), `python "
+        f"benchmarks/gradients.py --chunks`; load average (1 min) {min(loads):.1f} to "
+        f"{max(loads):.1f} during the run.\n\n" + text + "\n",
+        "gradients_chunks.md",
+    )
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="n = 2, float64 only")
     parser.add_argument("--rk4-batch", action="store_true", help="the batched RK4 rows only")
     parser.add_argument("--where", action="store_true", help="where the reverse pass's time goes")
     parser.add_argument("--bare", action="store_true", help="against a plain lax.scan")
+    parser.add_argument("--chunks", action="store_true", help="B = 1024 at each chunk size")
     parsed = parser.parse_args()
+    if parsed.chunks:
+        return chunks()
     if parsed.where:
         return where()
     if parsed.bare:
