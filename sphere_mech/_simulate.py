@@ -44,7 +44,10 @@ def simulate(
       a name as scene files spell it (`"Projected(Dopri8)"`). Wrap solvers that do not
       keep `|q_i| = 1` in `Projected` (`LieRK`, `LieRK4`, `Variational` keep it).
     - `dt0`: initial (adaptive) or fixed step size, nonzero with the sign of `t1 - t0`;
-      required for fixed-step solvers, which get `diffrax.ConstantStepSize()`.
+      required for fixed-step solvers, which get `diffrax.ConstantStepSize()`. Solvers
+      with an error estimate (`Projected(diffrax.Tsit5())`, `LieRK4()`, ...) adapt their
+      steps from `dt0`; for fixed steps with them, pass
+      `stepsize_controller=diffrax.ConstantStepSize()` too.
     - `rtol`, `atol`: tolerances (> 0) of the default `diffrax.PIDController`; defaults
       `1e-8, 1e-10` in float64 and `1e-5, 1e-6` in float32.
     - `stepsize_controller`: any diffrax step-size controller instead.
