@@ -7,7 +7,9 @@ an independent scipy `DOP853` solve of the Cartesian constrained equation
 `qddot = -(g/l) (e_z - (e_z . q) q) - |qdot|^2 q` at rtol = atol = 1e-14 with steps of at
 most 1 ms. Then the time of an event (a planar release at 1 rad crossing the vertical,
 located by Newton on the dense output) with `LieRK(Dopri8)` and `Projected(Dopri8)` at
-tol 1e-8 against the closed form `sqrt(l/g) K(sin^2(1/2))`.
+tol 1e-8 against the closed form `sqrt(l/g) K(sin^2(1/2))`. Fixed-step rows:
+`Projected(RK4())`, `LieRK4()` and `Variational(order=2, 4)` at dt = 7e-3 and 7e-4 s
+(`diffrax.ConstantStepSize()`).
 
     python benchmarks/dense_output.py     # about a minute on 2 cores
 
@@ -62,10 +64,15 @@ def reference():
     return lambda t: sol.sol(t).T
 
 
-def errors(solver, tol, ref):
+def errors(solver, tol, ref, dt=None):
+    """Largest errors at the steps and at `TS`, the number of `TS` and the largest
+    `| |q| - 1 |` there: adaptive steps at `rtol = atol = tol`, or fixed steps of `dt`."""
     q0, v0 = (jnp.asarray(x)[None] for x in initial_state())
+    steps = dict(rtol=tol, atol=tol)
+    if dt is not None:
+        steps = dict(dt0=dt, stepsize_controller=diffrax.ConstantStepSize())
     run = lambda saveat: sm.simulate(
-        PENDULUM, (q0, v0), T1, solver=solver, rtol=tol, atol=tol, saveat=saveat, max_steps=100_000
+        PENDULUM, (q0, v0), T1, solver=solver, saveat=saveat, max_steps=100_000, **steps
     )
     out = []
     for sol in (run(diffrax.SaveAt(steps=True)), run(diffrax.SaveAt(ts=jnp.asarray(TS)))):
@@ -110,7 +117,17 @@ def main():
                     f"{at_ts / at_steps:.1f}",
                 )
             )
-    columns = ["solver", "tol", "max error at steps", "max error at SaveAt(ts)", "ratio"]
+    for name, solver in (
+        ("Projected(RK4())", sm.Projected(sm.RK4())),
+        ("LieRK4()", sm.LieRK4()),
+        ("Variational()", sm.Variational()),
+        ("Variational(order=4)", sm.Variational(order=4)),
+    ):
+        for dt in (7e-3, 7e-4):  # steps that do not fall on the 0.01 s grid of TS
+            at_steps, at_ts, _, _ = errors(solver, None, ref, dt=dt)
+            ratio = f"{at_ts / at_steps:.1f}"
+            rows.append((name, f"dt {dt:.0e}", f"{at_steps:.1e}", f"{at_ts:.1e}", ratio))
+    columns = ["solver", "tol or step", "max error at steps", "max error at SaveAt(ts)", "ratio"]
     publish(table(columns, rows))
     exact = np.sqrt(LENGTH / G) * ellipk(np.sin(0.5) ** 2)
     print(f"\nevent at tol 1e-8, exact time {exact:.12f} s:")
