@@ -14,7 +14,7 @@ import numpy as np
 from ._adjoint import default_adjoint_run
 from ._misc import all_finite, as_arrays, rows, tree_dtype
 from ._results import RESULTS, describe_failures, gathered
-from ._solvers.names import as_solver
+from ._solvers.names import as_solver, solver_name
 from ._solvers.projected import Projected
 from ._system import vector_field
 from ._term import MechanicsTerm
@@ -79,7 +79,7 @@ def options(
     else:
         if rtol is not None or atol is not None:
             raise ValueError(
-                f"{type(solver).__name__} has no error estimate, so it takes fixed steps "
+                f"{solver_name(solver)} has no error estimate, so it takes fixed steps "
                 "(dt0) and rtol/atol would be ignored: drop them, or use an adaptive "
                 "solver such as Projected(diffrax.Tsit5()) or LieRK4()."
             )
@@ -87,14 +87,12 @@ def options(
     adaptive = isinstance(controller, diffrax.AbstractAdaptiveStepSizeController)
     if adaptive and not isinstance(solver, diffrax.AbstractAdaptiveSolver):
         raise ValueError(
-            f"{type(solver).__name__} has no error estimate and cannot be used with the "
+            f"{solver_name(solver)} has no error estimate and cannot be used with the "
             f"adaptive {type(controller).__name__}: use diffrax.ConstantStepSize() with a "
             "dt0, or an adaptive solver (Projected(diffrax.Tsit5()), LieRK4(), ...)."
         )
     if isinstance(controller, diffrax.ConstantStepSize) and dt0 is None:
-        raise ValueError(
-            f"{type(solver).__name__} with fixed steps needs a step size: pass dt0=..."
-        )
+        raise ValueError(f"{solver_name(solver)} with fixed steps needs a step size: pass dt0=...")
     saveat = diffrax.SaveAt(t1=True) if saveat is None else saveat
     meter = diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter()
     return Options(solver, controller, saveat, adjoint, meter, event, max_steps, batched)

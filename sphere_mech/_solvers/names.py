@@ -60,6 +60,13 @@ def _lie_option(text: str) -> tuple[str, str]:
     return match[1], match[3]
 
 
+def solver_name(solver: diffrax.AbstractSolver) -> str:
+    """A solver as scene files spell it, for messages: `Projected(RK4)`, `Tsit5`."""
+    if isinstance(solver, diffrax.AbstractWrappedSolver):
+        return f"{type(solver).__name__}({solver_name(solver.solver)})"
+    return type(solver).__name__
+
+
 def as_solver(solver) -> diffrax.AbstractSolver:
     """`simulate`'s `solver=` as an instance: an instance as it is, a name as in scene files
     (`parse_solver`), a solver class needing no arguments instantiated; else `ValueError`."""
