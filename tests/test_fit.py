@@ -221,6 +221,12 @@ def test_fit_errors():
     for continuity in (0.0, -1.0, float("nan")):
         with pytest.raises(ValueError, match="continuity must be a finite number > 0"):
             sm.fit(damped_chain, START, ts, obs, mass_positions, y0=y0, continuity=continuity)
+    short = lambda s, t, q, v: mass_positions(s, t, q, v)[:-1]
+    with pytest.raises(ValueError, match=r"observe\(system, t, q, v\) returns \(1, 3\) but each"):
+        sm.fit(damped_chain, START, ts, obs, short, y0=y0)
+    as_dict = lambda s, t, q, v: {"x": mass_positions(s, t, q, v)}
+    with pytest.raises(ValueError, match=r"observe\(system, t, q, v\) returns dict but"):
+        sm.fit(damped_chain, START, ts, obs, as_dict, y0=y0)
     nan_observe = lambda s, t, q, v: mass_positions(s, t, q, v) * jnp.nan
     with pytest.raises(ValueError, match="observe.* is NaN or infinite at the first record"):
         sm.fit(damped_chain, START, ts, obs, nan_observe, y0=y0)

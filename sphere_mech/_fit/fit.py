@@ -137,15 +137,13 @@ def _as_batch(space: AbstractSpace, ts, observations, y0):
 
 
 def _check_observe(observe, system, ts, observations, y0):
-    first = (system, ts[0, 0], *jtu.tree_map(lambda y: y[0], y0))
-    out = eqx.filter_eval_shape(observe, *first)
-    shape = out.shape if isinstance(out, jax.ShapeDtypeStruct) else type(out).__name__
+    value = observe(system, ts[0, 0], *jtu.tree_map(lambda y: y[0], y0))  # evaluated once
+    shape = value.shape if isinstance(value, jax.Array | np.ndarray) else type(value).__name__
     if shape != observations.shape[2:]:
         raise ValueError(
             f"observe(system, t, q, v) returns {shape} but each observation has shape "
             f"{observations.shape[2:]}."
         )
-    value = observe(*first)
     if not (isinstance(value, jax.core.Tracer) or np.all(np.isfinite(gathered(value)))):
         raise ValueError(
             "observe(system, t, q, v) is NaN or infinite at the first record's initial state."
