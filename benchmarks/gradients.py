@@ -43,7 +43,16 @@ benchmarks/results/gradients_bare.md.
 n = 8), 256 and 1024 trajectories per `vmap` (`simulate_batch`'s `chunk_size`): whether
 how the batch is split moves the ratio; writes benchmarks/results/gradients_chunks.md.
 
-    python benchmarks/gradients.py [--quick | --rk4-batch | --where | --bare | --chunks]
+`--learned`: the training step of `sm.learn` on the tasks of
+`benchmarks/learned_lagrangian.py` (a `LearnedLagrangian`: an MLP potential): its minibatch
+loss (100 chunks, L1, each task's dtype and RK4 steps per observation) and the loss's
+value_and_grad, reverse mode through the whole RK4 step transposed by JAX (`RK4()` under an
+explicit `RecursiveCheckpointAdjoint`, as `learn` runs it) and stage by stage
+(`RK4(stagewise_reverse=True)`, as the default adjoint's reverse mode runs it); writes
+benchmarks/results/gradients_learned.md.
+
+    python benchmarks/gradients.py [--quick | --rk4-batch | --where | --bare | --chunks |
+                                    --learned]
 """
 
 import argparse
@@ -54,6 +63,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.flatten_util import ravel_pytree
 
 jax.config.update("jax_enable_x64", True)
 from _harness import load, publish, pyplot, save_figure, table, timings  # noqa: E402
@@ -406,6 +416,86 @@ def chunks(repeats=5, n=8, batch=1024, sizes=(16, 64, 256, 1024)):
     )
 
 
+LEARNED = {"magnet": ("float32", 4), "chain3": ("float64", 2), "chain5": ("float64", 2)}
+"""Each task's training dtype and RK4 steps per observation (its row of the results of
+`benchmarks/learned_lagrangian.py`)."""
+
+
+def learned_row(system, repeats, batch=100):
+    """Forward, and value_and_grad with the whole step and stage by stage, of `learn`'s
+    loss on one minibatch of `system`'s training chunks (`learn`'s own shooting problem)."""
+    import learned_lagrangian as ll
+
+    from sphere_mech._fit.learn import _Chunks
+
+    dtype, substeps = LEARNED[system]
+    tk = ll.task(system)
+    ts, chunks = ll.training_chunks(tk, batch)
+    programs = []
+    for rk4 in (sm.RK4(), sm.RK4(stagewise_reverse=True)):
+        sim = dict(
+            solver=sm.Projected(rk4),
+            dt0=tk.dt / substeps,
+            stepsize_controller=diffrax.ConstantStepSize(),
+        )
+        problem = _Chunks.build(ll.new_model(tk, dtype=dtype), ts, chunks, sim, "grad", "learn")
+        u0, data = problem.unknowns[0], problem.pick(np.arange(batch))
+        loss = lambda u, p=problem, d=data: jnp.mean(jnp.abs(p.residuals((u, None), d)[0]))
+        if not programs:
+            programs.append(eqx.filter_jit(loss))
+        programs.append(eqx.filter_jit(jax.value_and_grad(loss)))
+    grads = [ravel_pytree(p(u0)[1])[0] for p in programs[1:]]
+    tol = 1e-10 if dtype == "float64" else 1e-4
+    assert np.allclose(grads[0], grads[1], rtol=tol, atol=tol * np.abs(grads[0]).max())
+    return dtype, substeps, timings([lambda f=f: f(u0) for f in programs], repeats)
+
+
+def learned(repeats=15):
+    rows, loads = [], [load()]
+    for system in LEARNED:
+        dtype, substeps, times = learned_row(system, repeats)
+        rows.append((system, dtype, substeps, *times))
+        loads.append(load())
+        print(f"  {system}: {times[0].median * 1e3:.1f} ms", flush=True)
+    text = table(
+        [
+            "task",
+            "dtype",
+            "RK4 steps per observation",
+            "forward [ms]",
+            "value_and_grad, whole step (learn) [ms]",
+            "stage by stage [ms]",
+            "whole step / forward",
+            "stage by stage / forward",
+        ],
+        [
+            (
+                system,
+                dtype,
+                substeps,
+                f"{f.median * 1e3:.1f}",
+                f"{w.median * 1e3:.1f}",
+                f"{s.median * 1e3:.1f}",
+                f"{w.median / f.median:.1f}",
+                f"{s.median / f.median:.1f}",
+            )
+            for system, dtype, substeps, f, w, s in rows
+        ],
+    )
+    publish(
+        "`sm.learn`'s training step on the tasks of `benchmarks/learned_lagrangian.py`: the "
+        "minibatch loss (100 chunks of 5 observations, L1) and its value_and_grad in the "
+        "task's model (`LearnedLagrangian`, its MLP's width 64 on the magnet, 128 on the "
+        "chains) and dtype, reverse mode through the whole RK4 step (as `learn` runs it) "
+        f"and stage by stage (the default adjoint's reverse mode); medians of {repeats} "
+        "repeats, a row's three programs taking turns.\n\n"
+        f"Machine: {MACHINE} (2-core CPU shared with other processes), `python "
+        f"benchmarks/gradients.py --learned`; load average (1 min) {min(loads):.1f} to "
+        f"{max(loads):.1f} during the run.\n\n" + text + "\n",
+        "gradients_learned.md",
+    )
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="n = 2, float64 only")
@@ -413,7 +503,10 @@ def main():
     parser.add_argument("--where", action="store_true", help="where the reverse pass's time goes")
     parser.add_argument("--bare", action="store_true", help="against a plain lax.scan")
     parser.add_argument("--chunks", action="store_true", help="B = 1024 at each chunk size")
+    parser.add_argument("--learned", action="store_true", help="learn's training step")
     parsed = parser.parse_args()
+    if parsed.learned:
+        return learned()
     if parsed.chunks:
         return chunks()
     if parsed.where:

@@ -201,11 +201,14 @@ def _check_options(name, checkpoint, every: dict, counts: dict):
 
 def _default_sim(ts, simulate_options, name):
     """`simulate`'s options: `Projected(RK4())` at the observations' first spacing unless
-    given, reverse-mode adjoint. `max_steps` stays `simulate`'s (its `sqrt(2 max_steps)`
-    checkpoints hold every step of a chunk): bounded by a chunk's 8 steps (the tasks of
-    `benchmarks/learned_lagrangian.py`, 2 RK4 steps per observation, 100 chunks) the loop
-    recomputed steps from 4 checkpoints, and a training step took 1.3x (chain3) to 1.4x
-    (magnet) as long."""
+    given, reverse-mode adjoint. `RecursiveCheckpointAdjoint()` given explicitly
+    differentiates an `RK4()` step whole, not stage by stage as the default adjoint does:
+    with an MLP in the vector field the stage-by-stage pass costs 1.1x (magnet) to 1.7x
+    (chain3) as much (`benchmarks/gradients.py --learned`). `max_steps` stays
+    `simulate`'s (its `sqrt(2 max_steps)` checkpoints hold every step of a chunk): bounded
+    by a chunk's 8 steps (the tasks of `benchmarks/learned_lagrangian.py`, 2 RK4 steps per
+    observation, 100 chunks) the loop recomputed steps from 4 checkpoints, and a training
+    step took 1.3x (chain3) to 1.4x (magnet) as long."""
     sim = own_options(simulate_options, name)
     ts = np.asarray(ts)
     if "dt0" not in sim:
