@@ -423,7 +423,8 @@ LEARNED = {"magnet": ("float32", 4), "chain3": ("float64", 2), "chain5": ("float
 
 def learned_row(system, repeats, batch=100):
     """Forward, and value_and_grad with the whole step and stage by stage, of `learn`'s
-    loss on one minibatch of `system`'s training chunks (`learn`'s own shooting problem)."""
+    loss on one minibatch of `system`'s training chunks (`learn`'s own shooting problem),
+    and the model's MLP width."""
     import learned_lagrangian as ll
 
     from sphere_mech._fit.learn import _Chunks
@@ -431,29 +432,33 @@ def learned_row(system, repeats, batch=100):
     dtype, substeps = LEARNED[system]
     tk = ll.task(system)
     ts, chunks = ll.training_chunks(tk, batch)
-    programs = []
-    for rk4 in (sm.RK4(), sm.RK4(stagewise_reverse=True)):
+
+    def loss(rk4):
         sim = dict(
             solver=sm.Projected(rk4),
             dt0=tk.dt / substeps,
             stepsize_controller=diffrax.ConstantStepSize(),
         )
         problem = _Chunks.build(ll.new_model(tk, dtype=dtype), ts, chunks, sim, "grad", "learn")
-        u0, data = problem.unknowns[0], problem.pick(np.arange(batch))
-        loss = lambda u, p=problem, d=data: jnp.mean(jnp.abs(p.residuals((u, None), d)[0]))
-        if not programs:
-            programs.append(eqx.filter_jit(loss))
-        programs.append(eqx.filter_jit(jax.value_and_grad(loss)))
+        data = problem.pick(np.arange(batch))
+        return lambda u: jnp.mean(jnp.abs(problem.residuals((u, None), data)[0])), problem
+
+    (whole, problem), (stagewise, _) = loss(sm.RK4()), loss(sm.RK4(stagewise_reverse=True))
+    programs = [eqx.filter_jit(whole)] + [
+        eqx.filter_jit(jax.value_and_grad(f)) for f in (whole, stagewise)
+    ]
+    u0 = problem.unknowns[0]
     grads = [ravel_pytree(p(u0)[1])[0] for p in programs[1:]]
     tol = 1e-10 if dtype == "float64" else 1e-4
     assert np.allclose(grads[0], grads[1], rtol=tol, atol=tol * np.abs(grads[0]).max())
-    return dtype, substeps, timings([lambda f=f: f(u0) for f in programs], repeats)
+    times = timings([lambda f=f: f(u0) for f in programs], repeats)
+    return dtype, substeps, times, ll.MODEL[system]["width"]
 
 
 def learned(repeats=15):
-    rows, loads = [], [load()]
+    rows, loads, widths = [], [load()], {}
     for system in LEARNED:
-        dtype, substeps, times = learned_row(system, repeats)
+        dtype, substeps, times, widths[system] = learned_row(system, repeats)
         rows.append((system, dtype, substeps, *times))
         loads.append(load())
         print(f"  {system}: {times[0].median * 1e3:.1f} ms", flush=True)
@@ -485,8 +490,9 @@ def learned(repeats=15):
     publish(
         "`sm.learn`'s training step on the tasks of `benchmarks/learned_lagrangian.py`: the "
         "minibatch loss (100 chunks of 5 observations, L1) and its value_and_grad in the "
-        "task's model (`LearnedLagrangian`, its MLP's width 64 on the magnet, 128 on the "
-        "chains) and dtype, reverse mode through the whole RK4 step (as `learn` runs it) "
+        "task's model (`LearnedLagrangian`, its MLP's width "
+        + ", ".join(f"{w} on {system}" for system, w in widths.items())
+        + ") and dtype, reverse mode through the whole RK4 step (as `learn` runs it) "
         f"and stage by stage (the default adjoint's reverse mode); medians of {repeats} "
         "repeats, a row's three programs taking turns.\n\n"
         f"Machine: {MACHINE} (2-core CPU shared with other processes), `python "

@@ -203,7 +203,7 @@ def _default_sim(ts, simulate_options, name):
     """`simulate`'s options: `Projected(RK4())` at the observations' first spacing unless
     given, reverse-mode adjoint. `RecursiveCheckpointAdjoint()` given explicitly
     differentiates an `RK4()` step whole, not stage by stage as the default adjoint does:
-    with an MLP in the vector field the stage-by-stage pass costs 1.1x (magnet) to 1.7x
+    with an MLP in the vector field the stage-by-stage pass costs 1.3x (magnet) to 1.8x
     (chain3) as much (`benchmarks/gradients.py --learned`). `max_steps` stays
     `simulate`'s (its `sqrt(2 max_steps)` checkpoints hold every step of a chunk): bounded
     by a chunk's 8 steps (the tasks of `benchmarks/learned_lagrangian.py`, 2 RK4 steps per
