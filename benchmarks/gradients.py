@@ -24,10 +24,12 @@ benchmarks/results/gradients_rk4_batch.md.
 
 `--where`: where the time of the batched RK4 rows' reverse pass goes (float64): the vector
 field's reverse pass against its forward pass (`jax.vjp` with the forward recomputed, as the
-stage-by-stage reverse pass does, each in a `lax.scan` of 300 evaluations), the floor of a
+stage-by-stage reverse pass does, each in a `lax.scan` of 300 evaluations), its forward
+mode with 2 tangents (`jax.jvp` under `vmap`, as the default's forward mode at n = 2
+runs it: the least such a pass can cost against the forward one), the floor of a
 reverse pass that recomputes each step once (forward + recomputed forward + four vector
 field pullbacks a step), and the checkpointed reverse pass with `checkpoints` at half, one
-and four times the 300 steps (the default: `floor(sqrt(2 max_steps))` = 90); writes
+and four times the 300 steps (the default: `floor(sqrt(2 max_steps))` = 447); writes
 benchmarks/results/gradients_where.md.
 
 `--bare`: the same batched RK4 rows (n = 2 with B = 256, n = 8 with B = 64, float32 and
@@ -185,10 +187,13 @@ def rk4_batch(repeats=7):
     )
 
 
-def rates_pullback_ratio(n, batch, repeats, evaluations=300):
-    """Seconds per batched evaluation of the chain's vector field, forward and `jax.vjp`
-    (forward recomputed, cotangent pulled back to the lengths and the state)."""
+def rates_derivative_costs(n, batch, repeats, evaluations=300, tangents=2):
+    """Seconds per batched evaluation of the chain's vector field: forward, `jax.vjp`
+    (forward recomputed, cotangent pulled back to the lengths and the state) and `jax.jvp`
+    with `tangents` tangents (the first lengths, under `vmap` as `jax.jacfwd` runs them,
+    each carried through the evaluations as forward mode carries it through the steps)."""
     y, lengths = _states(n, batch, jnp.float64), jnp.linspace(1.0, 0.7, n)
+    basis = jnp.eye(n)[:tangents]
 
     def rates(lengths, y):
         chain = sm.chain_pendulum(jnp.ones(n), lengths, 9.81)
@@ -211,8 +216,20 @@ def rates_pullback_ratio(n, batch, repeats, evaluations=300):
 
         return jax.lax.scan(body, (y, lengths), None, evaluations)[0]
 
-    f, b = timings([lambda: forward(lengths, y), lambda: pullback(lengths, y)], repeats)
-    return f.median / evaluations, b.median / evaluations
+    @eqx.filter_jit
+    def push_forward(lengths, y):
+        def body(carry, _):
+            y, dy = carry
+            one = lambda t, dy: jax.jvp(rates, (lengths, y), (t, dy))
+            k, dk = jax.vmap(one, out_axes=(None, 0))(basis, dy)
+            return (nudge(y, k), nudge(dy, dk)), None
+
+        dy = jax.tree.map(lambda a: jnp.zeros((tangents, *a.shape)), y)
+        return jax.lax.scan(body, (y, dy), None, evaluations)[0]
+
+    programs = (forward, pullback, push_forward)
+    times = timings([lambda f=f: f(lengths, y) for f in programs], repeats)
+    return [t.median / evaluations for t in times]
 
 
 def where_row(n, counts, repeats):
@@ -240,11 +257,11 @@ def where(repeats=7):
     counts = (steps // 2, steps, 4 * steps)
     rows, loads = [], [load()]
     for n in BATCH:
-        rate_f, rate_b = rates_pullback_ratio(n, BATCH[n], repeats)
+        rate_f, rate_b, rate_t = rates_derivative_costs(n, BATCH[n], repeats)
         forward, *reverse = where_row(n, counts, repeats)
         floor = (2 * forward.median + 4 * steps * rate_b) / forward.median
         loads.append(load())
-        rows.append((n, BATCH[n], rate_f, rate_b, forward, floor, reverse))
+        rows.append((n, BATCH[n], rate_f, rate_b, rate_t, forward, floor, reverse))
         print(f"  n = {n}: {forward.median * 1e3:.2f} ms", flush=True)
     text = table(
         [
@@ -252,6 +269,7 @@ def where(repeats=7):
             "B",
             "vector field [us]",
             "its pullback / forward",
+            "its jvp, 2 tangents / forward",
             "solve, forward [ms]",
             "floor (recompute once)",
             "default (forward mode at n = 2: 2 scalars)",
@@ -263,11 +281,12 @@ def where(repeats=7):
                 b,
                 f"{rf * 1e6:.1f}",
                 f"{rb / rf:.2f}",
+                f"{rt / rf:.2f}",
                 f"{f.median * 1e3:.2f}",
                 f"{floor:.1f}",
                 *(f"{t.median / f.median:.1f}" for t in reverse),
             )
-            for n, b, rf, rb, f, floor, reverse in rows
+            for n, b, rf, rb, rt, f, floor, reverse in rows
         ],
     )
     publish(
@@ -275,7 +294,8 @@ def where(repeats=7):
         "1e-3 over 0.3 s (300 steps), float64, medians of 7 repeats; ratios are "
         "value_and_grad time / forward time. The floor: a forward pass, the forward "
         "recomputed once, and four pullbacks of the vector field a step (its measured "
-        "pullback time).\n\n"
+        "pullback time). The jvp: the vector field's `jax.jvp` with 2 tangents under "
+        "`vmap`, as forward mode runs it.\n\n"
         f"Machine: {MACHINE} (2-core CPU shared with other processes), `python "
         f"benchmarks/gradients.py --where`; load average (1 min) {min(loads):.1f} to "
         f"{max(loads):.1f} during the run.\n\n" + text + "\n",
