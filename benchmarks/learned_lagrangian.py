@@ -159,7 +159,16 @@ Adam part alone 4.63e-3, after 9 refine steps 3.88e-3. 22000 Adam and 14 refine 
 (1662 s) gave 3.54e-3. Cheaper steps between refine's (a script: each full step's
 Cholesky factor reused with the gradient at the new point, about 10 s for the gradient of
 the 800 chunks and up to 3 trial lengths) failed: from the 15000-step Adam model, none of
-4 such steps lowered the objective at length 1, 1/2 or 1/4.
+4 such steps lowered the objective at length 1, 1/2 or 1/4. Adam at 2 RK4 steps per
+observation (cheaper) and `refine` at 4 (`--steps 20000 --substeps 2 --refine-steps 18
+--refine-substeps 4 --refine-damping 1e-3`; 21 ms an Adam step, 35 s a refine step) gave
+3.44e-3 in 1206 s wall (2039 s CPU; `learn` 481 s), worse than at 4 throughout; 20000
+Adam and 22 refine steps at 4 (1741 s wall, 2847 s CPU; `learn` 850 s) 2.67e-3. A
+refine step's time is mostly the Gram matrix: `J^T J` of the 800 chunks' 19200 residual
+rows and 8645 parameters in float32 took about 28 s (3.5 s per group of 100 chunks, a
+random matrix of that shape), the float64 Cholesky factorization 6.0 s per damping
+tried; forming only the upper triangle in 4, 8 or 16 column blocks saved nothing (3.0 to
+3.3 s a group against 3.2 s).
 
 `--dtype float32` trains in float32 (evaluated and saved in float64): a width-128 magnet
 step took 83 ms against 214 ms in float64 (100 chunks, same run conditions, this 2-core
@@ -388,6 +397,12 @@ def main(argv=None):
         help="sm.refine's floor: minimize the mean over chunks of log(rms^2 + floor^2)",
     )
     parser.add_argument("--refine-damping", type=float, default=5e-3)
+    parser.add_argument(
+        "--refine-substeps",
+        type=int,
+        default=None,
+        help="solver steps per observation interval in sm.refine (default: --substeps)",
+    )
     parser.add_argument("--floor-perturbation", type=float, default=1e-5)
     parser.add_argument(
         "--dtype",
@@ -434,7 +449,7 @@ def main(argv=None):
     )
     learn_time = time.perf_counter() - start
     last = result.losses[-max(steps // 20, 1) :]  # the last twentieth, skipped steps left out
-    refined = None
+    refined, refine_substeps = None, args.refine_substeps or args.substeps
     if args.refine_steps:
         refined = sm.refine(
             result.model,
@@ -443,7 +458,7 @@ def main(argv=None):
             steps=args.refine_steps,
             floor=args.refine_floor,
             damping=args.refine_damping,
-            simulate_options=sim,
+            simulate_options=dict(sim, dt0=tk.dt / refine_substeps),
             checkpoint=args.out / f"{args.system}.eqx",
             print_every=1,
         )
@@ -465,6 +480,7 @@ def main(argv=None):
         "refine_steps": args.refine_steps,
         "refine_floor": args.refine_floor,
         "refine_damping": args.refine_damping,
+        "refine_substeps": refine_substeps,
         "refine_losses": [] if refined is None else [float(x) for x in refined.losses],
         "refine_rejected": 0 if refined is None else refined.skipped,
         "train_chunks": num_train,
