@@ -165,8 +165,8 @@ observation (cheaper) and `refine` at 4 (`--steps 20000 --substeps 2 --refine-st
 3.44e-3 in 1206 s wall (2039 s CPU; `learn` 481 s), worse than at 4 throughout; 20000
 Adam and 22 refine steps at 4 (1741 s wall, 2847 s CPU; `learn` 850 s) 2.67e-3. A
 refine step's time is mostly the Gram matrix: `J^T J` of the 800 chunks' 19200 residual
-rows and 8645 parameters in float32 took about 28 s (3.5 s per group of 100 chunks, a
-random matrix of that shape), the float64 Cholesky factorization 6.0 s per damping
+rows and 8645 parameters in float32 took about 28 s (3.5 s per group of 100 chunks: a
+random 2400 x 8600 matrix), the float64 Cholesky factorization 6.0 s per damping
 tried; forming only the upper triangle in 4, 8 or 16 column blocks saved nothing (3.0 to
 3.3 s a group against 3.2 s).
 
