@@ -58,6 +58,7 @@ benchmarks/results/gradients_learned.md.
 """
 
 import argparse
+import json
 import platform
 
 import diffrax
@@ -68,7 +69,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 jax.config.update("jax_enable_x64", True)
-from _harness import load, publish, pyplot, save_figure, table, timings  # noqa: E402
+from _harness import RESULTS, load, publish, pyplot, save_figure, table, timings  # noqa: E402
 
 import sphere_mech as sm  # noqa: E402
 from sphere_mech._adjoint import BATCH_FORWARD_COLUMNS, FORWARD_COLUMNS  # noqa: E402
@@ -436,9 +437,9 @@ def chunks(repeats=5, n=8, batch=1024, sizes=(16, 64, 256, 1024)):
     )
 
 
-LEARNED = {"magnet": ("float32", 4), "chain3": ("float64", 2), "chain5": ("float64", 2)}
-"""Each task's training dtype and RK4 steps per observation (its row of the results of
-`benchmarks/learned_lagrangian.py`)."""
+LEARNED = ("magnet", "chain3", "chain5")
+"""The tasks, each timed in its training dtype and RK4 steps per observation, read from its
+results (`results/learned_lagrangian/<task>.json`)."""
 
 
 def learned_row(system, repeats, batch=100):
@@ -449,19 +450,17 @@ def learned_row(system, repeats, batch=100):
 
     from sphere_mech._fit.learn import _Chunks
 
-    dtype, substeps = LEARNED[system]
+    trained = json.loads((RESULTS / "learned_lagrangian" / f"{system}.json").read_text())
+    # Results written before `--dtype` existed (the chains') trained in float64.
+    dtype, substeps = trained.get("dtype", "float64"), trained["substeps"]
     tk = ll.task(system)
     ts, chunks = ll.training_chunks(tk, batch)
 
     def loss(rk4):
-        sim = dict(
-            solver=sm.Projected(rk4),
-            dt0=tk.dt / substeps,
-            stepsize_controller=diffrax.ConstantStepSize(),
-        )
+        sim = ll.training_options(tk, rk4, substeps)
         problem = _Chunks.build(ll.new_model(tk, dtype=dtype), ts, chunks, sim, "grad", "learn")
         data = problem.pick(np.arange(batch))
-        return lambda u: jnp.mean(jnp.abs(problem.residuals((u, None), data)[0])), problem
+        return lambda u: ll.l1(problem.residuals((u, None), data)[0]), problem
 
     (whole, problem), (stagewise, _) = loss(sm.RK4()), loss(sm.RK4(stagewise_reverse=True))
     programs = [eqx.filter_jit(whole)] + [

@@ -350,6 +350,21 @@ def rollout_rel_err(tk: Task, system, ts, truth, perturb=0.0, seed=2):
     return float(jnp.exp(jnp.mean(jnp.log(per))))
 
 
+def l1(r):
+    """The training loss: the mean `|r|`, robust to the few chunks that pass the magnets."""
+    return jnp.mean(jnp.abs(r))
+
+
+def training_options(tk: Task, solver, substeps: int) -> dict:
+    """`simulate`'s options in training: `substeps` fixed steps of `Projected(solver)` per
+    observation interval."""
+    return dict(
+        solver=sm.Projected(solver),
+        dt0=tk.dt / substeps,
+        stepsize_controller=diffrax.ConstantStepSize(),
+    )
+
+
 def new_model(tk: Task, key=None, dtype="float64"):
     key = jax.random.PRNGKey(0) if key is None else key
     return sm.LearnedLagrangian(tk.n, key=key, dtype=dtype, **MODEL[tk.name])
@@ -427,12 +442,7 @@ def main(argv=None):
         0.0, args.learning_rate, min(args.warmup, steps // 2), steps
     )
     optimizer = optax.chain(optax.clip_by_global_norm(1.0), optax.adam(schedule))
-    l1 = lambda r: jnp.mean(jnp.abs(r))  # robust to the few chunks that pass the magnets
-    sim = dict(
-        solver=sm.Projected(SOLVERS[args.solver]),
-        dt0=tk.dt / args.substeps,
-        stepsize_controller=diffrax.ConstantStepSize(),
-    )
+    sim = training_options(tk, SOLVERS[args.solver], args.substeps)
     start, cpu_start = time.perf_counter(), time.process_time()
     result = sm.learn(
         new_model(tk, dtype=args.dtype),
@@ -458,7 +468,7 @@ def main(argv=None):
             steps=args.refine_steps,
             floor=args.refine_floor,
             damping=args.refine_damping,
-            simulate_options=dict(sim, dt0=tk.dt / refine_substeps),
+            simulate_options=training_options(tk, SOLVERS[args.solver], refine_substeps),
             checkpoint=args.out / f"{args.system}.eqx",
             print_every=1,
         )
