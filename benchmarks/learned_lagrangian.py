@@ -168,7 +168,14 @@ refine step's time is mostly the Gram matrix: `J^T J` of the 800 chunks' 19200 r
 rows and 8645 parameters in float32 took about 28 s (3.5 s per group of 100 chunks: a
 random 2400 x 8600 matrix), the float64 Cholesky factorization 6.0 s per damping
 tried; forming only the upper triangle in 4, 8 or 16 column blocks saved nothing (3.0 to
-3.3 s a group against 3.2 s).
+3.3 s a group against 3.2 s). Without the Gram matrix (a scratch script, 2026-12-02: the 800
+chunks' weighted Jacobians stored, 664 MB in float32, each column scaled by its norm, and
+the damped normal equations solved by 100 conjugate-gradient iterations: 6 to 8 s a
+damping tried, with its evaluation), a step took 15 to 26 s after the first instead of 34
+to 41 s, but lowered the objective less: from the 28000-step model (-18.54, 2.59e-3), 10
+such steps reached -18.80 (2.53e-3) in 239 s, where `refine`'s first 6 steps reached
+-18.86 in 251 s and its 10 steps -19.06 (2.33e-3) in 407 s. No faster per second, so
+`refine` keeps its Cholesky step.
 
 `--dtype float32` trains in float32 (evaluated and saved in float64): a width-128 magnet
 step took 83 ms against 214 ms in float64 (100 chunks, same run conditions, this 2-core
