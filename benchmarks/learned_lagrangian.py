@@ -410,7 +410,8 @@ def main(argv=None):
         "--refine-steps",
         type=int,
         default=0,
-        help="Gauss-Newton steps (sm.refine) after the optimizer's, in the training dtype",
+        help="Gauss-Newton steps (sm.refine) after the optimizer's, in the training dtype "
+        "(the chains' width-128 models need about 28 GB: see sm.refine)",
     )
     parser.add_argument(
         "--refine-floor",
