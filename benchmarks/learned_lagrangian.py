@@ -467,7 +467,8 @@ def main(argv=None):
     )
     learn_time = time.perf_counter() - start
     last = result.losses[-max(steps // 20, 1) :]  # the last twentieth, skipped steps left out
-    refined, refine_substeps = None, args.refine_substeps or args.substeps
+    refined = None
+    refine_substeps = args.substeps if args.refine_substeps is None else args.refine_substeps
     if args.refine_steps:
         refined = sm.refine(
             result.model,
