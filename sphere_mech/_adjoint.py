@@ -18,7 +18,13 @@ scalars, else reverse mode. On a 2-core CPU forward mode measured 1.9x (float64)
 arrays cost per operation, and forward mode widens the operations instead of adding more."""
 BATCH_FORWARD_COLUMNS = 2
 """The same for a trajectory of `simulate_batch`: under `vmap` forward mode's cost grows with
-every column (at 8, reverse mode measured 3.5x faster; at 2, forward mode 1.1x to 1.6x).
+every column. Against the stage-by-stage reverse mode (chains, `Projected(RK4())`, 300 steps,
+B = 256 and 1024, 2-core CPU, 2026-12-02; `benchmarks/gradients.py --rk4-batch` at 2): at 1
+column forward mode took 2.0x to 2.2x the forward pass against 4.4x to 4.9x; at 2 columns
+the two were within 19% of each other (reverse mode lower in 11 of 12 pairs); at 8, reverse
+mode 3.5x faster. At 2 forward mode is kept for its memory: it holds no checkpoints (the
+value_and_grad at n = 2, float64, needed 2.0 MB of working memory at B = 4096 in forward
+mode against 193 MB in reverse mode, about 47 kB a trajectory).
 A batch sharded over several devices or processes (`Options.sharded`) always uses forward
 mode: reverse mode's checkpointed loop fails inside `shard_map` (equinox compares the
 types of its loop state, which inside `shard_map` carry the manual mesh only once traced:
