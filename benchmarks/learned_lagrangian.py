@@ -383,9 +383,11 @@ def as_float64(model):
     return jax.tree.map(cast, model)
 
 
-def load(path, system: str):
-    """The model trained on `system`, read from `path`, as a sphere_mech system."""
-    return eqx.tree_deserialise_leaves(path, new_model(task(system)))
+def load(path, system: str, dtype="float64"):
+    """The model trained on `system`, read from `path`, as a sphere_mech system. The final
+    file is float64; the checkpoints written during a run (`--dtype float32`) are in the
+    training dtype: pass it as `dtype`."""
+    return eqx.tree_deserialise_leaves(path, new_model(task(system), dtype=dtype))
 
 
 def main(argv=None):

@@ -235,11 +235,12 @@ def times(dtype, *ts):
     return tuple(None if t is None else jnp.asarray(t, dtype=dtype) for t in ts)
 
 
-def state_pair(y0, shapes: str):
-    """`y0` as a pair `(q0, v0)` of arrays (or dicts of them); nested lists as float arrays."""
+def state_pair(y0, shapes: str, name: str = "y0", pair: str = "(q0, v0)"):
+    """`y0` (called `name`) as a pair `(q0, v0)` of arrays (or dicts of them); nested lists
+    as float arrays."""
     if not (isinstance(y0, tuple | list) and len(y0) == 2):
         raise ValueError(
-            f"y0 must be a pair (q0, v0) of {shapes} arrays (dicts of arrays on a mixed space)."
+            f"{name} must be a pair {pair} of {shapes} arrays (dicts of arrays on a mixed space)."
         )
     as_array = lambda x: jnp.asarray(x, dtype=float) if isinstance(x, list) else jnp.asarray(x)
     return jax.tree.map(as_array, tuple(y0), is_leaf=lambda x: isinstance(x, list))

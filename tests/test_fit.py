@@ -240,6 +240,13 @@ def test_fit_errors():
     message = r"^fit: 1 of 3 records have a non-finite observation \(indices 2\); record 2: "
     with pytest.raises(ValueError, match=message + "observation 4 is NaN"):
         sm.fit(damped_chain, START, ts, jnp.stack([obs, obs, nan]), mass_positions, y0=batch)
+    # the times: finite and strictly increasing (in each record's row)
+    with pytest.raises(ValueError, match=r"^fit: ts must be finite and strictly increasing"):
+        sm.fit(damped_chain, START, ts.at[3].set(ts[2]), obs, mass_positions, y0=y0)
+    rows = jnp.stack([ts, ts.at[1].set(jnp.nan), ts])
+    message = r"^fit: 1 of 3 records have times that are not finite and increasing \(indices 1\)"
+    with pytest.raises(ValueError, match=message):
+        sm.fit(damped_chain, START, rows, jnp.stack([obs] * 3), mass_positions, y0=batch)
 
 
 def test_shooting_segment_end_is_inf_where_the_solve_stops_early():

@@ -10,6 +10,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 from jax.flatten_util import ravel_pytree
 
@@ -236,6 +237,44 @@ def test_learn_skips_steps_whose_loss_is_not_finite():
     assert not np.array_equal(trained, leaves(model)[0])
 
 
+def test_learn_skips_updates_that_are_not_finite():
+    """Adam without its epsilon divides the MLP's output bias's update by zero (a constant
+    in `U` does not move anything: its gradient is exactly zero): every such step is
+    skipped and counted, and the model stays the given one, finite."""
+    ts, states = _chunks(8, 3, 0.05)
+    model = sm.LearnedLagrangian(1, key=jax.random.PRNGKey(1), width=4, depth=1)
+    opts = dict(steps=3, batch_size=8, simulate_options=TRAIN_SIM)
+    result = sm.learn(model, ts, states, optimizer=optax.adam(1e-2, eps=0.0), **opts)
+    assert result.skipped == 3 and np.all(np.isfinite(result.losses))
+    same = lambda a, b: np.array_equal(ravel_pytree(a)[0], ravel_pytree(b)[0])
+    assert same(
+        eqx.filter(result.model, eqx.is_inexact_array), eqx.filter(model, eqx.is_inexact_array)
+    )
+
+
+def test_refine_refuses_chunks_whose_simulation_is_not_finite():
+    """A chunk started 1e150 times too fast overflows the model's solve: `refine` names it
+    instead of returning the model unchanged with a NaN objective."""
+    ts, (q, v) = _chunks(8, 3, 0.05)
+    model = sm.LearnedLagrangian(1, key=jax.random.PRNGKey(1), width=4, depth=1)
+    message = r"^refine: 1 of 8 chunks have non-finite residuals \(indices 5\); chunk 5: "
+    with pytest.raises(ValueError, match=message + "the model's simulation"):
+        sm.refine(model, ts, (q, v.at[5].multiply(1e150)), simulate_options=TRAIN_SIM)
+
+
+def test_default_training_solver_with_only_dt0_given():
+    """`simulate_options` with only `dt0` keeps the documented default solver, fixed steps
+    of `Projected(RK4())` (not `simulate`'s adaptive default); without `dt0`, the first
+    observation spacing."""
+    from sphere_mech._fit.learn import _default_sim
+
+    ts = jnp.stack([jnp.arange(3) * 0.05, jnp.arange(3) * 0.04])
+    for given, dt0 in (({"dt0": 0.025}, 0.025), ({}, 0.04)):
+        sim = _default_sim(ts, given, "learn")
+        assert type(sim["solver"]) is sm.Projected and type(sim["solver"].solver) is sm.RK4
+        assert sim["dt0"] == pytest.approx(dt0)
+
+
 def _axial_invariants(q):
     """`(x^2 + y^2, z)` of the one unit vector: invariant under rotations about z."""
     return jnp.stack([q[0, 0] ** 2 + q[0, 1] ** 2, q[0, 2]])
@@ -318,3 +357,24 @@ def test_learn_rejects_bad_input(tmp_path):
         sm.simulate(two, (q[0, 0], states[1][0, 0]), 0.1)
     with pytest.raises(ValueError, match="same leading axes"):
         sm.learn(model, ts, (q, states[1][:, :2]), steps=1)
+    with pytest.raises(ValueError, match=r"^states must be a pair \(q, v\)"):
+        sm.learn(model, ts, (q, *states), steps=1)
+    # the times: finite and strictly increasing, shared or each chunk's own (named)
+    with pytest.raises(ValueError, match=r"^learn: ts must be finite and strictly increasing"):
+        sm.learn(model, ts[::-1], states, steps=1)
+    rows = jnp.stack([ts, ts, ts.at[2].set(0.0), ts])
+    message = r"^refine: 1 of 4 chunks have times that are not finite and increasing \(indices 2\)"
+    with pytest.raises(ValueError, match=message):
+        sm.refine(model, rows, states)
+    # the options of the default optimizer and the minibatches
+    with pytest.raises(ValueError, match="learn: learning_rate must be a finite number > 0"):
+        sm.learn(model, ts, states, steps=1, learning_rate=jnp.nan)
+    with pytest.raises(ValueError, match="learn: seed must be an integer >= 0, got -1"):
+        sm.learn(model, ts, states, steps=1, seed=-1)
+    with pytest.raises(ValueError, match="input_scale must be a finite number > 0, got inf"):
+        sm.LearnedLagrangian(1, key=jax.random.PRNGKey(1), input_scale=np.inf)
+    # a checkpoint that is a folder (written as it is, or with `.eqx` appended)
+    (tmp_path / "out.eqx").mkdir()
+    for folder in (tmp_path, tmp_path / "out"):
+        with pytest.raises(ValueError, match="learn: checkpoint .* is a folder, not a file path"):
+            sm.learn(model, ts, states, steps=1, checkpoint=folder)

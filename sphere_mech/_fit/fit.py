@@ -408,7 +408,7 @@ def fit(
     system0, args0 = model_output(model, params0)
     space = system0.state_space
     ts, observations, y0, batched = _as_batch(space, ts, observations, y0)
-    check_data(system0, y0, observations, "fit", "record")
+    check_data(system0, ts, y0, observations, "fit", "record")
     segment_data = split_segments(ts, observations, segments)
     _check_observe(observe, system0, ts, observations, y0)
     z0 = _initial_unknown_states(

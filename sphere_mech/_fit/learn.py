@@ -31,6 +31,8 @@ from jaxtyping import Array, PyTree
 
 from .._inertia import AbstractConstantInertiaLagrangian, check_spd_inertia
 from .._misc import check_integer, tree_dtype
+from .._results import describe_failures
+from .._solve import state_pair
 from .._solvers.projected import Projected
 from .._solvers.rk4 import RK4
 from .._spaces import AbstractSpace, Spheres
@@ -100,8 +102,8 @@ class LearnedLagrangian(AbstractConstantInertiaLagrangian):
             raise ValueError(f"inertia must have shape ({n}, {n}), got {M.shape}.")
         C = np.linalg.cholesky(check_spd_inertia(M))
         factor = np.tril(C, -1) + np.diag(np.log(np.diag(C)))
-        if not input_scale > 0:
-            raise ValueError(f"input_scale must be positive, got {input_scale}.")
+        if not 0 < input_scale < np.inf:
+            raise ValueError(f"input_scale must be a finite number > 0, got {input_scale}.")
         self.inertia_factor = jnp.asarray(factor, dtype=dtype)
         self.potential_linear = jnp.zeros((n, 3), dtype)
         self.input_scale = float(input_scale)
@@ -142,8 +144,8 @@ class LearnResult(eqx.Module):
     **Attributes:**
     - `model`: the trained model (same structure as the model given).
     - `losses`: `(steps,)`, the minibatch loss at each step (before its update).
-    - `skipped`: the number of steps skipped because their loss or gradient was not
-      finite.
+    - `skipped`: the number of steps skipped because their loss, gradient or updated
+      parameters were not finite.
     - `wall_time`: seconds spent training (compilation included).
     """
 
@@ -188,31 +190,39 @@ def _report(bar, name, done, total, moved, loss, start, print_every):
 
 def _check_options(name, checkpoint, every: dict, counts: dict):
     """`learn`'s and `refine`'s own checks, before any work (`ValueError`): `counts`
-    positive integers, `every` (`print_every`, ...) `None` or positive integers, and the
-    folder of `checkpoint` existing (else a run would fail at its first write)."""
+    positive integers, `every` (`print_every`, ...) `None` or positive integers, and
+    `checkpoint` a file path in a folder that exists (else a run would fail at its first
+    write, after training). The file `eqx.tree_serialise_leaves` writes: `checkpoint`, with
+    `.eqx` appended if it has no suffix."""
     every = {key: value for key, value in every.items() if value is not None}
     for key, value in (counts | every).items():
         check_integer(value, f"{name}: {key}")
-    if checkpoint is not None and not Path(checkpoint).parent.is_dir():
-        raise ValueError(
-            f"{name}: checkpoint {str(checkpoint)!r} is in a folder that does not exist."
-        )
+    if checkpoint is None:
+        return
+    given = Path(checkpoint)
+    path = given if given.suffix else given.with_suffix(".eqx")
+    for folder in {given, path}:
+        if folder.is_dir():
+            raise ValueError(f"{name}: checkpoint {str(folder)!r} is a folder, not a file path.")
+    if not path.parent.is_dir():
+        raise ValueError(f"{name}: checkpoint {str(path)!r} is in a folder that does not exist.")
 
 
 def _default_sim(ts, simulate_options, name):
-    """`simulate`'s options: `Projected(RK4())` at the observations' first spacing unless
-    given, reverse-mode adjoint. `RecursiveCheckpointAdjoint()` given explicitly
-    differentiates an `RK4()` step whole, not stage by stage as the default adjoint does:
-    with an MLP in the vector field the stage-by-stage pass costs 1.3x (magnet) to 1.8x
-    (chain3) as much (`benchmarks/gradients.py --learned`). `max_steps` stays
-    `simulate`'s (its `sqrt(2 max_steps)` checkpoints hold every step of a chunk): bounded
+    """`simulate`'s options: `Projected(RK4())` unless a solver is given, `dt0` the
+    observations' first spacing unless given, reverse-mode adjoint.
+    `RecursiveCheckpointAdjoint()` given explicitly differentiates an `RK4()` step whole,
+    not stage by stage as the default adjoint does: with an MLP in the vector field the
+    stage-by-stage pass costs 1.3x (magnet) to 1.8x (chain3) as much
+    (`benchmarks/gradients.py --learned`). `max_steps` stays `simulate`'s (its
+    `sqrt(2 max_steps)` checkpoints hold every step of a chunk): bounded
     by a chunk's 8 steps (the tasks of `benchmarks/learned_lagrangian.py`, 2 RK4 steps per
     observation, 100 chunks) the loop recomputed steps from 4 checkpoints, and a training
     step took 1.3x (chain3) to 1.4x (magnet) as long."""
     sim = own_options(simulate_options, name)
-    ts = np.asarray(ts)
+    sim.setdefault("solver", Projected(RK4()))
     if "dt0" not in sim:
-        sim.setdefault("solver", Projected(RK4()))
+        ts = np.asarray(ts)
         sim["dt0"] = float(np.min(ts[:, 1] - ts[:, 0]))
     sim["adjoint"] = diffrax.RecursiveCheckpointAdjoint()
     return sim
@@ -236,7 +246,8 @@ class _Chunks(eqx.Module):
         if not isinstance(model, AbstractSystem):
             raise ValueError(f"model must be a sphere_mech system, got {type(model).__name__}.")
         dtype = tree_dtype(eqx.filter(model, eqx.is_inexact_array))
-        q, v = jtu.tree_map(lambda x: jnp.asarray(x, dtype), tuple(states))
+        states = state_pair(states, "(B, T, n, 3)", "states", "(q, v)")
+        q, v = jtu.tree_map(lambda x: jnp.asarray(x, dtype), states)
         leading = {x.shape[:2] for x in jtu.tree_leaves((q, v))}
         if len(leading) != 1 or len(next(iter(leading))) != 2:
             raise ValueError(
@@ -245,17 +256,17 @@ class _Chunks(eqx.Module):
             )
         model.state_space.check_shapes(*jtu.tree_map(lambda x: x[0, 0], (q, v)), model.state_name)
         num_chunks, num_times = next(iter(leading))
-        ts = jnp.asarray(ts, dtype)
+        ts = jnp.asarray(ts)
         shared = ts.shape == (num_times,)
         if not (shared or ts.shape == (num_chunks, num_times)) or num_times < 2:
             raise ValueError(
                 f"ts must have shape (T,) or (B, T) with T >= 2 matching states' (B, T) = "
                 f"{(num_chunks, num_times)}, got {ts.shape}."
             )
-        ts = jnp.broadcast_to(ts, (num_chunks, num_times))
         y0 = jtu.tree_map(lambda x: x[:, 0], (q, v))
         observed = jax.vmap(jax.vmap(lambda q_, v_: _state_vector(None, None, q_, v_)))(q, v)
-        check_data(model, y0, observed, name, "chunk")
+        check_data(model, ts, y0, observed, name, "chunk")
+        ts = jnp.broadcast_to(ts.astype(dtype), (num_chunks, num_times))
         seg_ts, obs, t0, t1, mask = split_segments(ts, observed, 1)
         # one segment per chunk: with `ts` shared, the first chunk's times are every chunk's
         times = (seg_ts[0, 0], t0[0, 0], t1[0, 0]) if shared else (seg_ts, t0, t1)
@@ -317,29 +328,34 @@ def learn(
       any solve (`ValueError`): the first states as `simulate_batch` checks initial
       states, every observation finite.
     - `steps`: optimizer steps, each on one minibatch.
-    - `batch_size`: chunks per minibatch, drawn without replacement each epoch.
-    - `seed`: the seed of the minibatches' order (NumPy's `default_rng`).
+    - `batch_size`: chunks per minibatch (at most the number of chunks: a larger value
+      means all of them), drawn without replacement each epoch.
+    - `seed`: the seed of the minibatches' order (NumPy's `default_rng`; an integer
+      >= 0).
     - `optimizer`: an optax `GradientTransformation`; default `optax.adam(learning_rate)`.
-    - `learning_rate`: the default optimizer's step size.
+    - `learning_rate`: the default optimizer's step size (finite, > 0).
     - `loss`: `loss(r) -> scalar` of a minibatch's residuals `r`, `(batch, 1, T, d)` (the
       raveled `(q, v)` simulated minus observed, zero at each chunk's start); default
       `jnp.mean(r**2)` (e.g. `lambda r: jnp.mean(jnp.abs(r))` is less swayed by a few
       chunks with fast motion).
     - `simulate_options`: keyword arguments for `simulate` (`solver`, `dt0`,
-      `max_steps`, ...); default fixed steps of `Projected(RK4())` at the observation
-      spacing. The adjoint is `diffrax.RecursiveCheckpointAdjoint()`.
-    - `checkpoint`: a path in an existing folder (checked before training): the model is
-      written there with `eqx.tree_serialise_leaves` at the end; read it back with
-      `eqx.tree_deserialise_leaves(path, like)`, `like` a model of the same structure.
+      `max_steps`, ...); default solver `Projected(RK4())` (fixed steps), default `dt0`
+      the smallest spacing of the chunks' first two observations. The adjoint is
+      `diffrax.RecursiveCheckpointAdjoint()`.
+    - `checkpoint`: a file path in an existing folder (checked before training; `.eqx`
+      appended if it has no suffix, as `eqx.tree_serialise_leaves` does): the model is
+      written there at the end; read it back with `eqx.tree_deserialise_leaves(path,
+      like)`, `like` a model of the same structure and dtype.
     - `checkpoint_every`: also write it every so many steps.
     - `print_every`: print a progress line (step, loss, seconds) every so many steps and
       after the last.
     - `progress`: show a tqdm progress bar of the steps (with the last loss), moved at
       the end of each block.
 
-    A step whose loss or gradient is not finite (a chunk's solve failed: e.g. a model that
-    blows up under the training solver's fixed steps) is skipped, the model and the
-    optimizer's state kept as they were; `LearnResult.skipped` counts them.
+    A step whose loss, gradient or updated parameters are not finite (a chunk's solve
+    failed: e.g. a model that blows up under the training solver's fixed steps; or the
+    optimizer divided by zero) is skipped, the model and the optimizer's state kept as
+    they were; `LearnResult.skipped` counts them.
 
     The steps run in blocks, each one compiled `jax.lax.scan` of up to 100 steps (their
     length the greatest common divisor of `steps`, `print_every`, `checkpoint_every` and
@@ -351,6 +367,9 @@ def learn(
     start = time.perf_counter()
     every = dict(print_every=print_every, checkpoint_every=checkpoint_every)
     _check_options("learn", checkpoint, every, dict(steps=steps, batch_size=batch_size))
+    check_integer(seed, "learn: seed", 0)
+    if optimizer is None and not 0 < learning_rate < np.inf:
+        raise ValueError(f"learn: learning_rate must be a finite number > 0, got {learning_rate}.")
     chunks = _Chunks.build(model, ts, states, simulate_options, "grad", "learn")
     residuals, num_chunks, (u0, static) = chunks.residuals, chunks.num, chunks.unknowns
     optimizer = optax.adam(learning_rate) if optimizer is None else optimizer
@@ -369,10 +388,13 @@ def learn(
         u, opt_state = carry
         loss, grad = jax.value_and_grad(loss_fn)(u, chunks.pick(index))
         updates, new_state = optimizer.update(grad, opt_state, u)
-        # a step whose loss or gradient is not finite (a solve failed) is skipped
-        finite = jnp.isfinite(loss) & jnp.all(jnp.isfinite(ravel_pytree(grad)[0]))
+        new_u = optax.apply_updates(u, updates)
+        # a step whose loss, gradient or new parameters are not finite is skipped (a solve
+        # failed, or the optimizer divided by zero)
+        all_finite = lambda tree: jnp.all(jnp.isfinite(ravel_pytree(tree)[0]))
+        finite = jnp.isfinite(loss) & all_finite(grad) & all_finite(new_u)
         keep = lambda new, old: jnp.where(finite, new, old)
-        carry = jtu.tree_map(keep, (optax.apply_updates(u, updates), new_state), carry)
+        carry = jtu.tree_map(keep, (new_u, new_state), carry)
         return carry, (loss, finite)
 
     @eqx.filter_jit
@@ -455,18 +477,20 @@ def refine(
       bar moved after each step.
 
     **Returns:** a `LearnResult`: `losses` the objective (the mean over chunks of
-    `|r_c|^2`, or of `log(rms_c^2 + floor^2)`) at the start and after each accepted step;
+    `rms_c^2`, or of `log(rms_c^2 + floor^2)`) at the start and after each accepted step;
     `skipped` the number of rejected trial steps. It stops early when 8 dampings in a row
-    fail to lower the objective. The Jacobians and the Gram matrix are computed in the
-    model's dtype, their sums and the factorization in JAX's default float.
+    fail to lower the objective (with a line saying so if `print_every`). A chunk whose
+    simulation from the given model is not finite is a `ValueError`. The Jacobians and
+    the Gram matrix are computed in the model's dtype, their sums and the factorization
+    in JAX's default float.
     """
     start = time.perf_counter()
     counts = dict(steps=steps, group_size=group_size)
     _check_options("refine", checkpoint, dict(print_every=print_every), counts)
     if floor is not None and not floor > 0:
-        raise ValueError(f"floor must be positive or None, got {floor!r}.")
+        raise ValueError(f"refine: floor must be positive or None, got {floor!r}.")
     if not damping > 0:
-        raise ValueError(f"damping must be positive, got {damping!r}.")
+        raise ValueError(f"refine: damping must be positive, got {damping!r}.")
     chunks = _Chunks.build(model, ts, states, simulate_options, "bwd", "refine")
     problem, (u0, static) = chunks.residuals, chunks.unknowns
     p0, unravel = ravel_pytree(u0)
@@ -484,7 +508,8 @@ def refine(
     @jax.jit
     def evaluate(p, weights):
         """The objective at `p`; its weighted least squares with `weights`; the weights
-        that `p` gives and its weighted least squares with them."""
+        that `p` gives and its weighted least squares with them; each chunk's mean square
+        residual."""
         r = chunk_residuals(p, np.arange(chunks.num))
         ms = jnp.mean(r**2, -1)
         if floor is None:
@@ -493,7 +518,7 @@ def refine(
             loss, own = jnp.mean(jnp.log(ms + floor**2)), 1 / (ms + floor**2)
         squares = jnp.sum(r**2, -1).astype(wide)
         own = own.astype(wide)
-        return loss, jnp.sum(weights * squares), own, jnp.sum(own * squares)
+        return loss, jnp.sum(weights * squares), own, jnp.sum(own * squares), ms
 
     def one_chunk(p, data):
         def rows(p_):
@@ -531,7 +556,15 @@ def refine(
             eqx.tree_serialise_leaves(checkpoint, eqx.combine(unravel(p), static))
 
     p, lam, skipped = p0, damping, 0
-    loss, _, weights, current = evaluate(p, jnp.ones(chunks.num, wide))
+    loss, _, weights, current, ms = evaluate(p, jnp.ones(chunks.num, wide))
+    bad = np.flatnonzero(~np.isfinite(np.asarray(ms)))
+    if bad.size:
+        where = describe_failures(bad, chunks.num, "chunks have non-finite residuals", "chunk")
+        raise ValueError(
+            f"refine:{where} the model's simulation from its first observed state is not "
+            "finite (its solve failed), so its residuals cannot be minimized: drop those "
+            "chunks or train the model further with `learn` (which skips such steps)."
+        )
     losses = [float(loss)]
     with _bar(progress, steps, "refine") as bar:
         for k in range(steps):
@@ -540,11 +573,16 @@ def refine(
                 trial = damped_step(p, A, g, lam)
                 out = evaluate(trial, weights)
                 if bool(jnp.isfinite(out[1])) and out[1] < current:
-                    p, lam, (loss, _, weights, current) = trial, lam / 3, out
+                    p, lam, (loss, _, weights, current, _) = trial, lam / 3, out
                     break
                 skipped, lam = skipped + 1, 10 * lam
-            else:
-                break  # no damping lowered it: at a minimum, as far as the steps resolve
+            else:  # no damping lowered it: at a minimum, as far as the steps resolve
+                if print_every:
+                    print(
+                        f"refine: stopped after step {k}/{steps}: 8 dampings in a row did "
+                        f"not lower the objective (loss {float(loss):.4e})"
+                    )
+                break
             losses.append(float(loss))
             _report(bar, "refine", k + 1, steps, 1, loss, start, print_every)
             save(p)

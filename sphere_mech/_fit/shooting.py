@@ -40,11 +40,23 @@ def split_segments(ts: Array, observations: Array, segments: int) -> tuple[Array
     return ts[:, index], observations[:, index], ts[:, bounds[:-1]], ts[:, bounds[1:]], mask
 
 
-def check_data(system, y0, observations, caller: str, record: str) -> None:
+def check_data(system, ts, y0, observations, caller: str, record: str) -> None:
     """The one check of the data of `fit`, `learn` and `refine`, before any solve
-    (`ValueError`): the records' initial states `y0` (a leading axis of records) as
+    (`ValueError`): the observation times `ts` (`(T,)`, or `(B, T)` one row per record)
+    finite and increasing, the records' initial states `y0` (a leading axis of records) as
     `simulate_batch` checks its initial states (`initial_states`, the same words), and the
-    observations `(B, T, ...)` finite. Traced observations pass."""
+    observations `(B, T, ...)` finite. Traced times and observations pass."""
+    if not isinstance(ts, jax.core.Tracer):
+        times = np.atleast_2d(gathered(ts))
+        increasing = np.isfinite(times).all(1) & (np.diff(times, axis=1) > 0).all(1)
+        bad = np.flatnonzero(~increasing)
+        if bad.size:
+            failed = f"{record}s have times that are not finite and increasing"
+            where = describe_failures(bad, times.shape[0], failed, record)
+            raise ValueError(
+                f"{caller}:{where} ts must be finite and strictly increasing, got "
+                f"{times[bad[0]][:10]}."
+            )
     initial_states(system.state_space, system.state_name, y0, caller, True)
     if isinstance(observations, jax.core.Tracer):
         return
