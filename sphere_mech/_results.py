@@ -27,7 +27,8 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
     )
     invalid_initial = (
         "The initial state is invalid: q0 or v0 contains NaN or infinite values, q0 is "
-        "off the spheres or v0 not tangent to them (beyond sm.unit_tolerance). With "
+        "off its space (a unit vector off its sphere, a matrix that is not a rotation) or "
+        "v0 not tangent to it (beyond sm.unit_tolerance). With "
         "throw=True simulate_batch raises a ValueError naming the states and the problem."
     )
 

@@ -254,9 +254,9 @@ def _attitude_initial(path, table, dtype):
     (key, what), (rate, rate_what) = ATTITUDE_INITIAL.items()
     R = _array(path, f"initial.{key}", table.get(key, np.eye(3).tolist()), [(3, 3)], what)
     R = jnp.asarray(R, dtype)
-    bad, message = off_rotation(R[None], f"initial.{key}")
+    bad, message = off_rotation(R[None], "the attitude")
     if bad:
-        raise SceneFileError(path, f"initial.{key}", message)
+        raise SceneFileError(path, f"initial.{key}", f"{message} Got {np.asarray(R).tolist()}.")
     Omega = _array(
         path, f"initial.{rate}", table.get(rate, [0.0] * 3), [(3,)], rate_what + magnitude
     )
@@ -336,7 +336,9 @@ class SceneSpec:
     - `t0`, `t1`, `dt0`: start and end times (s), and the (initial) step (s) or `None`.
     - `rtol`, `atol`: tolerances of adaptive solvers, or `None` (`simulate`'s defaults).
     - `max_steps`: the most steps the run may take.
-    - `save_dt`: the spacing of the saved trajectory (s), from `[output]`.
+    - `save_dt`: the spacing of the saved trajectory (s), from `[output]` (the saved
+      times: `t0` to `t1` in the whole number of equal intervals closest to it, at least
+      one).
     """
 
     path: Path

@@ -222,7 +222,7 @@ class Spheres(_AbstractBlockFactor):
     n: int | None = eqx.field(default=None, static=True)
 
     def __check_init__(self):
-        if self.n is not None and (not isinstance(self.n, int) or self.n < 1):
+        if self.n is not None and (type(self.n) is not int or self.n < 1):
             raise ValueError(f"Spheres(n): n must be a positive int, got {self.n!r}.")
 
     def check_shapes(self, q, v, v_name="v", q_name="q"):
@@ -319,7 +319,7 @@ class Euclidean(AbstractFactor):
     m: int = eqx.field(static=True)
 
     def __check_init__(self):
-        if not isinstance(self.m, int) or self.m < 1:
+        if type(self.m) is not int or self.m < 1:
             raise ValueError(f"Euclidean(m): m must be a positive int, got {self.m!r}.")
 
     def check_shapes(self, q, v, v_name="v", q_name="q"):
@@ -419,7 +419,7 @@ class Rotations(_AbstractBlockFactor):
     body: bool = eqx.field(default=False, static=True)
 
     def __check_init__(self):
-        if self.k is not None and (not isinstance(self.k, int) or self.k < 1):
+        if self.k is not None and (type(self.k) is not int or self.k < 1):
             raise ValueError(f"Rotations(k): k must be a positive int, got {self.k!r}.")
 
     def check_shapes(self, q, v, v_name="v", q_name="q"):
@@ -625,7 +625,8 @@ def as_space(space) -> AbstractSpace:
     ):
         return Product(dict(sorted(space.items())))
     raise ValueError(
-        "space must be a factor (sphere_mech.Spheres(n), sphere_mech.Euclidean(m)) or a "
+        "space must be a factor (sphere_mech.Spheres(n), sphere_mech.Euclidean(m), "
+        "sphere_mech.Rotations(k)) or a "
         'non-empty dict of them with string keys, e.g. {"base": sm.Euclidean(3), '
         f'"cable": sm.Spheres(4)}}; got {space!r}.'
     )

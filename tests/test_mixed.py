@@ -439,8 +439,13 @@ def test_bad_mixed_input_raises():
         sm.Lagrangian(model.lagrangian, space={"base": 3})
     with pytest.raises(ValueError, match="space must be a factor"):
         sm.Hamiltonian(model.lagrangian, space=[sm.Euclidean(1)])
+    with pytest.raises(ValueError, match=r"space must be a factor .*sphere_mech.Rotations\(k\)"):
+        sm.Lagrangian(model.lagrangian, space="rot")
     with pytest.raises(ValueError, match="Euclidean\\(m\\): m must be a positive int"):
         sm.Euclidean(0)
+    for factor in (sm.Spheres, sm.Euclidean, sm.Rotations):  # a bool is not a count
+        with pytest.raises(ValueError, match=r"must be a positive int, got True"):
+            factor(True)
     bad_forces = lambda t, q, v, args: {"base": jnp.zeros(1)}
     forced = sm.Lagrangian(model.lagrangian, bad_forces, space=model.space)
     with pytest.raises(ValueError, match=r"forces\(t, q, v, args\) must have the keys"):

@@ -390,15 +390,19 @@ TAU = jnp.array([0.0, 0.0, 1.0])
         (lambda: sm.PDTorque(-1.0), "kp must be >= 0 (N m), got -1.0"),
         (
             lambda: sm.Scene(TWO, sm.BaseTorque(TAU, link=7)),
-            "BaseTorque.link must be a sphere index in [-2, 2) (the scene has 2 spheres), got 7",
+            "BaseTorque.link must be an integer sphere index in [-2, 2) (the scene has 2 "
+            "spheres), got 7",
         ),
         (lambda: sm.Scene(TWO, sm.BaseTorque(TAU, link=-3)), "BaseTorque.link must be"),
         (lambda: sm.Scene(TWO, sm.BaseTorque(sm.PDTorque(1.0, link=2))), "PDTorque.link must be"),
-        (lambda: sm.Scene(TWO, sm.TipForce(TAU, point=2)), "TipForce.point must be a sphere"),
-        (lambda: sm.Scene(TWO, sm.Spring(0, 5, 1.0)), "Spring.b must be a sphere index"),
+        (
+            lambda: sm.Scene(TWO, sm.TipForce(TAU, point=2)),
+            "TipForce.point must be an integer sphere",
+        ),
+        (lambda: sm.Scene(TWO, sm.Spring(0, 5, 1.0)), "Spring.b must be an integer sphere index"),
         (
             lambda: sm.Scene(TWO, sm.PairInteraction(1.0, masses=(0, 2))),
-            "PairInteraction.masses must be a sphere index",
+            "PairInteraction.masses must be an integer sphere index",
         ),
         (
             lambda: sm.Scene(TWO, sm.PairInteraction(1.0, charges=[1.0, 2.0, 3.0])),
@@ -412,12 +416,44 @@ TAU = jnp.array([0.0, 0.0, 1.0])
             lambda: sm.Scene(TWO, sm.JointDamping([0.1, 0.2, 0.3])),
             "coefficient must be a scalar or 2 values, one per sphere",
         ),
+        # indices and counts are integers (a float or a bool is not truncated or taken)
+        (
+            lambda: sm.Scene(TWO, sm.TipForce(TAU, point=1.0)),
+            "TipForce.point must be an integer sphere index in [-2, 2) (the scene has 2 "
+            "spheres), got 1.0",
+        ),
+        (lambda: sm.Chain(1.0, 1.0, links=True), "links must be an integer from 1 to 100000"),
+        (lambda: sm.Chain(1.0, 1.0, links=2.0), "links must be an integer from 1 to 100000"),
+        (
+            lambda: sm.Scene(TWO, sm.PairInteraction(1.0, masses=(0.0, 1.0))),
+            "PairInteraction.masses must be an integer sphere index",
+        ),
+        (
+            lambda: sm.Scene(sm.Chain(1.0, 1.0, links=3), sm.PairInteraction(1.0, masses=(0, -3))),
+            "PairInteraction.masses must name each mass once, got (0, -3) (mass 0 twice)",
+        ),
+        # the controller's model of the vehicle checked as RigidBase checks it
+        (
+            lambda: sm.GeometricControl(1.0, [-1.0, -1.0, -1.0], 1.0, 1.0, 1.0, 1.0),
+            "inertia must be symmetric positive-definite (kg m^2)",
+        ),
+        (
+            lambda: sm.GeometricControl(1.0, [0.01] * 3, 1.0, 1.0, 1.0, 1.0, command=[0, 0, 0]),
+            "command must be an AbstractCommand (Hover, Line, Circle) or a function",
+        ),
     ],
 )
 def test_invalid_parameters_raise_at_construction(build, message):
     with pytest.raises(ValueError) as info:
         build()
     assert message in str(info.value)
+
+
+def test_spring_anchor_as_a_list():
+    """A fixed end given as a list or tuple is a vector, as in a scene file."""
+    anchor = jnp.array([0.0, 0.0, 1.0])
+    for given in ([0.0, 0.0, 1.0], (0.0, 0.0, 1.0)):
+        assert eqx.tree_equal(sm.Spring(given, 0, 1.0), sm.Spring(anchor, 0, 1.0))
 
 
 def test_indices_count_from_the_end():

@@ -94,18 +94,20 @@ def check_sign(name: str, x, unit: str = "", *, strict: bool = True, scalar=Fals
         raise ParameterError(name, message)
 
 
-def check_index(owner, name: str, i: int, n: int) -> None:
-    """Python's convention: `-n <= i < n`."""
-    if not -n <= i < n:
-        what = f"a sphere index in [-{n}, {n}) (the scene has {n} spheres)"
-        raise ParameterError(name, f"{type(owner).__name__}.{name} must be {what}, got {i}")
+def check_index(owner, name: str, i, n: int) -> None:
+    """An integer (not a bool or a float) with Python's convention: `-n <= i < n`."""
+    integer = isinstance(i, int | np.integer) and not isinstance(i, bool)
+    if not (integer and -n <= i < n):
+        what = f"an integer sphere index in [-{n}, {n}) (the scene has {n} spheres)"
+        raise ParameterError(name, f"{type(owner).__name__}.{name} must be {what}, got {i!r}")
 
 
 def per_item(count: int | None, count_name: str, **arrays) -> list[jax.Array]:
     """Arrays of one value per item, scalars broadcast to `count` (argument `count_name`;
     default: the 1-D arrays' length; at most `MAX_COUNT`, checked before allocating)."""
-    if count is not None and not 1 <= count <= MAX_COUNT:
-        message = f"{count_name} must be an integer from 1 to {MAX_COUNT}, got {count}"
+    integer = isinstance(count, int | np.integer) and not isinstance(count, bool)
+    if count is not None and not (integer and 1 <= count <= MAX_COUNT):
+        message = f"{count_name} must be an integer from 1 to {MAX_COUNT}, got {count!r}"
         raise ParameterError(count_name, message)
     arrays = {k: as_float(v) for k, v in arrays.items()}
     if count is None:

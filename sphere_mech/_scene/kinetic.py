@@ -196,6 +196,23 @@ def inertia_matrix(x) -> jax.Array:
     return jnp.diag(x) if jnp.shape(x) == (3,) else x
 
 
+def check_rigid_inertia(inertia) -> None:
+    """A rigid body's inertia (from `inertia_matrix`), unless traced: `(3, 3)`, symmetric
+    positive-definite, its principal moments satisfying the triangle inequality."""
+    check_shape("inertia", inertia, (3, 3), "three principal moments or a (3, 3) matrix")
+    if isinstance(inertia, jax.core.Tracer):
+        return
+    J = np.asarray(inertia, dtype=np.float64)
+    tol = unit_tolerance(jnp.result_type(inertia)) * np.max(np.abs(J))
+    moments = np.linalg.eigvalsh(J) if np.all(np.isfinite(J)) else np.full(3, np.nan)
+    if not (np.max(np.abs(J - J.T)) <= tol and moments[0] > 0):
+        message = "inertia must be symmetric positive-definite (kg m^2)"
+        raise ParameterError("inertia", f"{message}, got {J.tolist()}")
+    if not moments[0] + moments[1] >= moments[2] - tol:
+        message = "inertia's principal moments must satisfy J1 + J2 >= J3 (a rigid body's)"
+        raise ParameterError("inertia", f"{message}, got {moments.tolist()}")
+
+
 class RigidBase(AbstractBase):
     """A rigid body that moves freely in space and carries the scene's chain: a quadrotor,
     a helicopter, a spacecraft with a tether.
@@ -226,20 +243,9 @@ class RigidBase(AbstractBase):
 
     def __check_init__(self):
         check_sign("mass", self.mass, " (kg)", scalar=True)
-        check_shape("inertia", self.inertia, (3, 3), "three principal moments or a (3, 3) matrix")
+        check_rigid_inertia(self.inertia)
         check_vector("attach", self.attach)
         check_sign("size", self.size, " (m)", scalar=True)
-        if isinstance(self.inertia, jax.core.Tracer):
-            return
-        J = np.asarray(self.inertia, dtype=np.float64)
-        tol = unit_tolerance(jnp.result_type(self.inertia)) * np.max(np.abs(J))
-        moments = np.linalg.eigvalsh(J) if np.all(np.isfinite(J)) else np.full(3, np.nan)
-        if not (np.max(np.abs(J - J.T)) <= tol and moments[0] > 0):
-            message = "inertia must be symmetric positive-definite (kg m^2)"
-            raise ParameterError("inertia", f"{message}, got {J.tolist()}")
-        if not moments[0] + moments[1] >= moments[2] - tol:
-            message = "inertia's principal moments must satisfy J1 + J2 >= J3 (a rigid body's)"
-            raise ParameterError("inertia", f"{message}, got {moments.tolist()}")
 
     @property
     def m(self) -> int:

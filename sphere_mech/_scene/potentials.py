@@ -56,9 +56,10 @@ class Spring(AbstractPotential):
         self.ends = tuple(int(e) if isinstance(e, int | np.integer) else None for e in (a, b))
         anchors = []
         for name, end, i in zip("ab", (a, b), self.ends, strict=True):
+            anchor = base.as_float(jnp.zeros(3) if i is not None else end)
             if i is None:
-                base.check_vector(name, end)
-            anchors.append(base.as_float(jnp.zeros(3) if i is not None else end))
+                base.check_vector(name, anchor)
+            anchors.append(anchor)
         self.anchors = jnp.stack(anchors)
         self.stiffness, self.rest_length = stiffness, rest_length
 
@@ -147,8 +148,12 @@ class PairInteraction(AbstractPotential):
         if pairs > MAX_PAIRS:
             message = f"PairInteraction sums over at most {MAX_PAIRS:.0e} pairs, got {len(idx)}"
             raise ParameterError("masses", f"{message} masses ({pairs:.2e} pairs)")
-        for i in idx:
-            base.check_index(self, "masses", int(i), scene.n)
+        for i in idx if self.masses is None else self.masses:
+            base.check_index(self, "masses", i, scene.n)
+        repeated = [int(i) for i in np.unique(idx % scene.n) if np.sum(idx % scene.n == i) > 1]
+        if repeated:
+            message = f"PairInteraction.masses must name each mass once, got {self.masses}"
+            raise ParameterError("masses", f"{message} (mass {repeated[0]} twice)")
         if self.charges is not None:
             what = f"one value per interacting mass ({len(idx)})"
             base.check_shape("charges", self.charges, (len(idx),), what)

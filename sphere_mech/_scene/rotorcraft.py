@@ -14,7 +14,7 @@ from .._spaces import chain_attitude, chain_parts
 from . import base
 from .base import AbstractDrive, AbstractForce, ParameterError
 from .forces import _check_drive, _evaluate
-from .kinetic import inertia_matrix
+from .kinetic import check_rigid_inertia, inertia_matrix
 
 E3 = (0.0, 0.0, 1.0)
 
@@ -271,7 +271,12 @@ class GeometricControl(AbstractDrive):
 
     def __check_init__(self):
         base.check_sign("mass", self.mass, " (kg)", scalar=True)
-        base.check_shape("inertia", self.inertia, (3, 3), "three principal moments or (3, 3)")
+        check_rigid_inertia(self.inertia)
+        if not isinstance(self.command, AbstractCommand | Callable):
+            message = "command must be an AbstractCommand (Hover, Line, Circle) or a function"
+            raise ParameterError(
+                "command", f"{message} command(t) -> (x_d, b1_d), got {self.command!r}"
+            )
         for name in ("kx", "kv", "kR", "kOmega"):
             base.check_sign(name, getattr(self, name), "", scalar=True)
         base.check_sign("g", self.g, " (m/s^2)", strict=False, scalar=True)
