@@ -12,6 +12,7 @@ import numpy as np
 
 from ._geometry import constraint_error
 from ._program import build
+from ._solve import tolerances
 from ._solvers.work import power_and_rate, work_step
 from ._spaces import BASE, chain_parts
 
@@ -149,7 +150,18 @@ def scene_result(spec, run, t1=None) -> SceneResult:
         "scene": spec.name,
         "file": str(spec.path),
         "solver": spec.solver_name,
-        **({"rtol": spec.rtol, "atol": spec.atol} if adaptive else {"dt0": spec.dt0}),
+        # the tolerances the run used (simulate's defaults for the state's dtype if unset)
+        **(
+            dict(
+                zip(
+                    ("rtol", "atol"),
+                    tolerances(spec.rtol, spec.atol, constraint.dtype),
+                    strict=True,
+                )
+            )
+            if adaptive
+            else {"dt0": spec.dt0}
+        ),
         "n_spheres": scene.n,
         "effects": [type(e).__name__ for e in scene.effects],
         "t0": spec.t0,

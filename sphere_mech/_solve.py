@@ -25,6 +25,13 @@ DEFAULT_TOLERANCES = {np.dtype("float64"): (1e-8, 1e-10), np.dtype("float32"): (
 """Default `(rtol, atol)` of the adaptive step-size controller, by dtype of `q`."""
 
 
+def tolerances(rtol, atol, dtype) -> tuple[float, float]:
+    """`(rtol, atol)` with each `None` replaced by its default for `dtype`
+    (`DEFAULT_TOLERANCES`; float32's for a dtype not in it)."""
+    defaults = DEFAULT_TOLERANCES.get(np.dtype(dtype), (1e-5, 1e-6))
+    return tuple(d if x is None else x for x, d in zip((rtol, atol), defaults, strict=True))
+
+
 def default_solver() -> diffrax.AbstractSolver:
     """The solver `simulate` uses when none is given.
 
@@ -73,8 +80,7 @@ def options(
             )
         controller = stepsize_controller
     elif isinstance(solver, diffrax.AbstractAdaptiveSolver):
-        defaults = DEFAULT_TOLERANCES.get(np.dtype(dtype), (1e-5, 1e-6))
-        rtol, atol = (d if x is None else x for x, d in zip((rtol, atol), defaults, strict=True))
+        rtol, atol = tolerances(rtol, atol, dtype)
         controller = diffrax.PIDController(rtol=rtol, atol=atol)
     else:
         if rtol is not None or atol is not None:

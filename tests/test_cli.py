@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from helpers import CART_SCENE
 
+import sphere_mech as sm
 from sphere_mech._cli import CACHE_ENV, cache_dir, main
 from sphere_mech._cli.figures import figure
 from sphere_mech._program import SEGMENTS, build, segment_times
@@ -553,6 +554,8 @@ def test_still_forced_scene_writes_strict_json(tmp_path, capsys):
     assert summary["max_relative_work_energy_balance"] is None
     assert summary["balance_scale_J"] == 0.0 and summary["work_done_J"] == 0.0
     assert "no scale" in summary["not_computed"]["max_relative_work_energy_balance"]
+    # the tolerances the run used: the file sets none, so simulate's float64 defaults
+    assert (summary["rtol"], summary["atol"]) == sm.DEFAULT_TOLERANCES[np.dtype("float64")]
     assert "balance null (relative) (not computed" in capsys.readouterr().out
 
 

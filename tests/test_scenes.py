@@ -441,6 +441,8 @@ TAU = jnp.array([0.0, 0.0, 1.0])
             lambda: sm.GeometricControl(1.0, [0.01] * 3, 1.0, 1.0, 1.0, 1.0, command=[0, 0, 0]),
             "command must be an AbstractCommand (Hover, Line, Circle) or a function",
         ),
+        (lambda: sm.Hover(heading=[0.0, 0.0, 1.0]), "heading must not be vertical"),
+        (lambda: sm.Line([0.0] * 3, [1.0, 0, 0], [0, 0, -1.0]), "heading must not be vertical"),
     ],
 )
 def test_invalid_parameters_raise_at_construction(build, message):

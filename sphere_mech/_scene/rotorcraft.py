@@ -136,6 +136,15 @@ class Rotors(AbstractForce):
         return scene.on_base(q, f[0] * R[:, 2], M)
 
 
+def _check_heading(heading) -> None:
+    """A command's heading: a unit `(3,)` vector, not vertical (unless traced): parallel to
+    the thrust of level flight, it leaves the commanded attitude undefined (`b3 x b1_d = 0`)."""
+    base.check_vector("heading", heading, unit=True)
+    if base._concrete(heading) and abs(float(heading[2])) >= 1 - 1e-6:
+        message = "heading must not be vertical (the body e1 wanted, across the thrust)"
+        raise ParameterError("heading", f"{message}, got {base._show(heading)}")
+
+
 class AbstractCommand(base._Checked):
     """A flight command: `command(t) -> (x_d, b1_d)`, the desired position `(3,)` (m) and
     heading `(3,)` (the desired body `e1`, not parallel to the thrust) at time `t`. The
@@ -164,7 +173,7 @@ class Hover(AbstractCommand):
 
     def __check_init__(self):
         base.check_vector("position", self.position)
-        base.check_vector("heading", self.heading, unit=True)
+        _check_heading(self.heading)
         base.check_vector("step", self.step)
         base.check_shape("step_time", self.step_time, (), "a scalar")
 
@@ -188,7 +197,7 @@ class Line(AbstractCommand):
     def __check_init__(self):
         base.check_vector("start", self.start)
         base.check_vector("velocity", self.velocity)
-        base.check_vector("heading", self.heading, unit=True)
+        _check_heading(self.heading)
 
     def __call__(self, t):
         return self.start + t * self.velocity, self.heading
@@ -217,7 +226,7 @@ class Circle(AbstractCommand):
         base.check_sign("radius", self.radius, " (m)", scalar=True)
         base.check_shape("angular_frequency", self.angular_frequency, (), "a scalar")
         base.check_shape("phase", self.phase, (), "a scalar")
-        base.check_vector("heading", self.heading, unit=True)
+        _check_heading(self.heading)
 
     def __call__(self, t):
         angle = self.angular_frequency * t + self.phase
