@@ -442,6 +442,10 @@ TAU = jnp.array([0.0, 0.0, 1.0])
             "command must be an AbstractCommand (Hover, Line, Circle) or a function",
         ),
         (lambda: sm.Hover(heading=[0.0, 0.0, 1.0]), "heading must not be vertical"),
+        (
+            lambda: sm.RigidBase(0.5, [0.01, np.nan, 0.015]),
+            "inertia must be finite and at most 1e+100 in magnitude, got nan",
+        ),
         (lambda: sm.Line([0.0] * 3, [1.0, 0, 0], [0, 0, -1.0]), "heading must not be vertical"),
     ],
 )

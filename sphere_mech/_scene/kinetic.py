@@ -17,6 +17,7 @@ from .base import (
     ParameterError,
     as_float,
     check_axes,
+    check_magnitude,
     check_shape,
     check_sign,
     check_vector,
@@ -200,6 +201,7 @@ def check_rigid_inertia(inertia) -> None:
     """A rigid body's inertia (from `inertia_matrix`), unless traced: `(3, 3)`, symmetric
     positive-definite, its principal moments satisfying the triangle inequality."""
     check_shape("inertia", inertia, (3, 3), "three principal moments or a (3, 3) matrix")
+    check_magnitude("inertia", inertia)
     if isinstance(inertia, jax.core.Tracer):
         return
     J = np.asarray(inertia, dtype=np.float64)
