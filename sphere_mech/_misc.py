@@ -9,10 +9,15 @@ import jax.numpy as jnp
 import numpy as np
 
 
+def is_integer(value) -> bool:
+    """Whether `value` is a Python or NumPy integer (a bool is not)."""
+    return isinstance(value, int | np.integer) and not isinstance(value, bool)
+
+
 def check_integer(value, name: str, least: int = 1) -> None:
     """`value` an integer (not a bool) >= `least`, else a `ValueError` naming it: "`name`
     must be a positive integer" (`least` 1) or "an integer >= `least`", with the value."""
-    if not (isinstance(value, int | np.integer) and not isinstance(value, bool)) or value < least:
+    if not is_integer(value) or value < least:
         kind = "a positive integer" if least == 1 else f"an integer >= {least}"
         raise ValueError(f"{name} must be {kind}, got {value!r}.")
 

@@ -146,22 +146,13 @@ def scene_result(spec, run, t1=None) -> SceneResult:
     x = np.asarray(jax.vmap(scene.drawn_points)(q))
     base = {} if scene.base is None else {BASE: chain_parts(q)[0][-1].tolist()}
     adaptive = isinstance(spec.solver, diffrax.AbstractAdaptiveSolver)
+    # the tolerances the run used (simulate's defaults for the state's dtype if unset)
+    rtol, atol = tolerances(spec.rtol, spec.atol, constraint.dtype)
     summary = {
         "scene": spec.name,
         "file": str(spec.path),
         "solver": spec.solver_name,
-        # the tolerances the run used (simulate's defaults for the state's dtype if unset)
-        **(
-            dict(
-                zip(
-                    ("rtol", "atol"),
-                    tolerances(spec.rtol, spec.atol, constraint.dtype),
-                    strict=True,
-                )
-            )
-            if adaptive
-            else {"dt0": spec.dt0}
-        ),
+        **({"rtol": rtol, "atol": atol} if adaptive else {"dt0": spec.dt0}),
         "n_spheres": scene.n,
         "effects": [type(e).__name__ for e in scene.effects],
         "t0": spec.t0,

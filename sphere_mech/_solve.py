@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._adjoint import default_adjoint_run
-from ._misc import all_finite, as_arrays, rows, tree_dtype
+from ._misc import all_finite, as_arrays, is_integer, rows, tree_dtype
 from ._results import RESULTS, describe_failures, gathered
 from ._solvers.names import as_solver, solver_name
 from ._solvers.projected import Projected
@@ -146,8 +146,7 @@ def check_values(t0, t1, dt0, rtol, atol, max_steps, saveat=None, dtype=float) -
     for name, tol in (("rtol", rtol), ("atol", atol)):
         if tol is not None and not (math.isfinite(tol) and tol > 0):
             raise OptionError(name, f"{name} must be a finite number > 0 (got {tol:g})")
-    integer = isinstance(max_steps, int | np.integer) and not isinstance(max_steps, bool)
-    if max_steps is not None and not (integer and max_steps >= 1):
+    if max_steps is not None and not (is_integer(max_steps) and max_steps >= 1):
         raise OptionError(
             "max_steps", f"max_steps must be an integer >= 1 or None (got {max_steps!r})"
         )

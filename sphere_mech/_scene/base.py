@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import unit_tolerance
+from .._misc import is_integer
 
 MAX_MAGNITUDE = 1e100
 """The largest magnitude of a parameter: products of a few (`m g l`, `m v^2`) stay finite."""
@@ -96,8 +97,7 @@ def check_sign(name: str, x, unit: str = "", *, strict: bool = True, scalar=Fals
 
 def check_index(owner, name: str, i, n: int) -> None:
     """An integer (not a bool or a float) with Python's convention: `-n <= i < n`."""
-    integer = isinstance(i, int | np.integer) and not isinstance(i, bool)
-    if not (integer and -n <= i < n):
+    if not (is_integer(i) and -n <= i < n):
         what = f"an integer sphere index in [-{n}, {n}) (the scene has {n} spheres)"
         raise ParameterError(name, f"{type(owner).__name__}.{name} must be {what}, got {i!r}")
 
@@ -105,8 +105,7 @@ def check_index(owner, name: str, i, n: int) -> None:
 def per_item(count: int | None, count_name: str, **arrays) -> list[jax.Array]:
     """Arrays of one value per item, scalars broadcast to `count` (argument `count_name`;
     default: the 1-D arrays' length; at most `MAX_COUNT`, checked before allocating)."""
-    integer = isinstance(count, int | np.integer) and not isinstance(count, bool)
-    if count is not None and not (integer and 1 <= count <= MAX_COUNT):
+    if count is not None and not (is_integer(count) and 1 <= count <= MAX_COUNT):
         message = f"{count_name} must be an integer from 1 to {MAX_COUNT}, got {count!r}"
         raise ParameterError(count_name, message)
     arrays = {k: as_float(v) for k, v in arrays.items()}

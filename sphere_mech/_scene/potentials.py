@@ -5,6 +5,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._misc import is_integer
 from . import base
 from .base import AbstractPotential, ParameterError
 
@@ -53,7 +54,7 @@ class Spring(AbstractPotential):
     def __init__(
         self, a: int | jax.Array, b: int | jax.Array, stiffness: jax.Array, rest_length=0.0
     ):
-        self.ends = tuple(int(e) if isinstance(e, int | np.integer) else None for e in (a, b))
+        self.ends = tuple(int(e) if is_integer(e) else None for e in (a, b))
         anchors = []
         for name, end, i in zip("ab", (a, b), self.ends, strict=True):
             anchor = base.as_float(jnp.zeros(3) if i is not None else end)
