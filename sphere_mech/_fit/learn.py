@@ -30,7 +30,7 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, PyTree
 
 from .._inertia import AbstractConstantInertiaLagrangian, check_spd_inertia
-from .._misc import check_integer, tree_dtype
+from .._misc import all_finite, check_integer, tree_dtype
 from .._results import describe_failures
 from .._solve import state_pair
 from .._solvers.projected import Projected
@@ -391,8 +391,7 @@ def learn(
         new_u = optax.apply_updates(u, updates)
         # a step whose loss, gradient or new parameters are not finite is skipped (a solve
         # failed, or the optimizer divided by zero)
-        all_finite = lambda tree: jnp.all(jnp.isfinite(ravel_pytree(tree)[0]))
-        finite = jnp.isfinite(loss) & all_finite(grad) & all_finite(new_u)
+        finite = all_finite((loss, grad, new_u))
         keep = lambda new, old: jnp.where(finite, new, old)
         carry = jtu.tree_map(keep, (new_u, new_state), carry)
         return carry, (loss, finite)

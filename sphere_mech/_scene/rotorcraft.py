@@ -281,7 +281,7 @@ class GeometricControl(AbstractDrive):
     def __check_init__(self):
         base.check_sign("mass", self.mass, " (kg)", scalar=True)
         check_rigid_inertia(self.inertia)
-        if not isinstance(self.command, AbstractCommand | Callable):
+        if not callable(self.command):
             message = "command must be an AbstractCommand (Hover, Line, Circle) or a function"
             raise ParameterError(
                 "command", f"{message} command(t) -> (x_d, b1_d), got {self.command!r}"
