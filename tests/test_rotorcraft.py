@@ -134,6 +134,23 @@ def test_geometric_control_recovers_from_nearly_inverted_to_hover():
     assert 1.0 - height[-1] < 1e-6
 
 
+def test_geometric_control_without_gravity_hovers_where_the_thrust_is_zero():
+    """With `g = 0` the thrust vector vanishes at the target, where its direction is free:
+    at rest there the wrench is zero (not NaN) and the vehicle stays; from 0.23 m off it
+    turns to push towards the target and after 10 s is within 1e-4 m of it."""
+    control = sm.GeometricControl(MASS, INERTIA, command=sm.Hover(), g=0.0, **GAINS)
+    rotors = sm.Rotors(control, ARM, C_TF, min_thrust=None)
+    scene = sm.Scene(sm.RigidBase(MASS, INERTIA), sm.Chain(0.01, 0.3), rotors)
+    ts = jnp.array([0.0, 10.0])
+    for x0, tolerance in (([0.0, 0.0, 0.0], 0.0), ([0.1, -0.05, 0.2], 1e-4)):
+        q0 = {"attitude": jnp.eye(3)[None], "base": jnp.array(x0), "spheres": -jnp.eye(3)[2:]}
+        v0 = jax.tree.map(jnp.zeros_like, {**q0, "attitude": jnp.zeros((1, 3, 3))})
+        wrench = np.asarray(control(0.0, q0, v0, None))
+        assert np.all(np.isfinite(wrench)) and (tolerance > 0) == np.any(wrench != 0)
+        sol = sm.simulate(scene, (q0, v0), 10.0, saveat=diffrax.SaveAt(ts=ts))
+        assert np.max(np.abs(sol.ys[0]["base"][-1])) <= tolerance
+
+
 def test_geometric_control_tracks_a_circle_given_as_a_function():
     """A user's function of time (the circle written by hand) commands the same thrust and
     moments as `Circle`; flown from rest 1.3 m off the circle with a 53 degree heading

@@ -259,6 +259,8 @@ class GeometricControl(AbstractDrive):
     derivatives of `R_c`, taken by autodiff along the controller's model of the flight
     (the rigid body alone: `xddot = -g e3 + f R e3 / m`, `Rdot = R hat(Omega)`), and the
     command's derivatives too: nothing is differentiated by hand.
+    Where `F` is zero (hovering at the target with `g = 0`) its direction is free and
+    `b3` is the body's own `R e3`.
 
     **Arguments:**
     - `mass`, `inertia`: the controller's model of the vehicle (kg; `(3,)` or `(3, 3)`
@@ -306,15 +308,19 @@ class GeometricControl(AbstractDrive):
         F = -self.kx * (x - x_d) - self.kv * (v - v_d) + self.mass * (self.g * e3 + a_d)
         return F, b1_d
 
-    def command_attitude(self, t, x, v):
-        """The command attitude `R_c = [b2 x b3, b2, b3]`.
+    def command_attitude(self, t, x, v, R):
+        """The command attitude `R_c = [b2 x b3, b2, b3]`, `b3 = F / |F|`; where the
+        thrust vector `F` is zero (hovering with `g = 0`) the thrust's direction is free
+        and `b3` is the body's own `R e3`.
 
         **Arguments:**
         - `t`, `x`, `v`: time, the centre of mass and its velocity `(3,)`.
+        - `R`: the attitude `(3, 3)` (body to world).
 
         **Returns:** `R_c`, `(3, 3)`."""
         F, b1_d = self.thrust_vector(t, x, v)
-        b3 = _unit(F)
+        thrust = jnp.any(F != 0)
+        b3 = jnp.where(thrust, _unit(jnp.where(thrust, F, R[:, 2])), R[:, 2])
         b2 = _unit(jnp.cross(b3, b1_d))
         return jnp.stack([jnp.cross(b2, b3), b2, b3], axis=-1)
 
@@ -344,7 +350,7 @@ class GeometricControl(AbstractDrive):
             a = (F @ e3) * e3 / m - self.g * jnp.asarray(E3, x.dtype)
             return jnp.ones_like(t_), v_, a, R_ @ hat(Omega)
 
-        Rc = lambda z: self.command_attitude(z[0], z[1], z[2])
+        Rc = lambda z: self.command_attitude(*z)
         with_rate = lambda z: jax.jvp(Rc, (z,), (flow(z),))  # (R_c, its rate along the flow)
         z = (t, x, v, R)
         (R_c, Rc_d), (_, Rc_dd) = jax.jvp(with_rate, (z,), (flow(z),))
