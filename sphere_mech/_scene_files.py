@@ -174,7 +174,7 @@ def _module(path, where: str, table, registry: dict, what: str):
 
 
 def _scene(path, tables) -> Scene:
-    if not isinstance(tables, list) or not tables:
+    if not isinstance(tables, list):  # an empty list is Scene()'s to refuse
         expected = "an array of effect tables ([[effects]] with a type field)"
         raise SceneFileError(path, "effects", expected)
     effects = [

@@ -678,6 +678,7 @@ CASES = {  # name: (Python, what the file changes, the field the file error name
         dict(extra=TORQUE.format("[0.0, 0.0, 1.0]")),
         "effects[2]",
     ),
+    "no effects": (lambda: sm.Scene(), dict(template="effects = []\n{extra}{simulate}"), "effects"),
     "negative pd gain": (
         lambda: sm.PDPosition(-1.0),
         dict(
