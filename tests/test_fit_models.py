@@ -198,6 +198,37 @@ def test_fit_covariance_against_finite_differences(pendulum_clean, getkey):
     assert max_rel_error(stderr, np.sqrt(np.diag(expected))) < 1e-6
 
 
+def test_an_unidentified_parameter_leaves_the_others_standard_errors_right(pendulum_clean, getkey):
+    """The bob's mass scales the whole Lagrangian and the damping with it: the data cannot
+    identify it (its column of `J` is roundoff). Its standard error is `inf`, its
+    covariances NaN, and the other parameters' standard errors are those of `J` without
+    its column, computed here in numpy: before, inverting the whole of `J^T J` made
+    `se(g)` 2.2 times too large."""
+    obs = pendulum_clean + NOISE * jr.normal(getkey(), pendulum_clean.shape)
+    with_mass = lambda p: DampedChain(
+        sm.chain_pendulum(p["m"][None], p["l"][None], p["g"]), p["c"] * p["m"]
+    )
+    result = sm.fit(
+        with_mass,
+        dict(START_PENDULUM, m=jnp.array(1.3)),
+        TS_PENDULUM,
+        obs,
+        bob,
+        y0=(Q_PENDULUM, V_PENDULUM),
+        simulate_options=SIM,
+    )
+    assert bool(result.converged)
+    jac = np.asarray(result.jacobian)  # columns c, g, l, m
+    assert np.linalg.norm(jac[:, 3]) < 1e-12 * np.linalg.norm(jac[:, :3])
+    expected = np.sqrt(np.diag(result.residual_variance * np.linalg.inv(jac[:, :3].T @ jac[:, :3])))
+    stderr = np.array([result.stderr[k] for k in "cgl"])
+    assert max_rel_error(stderr, expected) < 1e-8
+    assert result.stderr["m"] == np.inf
+    covariance = np.asarray(result.covariance)
+    assert np.all(np.isnan(covariance[3, :3])) and np.all(np.isnan(covariance[:3, 3]))
+    assert np.all(np.isfinite(covariance[:3, :3]))
+
+
 def test_float32_fit_with_x64_on(pendulum_clean):
     """Float32 parameters, states and data with float64 enabled (as here): the fit runs its
     simulations in float32 and its least squares in float64 (optimistix's damping is

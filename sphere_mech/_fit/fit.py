@@ -56,7 +56,9 @@ class FitResult(eqx.Module):
       `sm.tangent_basis(q)`; on a mixed space the factors' coordinates in key order).
     - `covariance`: `(p_params, p_params)`, the parameter block of
       `residual_variance * (J^T J)^{-1}` (segment states marginalized out), ordered as
-      `jacobian`'s first columns; NaN or huge for parameters the data do not identify.
+      `jacobian`'s first columns. A parameter the data do not identify (`J` has a zero
+      singular value, to `eps max(J.shape)`, that moves it) gets variance `inf` and NaN
+      covariances; the others' are those of the identified directions.
     - `stderr`: standard errors in the structure of `params` (`None` at leaves not fitted),
       in the parameters' own units (`se(p) = p * se(log p)` for `positive` ones).
     - `residual_variance`: `s^2 = |r|^2 / dof`, the estimated noise variance.
@@ -248,14 +250,28 @@ def _linearize(residuals, unknowns, f_info, dof, to_linear):
         columns.append(jax.jacfwd(states_columns)(w0.reshape(-1)))
     jacobian = jnp.concatenate(columns, axis=1)
     loss = _half_sum_squares(f_info.residual)
-    # (J^T J)^{-1} = R^{-1} R^{-T} from J = QR, not squaring J's condition number (a wide J
-    # gets zero rows: R is then singular and the covariance not finite)
-    rows = max(jacobian.shape[1] - jacobian.shape[0], 0)
-    r = jnp.linalg.qr(jnp.pad(jacobian, ((0, rows), (0, 0))), mode="r")
-    r_inv = jax.scipy.linalg.solve_triangular(r, jnp.eye(r.shape[1], dtype=r.dtype), lower=False)
     residual_variance = 2 * loss / dof if dof > 0 else jnp.full_like(loss, jnp.nan)
-    r_params = r_inv[: u_flat.size]
-    return loss, (jacobian, residual_variance * (r_params @ r_params.T), residual_variance)
+    covariance = residual_variance * _parameter_covariance(jacobian, u_flat.size)
+    return loss, (jacobian, covariance, residual_variance)
+
+
+def _parameter_covariance(jacobian, p: int):
+    """The first `p` rows and columns of `(J^T J)^+`, from the SVD `R = U S V^T` of `J = QR`
+    (not squaring J's condition number), singular values below `s_max eps max(J.shape)`
+    dropped as numpy's `matrix_rank` and scipy's `curve_fit` drop them. A parameter the
+    dropped directions move (by more than `sqrt(eps)`) is not identified: its variance is
+    `inf`, its covariances NaN; the others' are those of the identified directions, as
+    if the unidentified parameters were held fixed."""
+    rows = max(jacobian.shape[1] - jacobian.shape[0], 0)  # a wide J gets zero rows
+    r = jnp.linalg.qr(jnp.pad(jacobian, ((0, rows), (0, 0))), mode="r")
+    _, s, vt = jnp.linalg.svd(r)
+    eps = jnp.finfo(r.dtype).eps
+    kept = s > s[0] * eps * max(jacobian.shape)
+    v = vt.T[:p]
+    inverse = jnp.where(kept, 1 / jnp.where(kept, s, 1) ** 2, 0)
+    free = jnp.sum(jnp.where(kept, 0, v**2), axis=1) > eps
+    covariance = jnp.where(free[:, None] | free[None], jnp.nan, (v * inverse) @ v.T)
+    return jnp.where(jnp.diag(free), jnp.inf, covariance)
 
 
 def _stderr(covariance, u, positive):
