@@ -240,6 +240,21 @@ def test_fit_errors():
     message = r"^fit: 1 of 3 records have a non-finite observation \(indices 2\); record 2: "
     with pytest.raises(ValueError, match=message + "observation 4 is NaN"):
         sm.fit(damped_chain, START, ts, jnp.stack([obs, obs, nan]), mass_positions, y0=batch)
+    # the starting point: parameters and segment states finite (a NaN one returned loss 0.0)
+    with pytest.raises(ValueError, match=r"^fit: params0\['c'\] is not finite: nan"):
+        sm.fit(damped_chain, dict(START, c=jnp.nan), ts, obs, mass_positions, y0=y0)
+    nan_states = (y0[0][None].at[0, 1, 2].set(jnp.nan), y0[1][None])
+    with pytest.raises(ValueError, match=r"^fit: segment_states: q contains NaN or infinite"):
+        sm.fit(
+            damped_chain,
+            START,
+            ts,
+            obs,
+            mass_positions,
+            y0=y0,
+            segments=2,
+            segment_states=nan_states,
+        )
     # the times: finite and strictly increasing (in each record's row)
     with pytest.raises(ValueError, match=r"^fit: ts must be finite and strictly increasing"):
         sm.fit(damped_chain, START, ts.at[3].set(ts[2]), obs, mass_positions, y0=y0)

@@ -17,7 +17,7 @@ from jaxtyping import Array, PyTree
 from .._batch import batch_devices, batch_mesh
 from .._misc import as_arrays, check_integer, tree_add
 from .._results import gathered
-from .._solve import state_pair
+from .._solve import initial_states, state_pair
 from .._spaces import AbstractSpace
 from .shooting import (
     Residuals,
@@ -179,6 +179,8 @@ def _initial_unknown_states(guess, system, args, segment_t0, y0, fit_initial_sta
                 "structure of y0 with leading axes ([B,] K - 1), shapes (with the B axis) "
                 f"{expected}, got {jtu.tree_map(jnp.shape, guess)}."
             )
+        flat = jtu.tree_map(lambda g: g.reshape((-1, *g.shape[2:])), guess)  # (B (K - 1), ...)
+        initial_states(system.state_space, system.state_name, flat, "fit: segment_states", True)
     return with_first(y0, guess) if fit_initial_state else guess
 
 
@@ -419,6 +421,9 @@ def fit(
     default = diffrax.ForwardMode() if jac == "fwd" else diffrax.RecursiveCheckpointAdjoint()
     sim["adjoint"] = default if adjoint is None else adjoint
     params0 = as_arrays(params0)
+    for path, x in jtu.tree_flatten_with_path(eqx.filter(params0, eqx.is_inexact_array))[0]:
+        if not (isinstance(x, jax.core.Tracer) or np.all(np.isfinite(gathered(x)))):
+            raise ValueError(f"fit: params0{jtu.keystr(path)} is not finite: {gathered(x)}.")
     flags = _positive_flags(params0, positive)
     dynamic, static = eqx.partition(params0, eqx.is_inexact_array)
     system0, args0 = model_output(model, params0)
