@@ -23,16 +23,6 @@ CPU_CHUNK_LINKS = 512
 2-3x faster than one vmap over thousands. Other backends integrate the whole local batch."""
 
 
-def _leading(tree, size, what):
-    """Check that every array leaf of `tree` has leading axis `size`."""
-    for path, leaf in jax.tree_util.tree_leaves_with_path(tree, is_leaf=eqx.is_array):
-        if eqx.is_array(leaf) and (leaf.ndim == 0 or leaf.shape[0] != size):
-            raise ValueError(
-                f"{what}{jax.tree_util.keystr(path)} must have a leading batch axis of size "
-                f"{size} (the batch size of y0), got shape {leaf.shape}."
-            )
-
-
 def _pad(tree, size):
     """Pad every leaf to `size` along axis 0 with copies of entry 0 (a valid trajectory)."""
     pad = lambda x: jnp.concatenate([x, jnp.repeat(x[:1], size - x.shape[0], axis=0)])
@@ -170,12 +160,9 @@ def simulate_batch(
     `sol.ys = (q, v)` of shape `(batch, times, n, 3)`, `sol.result` and
     `sol.stats["num_steps"]` per trajectory, sharded over the devices.
     """
-    run = prepare(system, y0, args, batched=True, batch_system=batch_system, t1=t1, **options)
+    batched = dict(batched=True, batch_args=batch_args, batch_system=batch_system)
+    run = prepare(system, y0, args, **batched, t1=t1, **options)
     size = len(run.valid)
-    if batch_args and args is not None:
-        _leading(args, size, "args")
-    if batch_system:
-        _leading(eqx.filter(system, eqx.is_array), size, "system")
     devices = batch_devices(devices, size)
     mesh = batch_mesh(devices)
     opts = dataclasses.replace(run.opts, sharded=mesh is not None)  # forward-mode gradients

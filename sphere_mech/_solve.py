@@ -185,10 +185,31 @@ class Run(eqx.Module):
     throw: bool = eqx.field(static=True)
 
 
-def prepare(system, y0, args=None, *, batched=False, batch_system=False, throw=True, **options_):
+def _leading(tree, size, what, alternative):
+    """Check that every array leaf of `tree` has leading axis `size`."""
+    for path, leaf in jax.tree_util.tree_leaves_with_path(tree, is_leaf=eqx.is_array):
+        if eqx.is_array(leaf) and (leaf.ndim == 0 or leaf.shape[0] != size):
+            raise ValueError(
+                f"{what}{jax.tree_util.keystr(path)} must have a leading batch axis of size "
+                f"{size} (the batch size of y0), got shape {leaf.shape}; {alternative}."
+            )
+
+
+def prepare(
+    system,
+    y0,
+    args=None,
+    *,
+    batched=False,
+    batch_args=False,
+    batch_system=False,
+    throw=True,
+    **options_,
+):
     """The one prologue of `simulate`, `simulate_batch` and the command line: a `Run` with
-    `y0` checked (`initial_states`, raising unless `batched` with `throw=False`), `options`
-    completed, Python floats as arrays and times in the state's dtype."""
+    `y0` checked (`initial_states`, raising unless `batched` with `throw=False`), batched
+    `args` and `system` checked for their leading axis, `options` completed, Python floats
+    as arrays and times in the state's dtype."""
     what = "simulate_batch" if batched else "simulate"
     unknown = sorted(set(options_) - set(OPTION_NAMES))
     if unknown:
@@ -203,12 +224,18 @@ def prepare(system, y0, args=None, *, batched=False, batch_system=False, throw=T
             )
     else:
         q0, v0 = jax.tree.map(lambda x: x[None], (q0, v0))
+    system, args = as_arrays((system, args))
+    size = jax.tree.leaves(q0)[0].shape[0]
+    if batch_args:
+        _leading(args, size, "args", "batch_args=False shares args between trajectories")
+    if batch_system:
+        alternative = "batch_system=False shares the system between trajectories"
+        _leading(eqx.filter(system, eqx.is_array), size, "system", alternative)
     member = lambda: jax.tree.map(lambda x: x[0] if eqx.is_array(x) else x, system)
     space = (member() if batch_system else system).state_space
     space.check_shapes(*jax.tree.map(lambda x: x[0], (q0, v0)), system.state_name)
     dtype = tree_dtype((q0, v0))
     opts = options(dtype=dtype, batched=batched, **options_)
-    system, args = as_arrays((system, args))
     t0, t1, dt0 = times(dtype, options_.get("t0", 0.0), options_["t1"], options_.get("dt0"))
     y0 = jax.tree.map(lambda x: x.astype(dtype), (q0, v0))
     y0, valid = initial_states(space, system.state_name, y0, what, throw or not batched)

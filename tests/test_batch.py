@@ -76,6 +76,13 @@ def test_batched_system_and_args_and_chunks(chain, masses):
         np.testing.assert_allclose(sol.ys[0][i], ref.ys[0], rtol=0, atol=1e-12)
     with pytest.raises(ValueError, match="leading batch axis"):
         sm.simulate_batch(system, y0, 1.0, args=gs[:2], **FIXED)
+    # a Python number, and an unbatched system (each an IndexError from inside before)
+    message = r"args\['g'\] must have a leading batch axis of size 5 .* got shape \(\); batch_args"
+    with pytest.raises(ValueError, match=message):
+        sm.simulate_batch(system, y0, 1.0, args={"g": 9.81}, **FIXED)
+    message = r"system.*masses must have a leading batch axis of size 5 .* got shape \(3,\)"
+    with pytest.raises(ValueError, match=message):
+        sm.simulate_batch(chain, y0, 1.0, batch_system=True, **FIXED)
     with pytest.raises(ValueError, match="devices must be a non-empty sequence"):
         sm.simulate_batch(system, y0, 1.0, args=gs, devices=[], **FIXED)
 
