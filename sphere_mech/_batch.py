@@ -1,5 +1,6 @@
 """`simulate_batch`: many trajectories at once, vmapped, chunked and sharded over devices."""
 
+import contextlib
 import dataclasses
 import math
 
@@ -36,6 +37,15 @@ def batch_devices(devices, size: int) -> list:
     if not devices:
         raise ValueError("devices must be a non-empty sequence of JAX devices, or None (all).")
     return devices[:size]
+
+
+def one_device(devices: list):
+    """A context in which JAX's default device is `devices[0]` when it is the only device and
+    one of this process's (so a run on one device runs there; arrays the caller committed
+    to another device keep it)."""
+    if len(devices) > 1 or devices[0].process_index != jax.process_index():
+        return contextlib.nullcontext()
+    return jax.default_device(devices[0])
 
 
 def batch_mesh(devices: list) -> Mesh | None:
@@ -104,12 +114,14 @@ def _on_mesh(tree, mesh):
 
 
 def _chunk_size(chunk_size, n, local, platform):
+    """Trajectories per `vmap` on a device holding `local`: at most `chunk_size`, the chunks
+    of one device as even as can be (257 in chunks of at most 256: two of 129, not 512)."""
     if chunk_size is None:
         if platform != "cpu":
             return local
         chunk_size = 2 ** int(math.log2(max(1, CPU_CHUNK_LINKS // n)))
     check_integer(chunk_size, "chunk_size")
-    return min(chunk_size, local)
+    return -(-local // -(-local // chunk_size))
 
 
 def simulate_batch(
@@ -147,14 +159,17 @@ def simulate_batch(
       moves the others by 1e-14 to 1e-11 at most, through `Projected`'s first stages
       (docs/batched.md). With an adaptive controller a NaN vector field rejects steps until
       `max_steps`, which the batch waits for (fixed steps stop it).
-    - `chunk_size`: trajectories per `vmap` on a device (default: about `512 / n` on CPU,
-      keeping the working set in cache; the whole batch elsewhere); results do not change.
+    - `chunk_size`: the most trajectories per `vmap` on a device (default: about `512 / n`
+      on CPU, keeping the working set in cache; the whole batch elsewhere), in chunks as
+      even as can be; results do not change.
     - `devices`: devices to shard the batch over with `shard_map` (default: all of JAX's
       default backend, of every process after `jax.distributed.initialize`; at most one
       per trajectory); the batch is padded to a multiple of their count and the padding
-      stripped. Across processes every process passes the whole batch, or its slice as
-      global arrays; `throw=True` raises the same message on every process. On several
-      devices gradients take forward mode (docs/distributed.md).
+      stripped (a size that count does not divide comes back whole on every device: a
+      `jax.Array`'s shards are equal). One device: the run and its results stay on it
+      (JAX's default device while it runs). Across processes every process passes the
+      whole batch, or its slice as global arrays; `throw=True` raises the same message on
+      every process. On several devices gradients take forward mode (docs/distributed.md).
 
     **Returns:** a `diffrax.Solution` whose every array has a leading batch axis:
     `sol.ys = (q, v)` of shape `(batch, times, n, 3)`, `sol.result` and
@@ -176,7 +191,7 @@ def simulate_batch(
     y0 = run.y0
     if mesh is not None:  # each process's slices (global arrays), laid on the batch's mesh
         batched, y0 = _on_mesh((batched, y0), mesh)
-    with forward_mode_hint():
+    with forward_mode_hint(), one_device(devices):
         sol = _solve_batch(static, chunk, mesh, shared, batched, y0, run.valid, size, padded)
     return raise_on_failure(sol, run.opts.max_steps, "simulate_batch") if run.throw else sol
 

@@ -201,3 +201,13 @@ def test_sharded_equals_unsharded_on_two_cpu_devices():
     )
     assert out.returncode == 0, out.stderr[-3000:]
     assert out.stdout.strip().endswith("ok")
+
+
+def test_chunks_are_as_even_as_can_be():
+    """At most `chunk_size` trajectories per `vmap`, in chunks as even as can be: 257 in two
+    chunks of 129 (before: padded to 512, one chunk of 256 and one of 256 copies)."""
+    from sphere_mech._batch import _chunk_size
+
+    for local, at_most, expected in [(257, 256, 129), (256, 256, 256), (1000, 256, 250), (5, 2, 2)]:
+        chunk = _chunk_size(at_most, 1, local, "cpu")
+        assert chunk == expected and -(-local // chunk) * chunk - local < -(-local // at_most)

@@ -47,6 +47,9 @@ grad = jax.value_and_grad(loss, argnums=(0, 1))
 one = grad(P, y0, jax.devices()[:1])
 two = grad(P, y0, None)
 close(one, two)
+# one device, not the default one: the run stays on it
+sol = sm.simulate_batch(sm.chain_pendulum(P[:2], P[2:]), y0, 0.5, devices=jax.devices()[1:], **KW)
+assert all(x.devices() == {jax.devices()[1]} for x in jax.tree.leaves(sol.ys)), sol.ys[0].devices()
 # forward mode with adjoint=diffrax.ForwardMode()
 ones = jax.tree.map(jnp.ones_like, y0)
 fwd = lambda d: jax.jvp(
@@ -103,12 +106,14 @@ def fitted(devices):  # the second mass from 5 records of 2 segments: 10 solves 
     r = sm.fit(model, jnp.array(1.5), TS, obs, observe, y0=y0, segments=2, simulate_options=KW,
                devices=devices)
     assert r.converged and abs(r.params - P[1]) < 3 * r.stderr, (r.params, r.stderr)
+    if devices is not None and len(devices) == 1:  # the run stays on that device
+        assert r.jacobian.devices() == set(devices), r.jacobian.devices()
     return r.params, r.stderr, r.loss
 
 
 if len(sys.argv) == 1:  # two devices of one process
     assert len(jax.devices()) == 2
-    close(fitted(jax.devices()[:1]), fitted(None), 1e-9)
+    close(fitted(jax.devices()[1:]), fitted(None), 1e-9)
     try:
         sm.fit(model, jnp.array(1.5), TS, obs, observe, y0=y0, jac="bwd", simulate_options=KW)
     except ValueError as error:

@@ -14,7 +14,7 @@ import optimistix as optx
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, PyTree
 
-from .._batch import batch_devices, batch_mesh
+from .._batch import batch_devices, batch_mesh, one_device
 from .._misc import as_arrays, check_integer, tree_add
 from .._results import gathered
 from .._solve import initial_states, state_pair
@@ -435,7 +435,8 @@ def fit(
     z0 = _initial_unknown_states(
         segment_states, system0, args0, segment_data[2], y0, fit_initial_state, batched, sim
     )
-    mesh = batch_mesh(batch_devices(devices, segment_data[2].size))
+    devices = batch_devices(devices, segment_data[2].size)
+    mesh = batch_mesh(devices)
     if mesh is not None and jac == "bwd":
         raise ValueError(
             "fit: jac='bwd' (reverse mode) fails through a solve split over several devices "
@@ -459,9 +460,10 @@ def fit(
     # the least squares in JAX's default float (`Residuals.own`)
     wide = jax.dtypes.canonicalize_dtype(jnp.float64)
     wide_unknowns0 = jtu.tree_map(lambda x: x.astype(jnp.promote_types(x.dtype, wide)), unknowns0)
-    unknowns, loss, initial_loss, num_steps, result, linear = _solve(
-        residuals, solver, wide_unknowns0, (segment_data, y0), max_steps, dof, system0.to_linear
-    )
+    with one_device(devices):
+        unknowns, loss, initial_loss, num_steps, result, linear = _solve(
+            residuals, solver, wide_unknowns0, (segment_data, y0), max_steps, dof, system0.to_linear
+        )
     u, z = residuals.own(unknowns)
     jacobian, covariance, variance = linear
     states = jtu.tree_map(lambda s: s if batched else s[0], residuals.states(z, y0))
