@@ -226,14 +226,20 @@ def prepare(
         q0, v0 = jax.tree.map(lambda x: x[None], (q0, v0))
     system, args = as_arrays((system, args))
     size = jax.tree.leaves(q0)[0].shape[0]
-    if batch_args:
-        _leading(args, size, "args", "batch_args=False shares args between trajectories")
     if batch_system:
         alternative = "batch_system=False shares the system between trajectories"
         _leading(eqx.filter(system, eqx.is_array), size, "system", alternative)
     member = lambda: jax.tree.map(lambda x: x[0] if eqx.is_array(x) else x, system)
     space = (member() if batch_system else system).state_space
-    space.check_shapes(*jax.tree.map(lambda x: x[0], (q0, v0)), system.state_name)
+    try:
+        space.check_shapes(*jax.tree.map(lambda x: x[0], (q0, v0)), system.state_name)
+    except ValueError as e:
+        if not batched:
+            raise
+        message = str(e).rstrip(".")
+        raise ValueError(f"{message} (one member of y0: y0 has a leading batch axis).") from None
+    if batch_args:
+        _leading(args, size, "args", "batch_args=False shares args between trajectories")
     dtype = tree_dtype((q0, v0))
     opts = options(dtype=dtype, batched=batched, **options_)
     t0, t1, dt0 = times(dtype, options_.get("t0", 0.0), options_["t1"], options_.get("dt0"))

@@ -83,6 +83,8 @@ def test_batched_system_and_args_and_chunks(chain, masses):
     message = r"system.*masses must have a leading batch axis of size 5 .* got shape \(3,\)"
     with pytest.raises(ValueError, match=message):
         sm.simulate_batch(chain, y0, 1.0, batch_system=True, **FIXED)
+    with pytest.raises(ValueError, match=r"got \(3,\) \(one member of y0: y0 has a leading"):
+        sm.simulate_batch(system, jax.tree.map(lambda x: x[0], y0), 1.0, args=gs, **FIXED)
     with pytest.raises(ValueError, match="devices must be a non-empty sequence"):
         sm.simulate_batch(system, y0, 1.0, args=gs, devices=[], **FIXED)
 
