@@ -360,10 +360,12 @@ def solve_with(adjoint, system, y0, t0, t1, dt0, args, opts: Options) -> diffrax
         jnp.logical_or, [jnp.any(jnp.isnan(y)) for y in jax.tree.leaves(sol.ys)], jnp.array(False)
     )
     result = RESULTS.promote(sol.result)
-    if opts.event is not None and not isinstance(opts.solver, diffrax.AbstractImplicitSolver):
-        # An explicit solver solves nothing: a nonlinear failure is the event's root finder.
+    if opts.event is not None:
+        # diffrax finds the event's root only once the event fired (its step succeeded): a
+        # nonlinear failure then is the root finder's; before, an implicit step's.
+        fired = functools.reduce(jnp.logical_or, jax.tree.leaves(sol.event_mask))
         root = [RESULTS.nonlinear_max_steps_reached, RESULTS.nonlinear_divergence, RESULTS.singular]
-        failed_root = functools.reduce(jnp.logical_or, [result == r for r in root])
+        failed_root = fired & functools.reduce(jnp.logical_or, [result == r for r in root])
         result = RESULTS.where(failed_root, RESULTS.event_root_failed, result)
     result = RESULTS.where((result == RESULTS.successful) & has_nan, RESULTS.nonfinite, result)
     result = RESULTS.where(ok, result, RESULTS.nonfinite_initial)

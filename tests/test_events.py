@@ -102,6 +102,20 @@ def test_root_finder_failure_is_named():
     system = sm.chain_pendulum([1.0], [0.7])
     sol = sm.simulate(system, (q0, jnp.zeros_like(q0)), 10.0, event=cross, throw=False)
     assert bool(sol.result == sm.RESULTS.event_root_failed)
+    # Told apart by whether the event fired, not by the solver's class: the same event
+    # under an implicit step, and an implicit step (Variational's Newton, 3 iterations at
+    # most) failing with an event that never fires.
+    implicit = sm.Projected(diffrax.Kvaerno5())
+    sol = sm.simulate(
+        system, (q0, jnp.zeros_like(q0)), 1.0, event=cross, solver=implicit, throw=False
+    )
+    assert bool(sol.result == sm.RESULTS.event_root_failed)
+    never = diffrax.Event(lambda t, y, args, **kw: y[0][0, 2] - 5.0, root_finder=NEWTON)
+    fast = jnp.array([[0.0, 8.0, 0.0]])
+    q1 = jnp.array([[jnp.sin(2.5), 0.0, -jnp.cos(2.5)]])
+    variational = dict(solver=sm.Variational(root_find_max_steps=3), dt0=0.3, throw=False)
+    sol = sm.simulate(system, (q1, fast), 3.0, event=never, **variational)
+    assert bool(sol.result == sm.RESULTS.nonlinear_max_steps_reached)
     with pytest.raises(
         RuntimeError,
         match=r"^simulate: The root finder of `event` did not "
