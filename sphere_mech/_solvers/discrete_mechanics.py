@@ -16,14 +16,16 @@ on either end has body velocity `vee(F - F^T) / (2 h)`, so `L_d` is a function o
 F)` and the implicit equation for `F` is Newton's on its rotation vector `h v`.
 """
 
+import equinox as eqx
 import jax
+import jax.numpy as jnp
 import optimistix as optx
 from diffrax import RESULTS
 from jax import lax
 
 from .._anderson import Anderson
 from .._inertia import AbstractFastPath
-from .._misc import tree_add, tree_scale
+from .._misc import tree_add, tree_dtype, tree_max_abs, tree_scale
 from .._momentum import newton, residual_scale
 from .._system import AbstractLagrangianSystem, vector_field
 
@@ -68,8 +70,25 @@ def discrete_forces(system, t0, h, q0, q1, args):
     return force(t0, q0), force(t0 + h, q1)
 
 
+ROUNDING = 8.0
+"""The chord `(q1 - q0) / h` rounds at about `eps |q| / h`; the solves accept `ROUNDING` times
+that (a small step, a Euclidean factor far from its origin: Newton cannot get below it)."""
+
+
 def solve_position(
-    system, t0, h, q0, mu0, scale, guess, args, tol, max_steps, fast_path=True, reuse_jacobian=False
+    system,
+    t0,
+    h,
+    q0,
+    mu0,
+    scale,
+    unit,
+    guess,
+    args,
+    tol,
+    max_steps,
+    fast_path=True,
+    reuse_jacobian=False,
 ):
     """Solve `P(q0) [mu0 + D1 L_d(q0, q1) + f0] = 0` for `q1 = exp_q0(h T0 a)` (`|q1_i| = 1`
     by construction, `R1 = R0 expm(h hat(omega))` on rotations; on a mixed space `x1 = x0 +
@@ -81,6 +100,8 @@ def solve_position(
     `AbstractFastPath` (if `fast_path`), as `D1 L_d = -(P0 M P0) c` up to relative
     `h |qdot|`, the chord iteration `a <- a + T0^T x`, `P0 M x = P0 [mu0 + D1 L_d + f0]`,
     `q0 . x = 0` (the O(n) multiplier solve), Anderson-accelerated: same equations.
+    `scale` (momentum) and `unit` (velocity, at least 1) are the residual's and `a`'s sizes
+    at which the tolerance `tol` applies: they include the chord's rounding floor.
     Returns the map `a -> q1` and the optimistix solution (implicit differentiation)."""
     space = system.space
     to_tangent, from_tangent = space.to_tangent, space.from_tangent
@@ -101,12 +122,13 @@ def solve_position(
         solve = system.multiplier_solver(q0, args)
         chord = lambda a, _: a + to_tangent(T0, solve(momentum_residual(a)))
         sol = optx.fixed_point(
-            chord, Anderson(rtol=tol, atol=tol), a0, max_steps=max_steps, throw=False
+            chord, Anderson(rtol=tol, atol=tol * unit), a0, max_steps=max_steps, throw=False
         )
-    else:
-        residual = lambda a, _: to_tangent(T0, momentum_residual(a)) / scale
+    else:  # in units of `unit`: Newton's test on the step is then `tol`'s
+        residual = lambda b, _: to_tangent(T0, momentum_residual(unit * b)) / scale
         finder = newton(tol, chord=reuse_jacobian)
-        sol = optx.root_find(residual, finder, a0, max_steps=max_steps, throw=False)
+        sol = optx.root_find(residual, finder, a0 / unit, max_steps=max_steps, throw=False)
+        sol = eqx.tree_at(lambda s: s.value, sol, unit * sol.value)
     return position, sol
 
 
@@ -120,12 +142,19 @@ def substep(
     qdot0, qddot0 = jax.jvp(system.to_linear, (q0, v0), rates0)
     dL_dq, dL_dv = jax.grad(system.lagrangian_qdot, argnums=(1, 2))(t0, q0, qdot0, args)
     mu0 = space.project(q0, dL_dv)
-    # The residual sums momenta and impulses (h dL/dq): its rounding floor is eps times this.
-    scale = lax.stop_gradient(residual_scale(dL_dv, tree_scale(h, dL_dq)))
+    # The residual sums momenta and impulses (h dL/dq), and the momentum of the chord's
+    # rounding (`ROUNDING eps |q| / h`, through the Hessian of L in qdot), which `tol` passes.
+    eps = jnp.finfo(tree_dtype(q0)).eps
+    floor = ROUNDING * eps * tree_max_abs(q0) / jnp.abs(h)
+    momentum = lambda v: jax.grad(system.lagrangian_qdot, argnums=2)(t0, q0, v, args)
+    rounding = jax.tree.map(lambda q: jnp.full_like(q, floor / tol), q0)
+    _, rounding = jax.jvp(momentum, (qdot0,), (rounding,))
+    scale = lax.stop_gradient(residual_scale(dL_dv, tree_scale(h, dL_dq), rounding))
+    unit = lax.stop_gradient(jnp.maximum(floor / tol, 1.0))
     # Predictor: the geodesic with velocity qdot0 + h/2 P qddot0 matches q(t0 + h) to O(h^3).
     guess = tree_add(qdot0, tree_scale(0.5 * h, qddot0))
     position, sol = solve_position(
-        system, t0, h, q0, mu0, scale, guess, args, tol, max_steps, fast_path, reuse_jacobian
+        system, t0, h, q0, mu0, scale, unit, guess, args, tol, max_steps, fast_path, reuse_jacobian
     )
     # Renormalizing stops rounding errors from accumulating over millions of steps.
     q1 = space.normalize(position(sol.value))
