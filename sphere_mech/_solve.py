@@ -334,11 +334,14 @@ def solve_with(adjoint, system, y0, t0, t1, dt0, args, opts: Options) -> diffrax
     """One trajectory, never raising: `sol.result` is a `RESULTS` code."""
     ok = all_finite(vector_field(system, t0, y0, args))
     saveat = opts.saveat
-    if isinstance(opts.controller, diffrax.AbstractAdaptiveStepSizeController):
+    fixed = not isinstance(opts.controller, diffrax.AbstractAdaptiveStepSizeController)
+    if not fixed:
         # Not finite at the start: no step over [t0, t0], not NaN steps rejected until
         # max_steps. Fixed steps keep t1, so under vmap their loop stays unbatched.
         saveat = eqx.tree_at(_save_times, saveat, replace_fn=lambda ts: jnp.where(ok, ts, t0))
         t1 = jnp.where(ok, t1, t0)
+    else:  # fixed steps accept a NaN step: the last state, saved beside the caller's, tells
+        saveat = eqx.tree_at(lambda s: s.subs, saveat, (saveat.subs, diffrax.SubSaveAt(t1=True)))
     sol = diffrax.diffeqsolve(
         MechanicsTerm(system),
         opts.solver,
@@ -355,10 +358,12 @@ def solve_with(adjoint, system, y0, t0, t1, dt0, args, opts: Options) -> diffrax
         event=opts.event,
         throw=False,
     )
-    # Unreached save times are `inf`, never NaN; a dense-only SaveAt saves nothing.
+    # Unreached save times are `inf`, never NaN.
     has_nan = functools.reduce(
         jnp.logical_or, [jnp.any(jnp.isnan(y)) for y in jax.tree.leaves(sol.ys)], jnp.array(False)
     )
+    if fixed:
+        sol = eqx.tree_at(lambda s: (s.ts, s.ys), sol, (sol.ts[0], sol.ys[0]))
     result = RESULTS.promote(sol.result)
     if opts.event is not None:
         # diffrax finds the event's root only once the event fired (its step succeeded): a

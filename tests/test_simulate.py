@@ -217,6 +217,21 @@ def test_failures_are_reported(case):
         sm.simulate(t1=2.0, saveat=diffrax.SaveAt(ts=ts), **kwargs)
 
 
+def test_fixed_steps_turning_nan_after_the_last_save_time_are_reported():
+    """Fixed steps accept a NaN step (no controller rejects it): a force that turns NaN
+    at t = 0.5, after the last save time 0.2, is still `nonfinite`, with a dense-only
+    `SaveAt` too, for `Projected(RK4())` and `LieRK4()`. Before, both were `successful`
+    with NaN between the steps."""
+    nan_force = lambda t, q, qdot, args: jnp.where(t > 0.5, jnp.nan, 0.0) * qdot
+    system = sm.Lagrangian(double_pendulum, forces=nan_force, quadratic_in_velocity=True)
+    fixed = dict(dt0=0.05, stepsize_controller=diffrax.ConstantStepSize(), args=G, throw=False)
+    for solver in (sm.Projected(sm.RK4()), sm.LieRK4()):
+        for saveat in (diffrax.SaveAt(ts=[0.1, 0.2]), diffrax.SaveAt(dense=True)):
+            sol = sm.simulate(system, (Q0, V0), 1.0, solver=solver, saveat=saveat, **fixed)
+            assert sol.result == sm.RESULTS.nonfinite
+        assert np.all(np.isfinite(np.asarray(sol.evaluate(0.4)[0])))
+
+
 def test_failure_inside_jit_raises():
     f = jax.jit(lambda y0: sm.simulate(SYSTEM, y0, 2.0, args=G, max_steps=30).ys)
     with pytest.raises(Exception, match="max_steps=30"):
