@@ -100,6 +100,8 @@ def options(
     if isinstance(controller, diffrax.ConstantStepSize) and dt0 is None:
         raise ValueError(f"{solver_name(solver)} with fixed steps needs a step size: pass dt0=...")
     saveat = diffrax.SaveAt(t1=True) if saveat is None else saveat
+    # in the state's dtype, as t0, t1 and dt0 (`times`): saved states and times keep it
+    saveat = eqx.tree_at(_save_times, saveat, replace_fn=lambda ts: jnp.asarray(ts, dtype))
     meter = diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter()
     return Options(solver, controller, saveat, adjoint, meter, event, max_steps, batched)
 

@@ -104,6 +104,11 @@ class AbstractSystem(eqx.Module):
     state_name: eqx.AbstractClassVar[str]
     angular: eqx.AbstractClassVar[bool]
 
+    def __check_init__(self):
+        if self.forces is not None:
+            spelled = f"forces(t, q, {self.state_name}, args) -> (n, 3)"
+            check_function(self.forces, "forces", spelled, 4)
+
     @abc.abstractmethod
     def rates(self, t, y: State, args: Args) -> State:
         """`d(q, v)/dt`: the vector field handed to diffrax, unchecked (Runge-Kutta stages
@@ -320,7 +325,7 @@ class AbstractHamiltonianSystem(AbstractSystem):
         - `t`, `q`, `p`, `args`: time, `(n, 3)` unit vectors, `mu` or `pi`, `args`.
 
         **Returns:** a scalar."""
-        return self.H(t, q, p, args)
+        return check_scalar(self.H(t, q, p, args), "H(t, q, p, args)")
 
     def velocity(self, t, q, p, args=None):
         """`qdot = P dH/dmu`; in angular variables `dH/dpi x q`.

@@ -229,6 +229,21 @@ def test_functions_and_inertia_checked_at_construction():
         sm.ConstantInertiaLagrangian(-jnp.eye(2), lambda t, q, args: 0.0)
     with pytest.raises(ValueError, match=r"^potential must be a function U\(t, q, args\)"):
         sm.ConstantInertiaLagrangian(jnp.eye(2), lambda t, q: 0.0)
+    # forces too (an array or a 3-argument function failed only inside the solve)
+    L = lambda t, q, qdot, args: 0.5 * jnp.sum(qdot**2)
+    message = r"^forces must be a function forces\(t, q, qdot, args\) -> \(n, 3\)"
+    with pytest.raises(ValueError, match=message + r", got ArrayImpl\.$"):
+        sm.Lagrangian(L, jnp.array([[0.0, 0.0, 1.0]]))
+    with pytest.raises(ValueError, match=message + r" \(4 arguments\)"):
+        sm.Lagrangian(L, lambda t, q, qdot: qdot)
+    with pytest.raises(ValueError, match=r"^forces must be a function forces\(t, q, mu, args\)"):
+        sm.Hamiltonian(lambda t, q, mu, args: 0.5 * jnp.sum(mu**2), forces=1.0)
+    with pytest.raises(ValueError, match=message):
+        sm.ConstantInertiaLagrangian(jnp.eye(2), lambda t, q, args: 0.0, "drag")
+    # H's value is checked by energy too
+    vector_H = sm.Hamiltonian(lambda t, q, mu, args: mu[0])
+    with pytest.raises(ValueError, match=r"H\(t, q, p, args\) must return a scalar"):
+        vector_H.energy(0.0, jnp.array([[0.0, 0.0, 1.0]]), jnp.zeros((1, 3)))
     sm.Lagrangian(functools.partial(lambda t, q, qdot, args, k: k, k=1.0))
     sm.Lagrangian(lambda *a: 0.0)
     # Traced inertia (e.g. under vmap) is left to the run-time checks.

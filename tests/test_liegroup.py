@@ -220,6 +220,8 @@ def test_lierk_composes_with_grad_and_vmap():
 def test_bad_arguments_are_rejected():
     with pytest.raises(ValueError, match="explicit Runge-Kutta"):
         sm.LieRK(diffrax.Kvaerno5())
+    with pytest.raises(ValueError, match="explicit Runge-Kutta.*got Projected"):
+        sm.LieRK(sm.Projected(diffrax.Tsit5()))  # passes isinstance, has no tableau
     with pytest.raises(ValueError, match="action must be one of"):
         sm.LieRK(diffrax.Dopri5(), action="SO3")
     with pytest.raises(ValueError, match="MechanicsTerm"):

@@ -13,6 +13,7 @@ from diffrax import (
     AbstractERK,
     AbstractLocalInterpolation,
     AbstractTerm,
+    AbstractWrappedSolver,
     ThirdOrderHermitePolynomialInterpolation,
 )
 
@@ -126,7 +127,10 @@ class LieRK(AbstractAdaptiveSolver):
         return _LieInterpolationCls(ThirdOrderHermitePolynomialInterpolation.from_k)
 
     def __check_init__(self):
-        if not isinstance(self.solver, AbstractERK | RK4):
+        # a wrapper passes `isinstance` (diffrax's `AbstractWrappedSolver`) but has no tableau
+        if isinstance(self.solver, AbstractWrappedSolver) or not isinstance(
+            self.solver, AbstractERK | RK4
+        ):
             raise ValueError(
                 "LieRK needs an explicit Runge-Kutta solver with a Butcher tableau "
                 "(diffrax.Dopri5(), diffrax.Tsit5(), diffrax.Bosh3(), diffrax.Dopri8(), "
