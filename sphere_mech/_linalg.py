@@ -62,17 +62,20 @@ def _cholesky(A):
     return substitute
 
 
-def dense_solve(A: jax.Array, b: jax.Array) -> jax.Array:
+def dense_solve(A: jax.Array, b: jax.Array, rcond: float = 0.0) -> jax.Array:
     """Solve `A x = b` for a general nonsingular `A` (`b` `(n,)`; non-finite if `A` is
-    singular): LU with partial pivoting (`lu_factor`), differentiated as a linear solve (the
-    transpose solve reuses the factors)."""
+    singular, or if its smallest pivot is below `rcond` times its largest: singular to
+    rounding): LU with partial pivoting (`lu_factor`), differentiated as a linear solve
+    (the transpose solve reuses the factors)."""
     factors = lu_factor(A)
-    return jax.lax.custom_linear_solve(
+    x = jax.lax.custom_linear_solve(
         lambda x: A @ x,
         b,
         lambda _, r: lu_solve(factors, r),
         lambda _, r: lu_solve(factors, r, transpose=True),
     )
+    pivots = jnp.abs(jnp.diagonal(factors[1]))
+    return jnp.where(jnp.min(pivots) <= rcond * jnp.max(pivots), jnp.nan, x)
 
 
 def lu_factor(A: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:

@@ -125,6 +125,31 @@ def test_degenerate_lagrangian_lagrangian_forms(name, state):
         all_forms(sm.Lagrangian(L_first_sphere_only))[name](0.0, q, v)
 
 
+def test_singular_to_rounding_is_singular(state):
+    """Mass matrices singular in exact arithmetic whose rounding leaves a pivot of about
+    eps (kinetic energy along one direction of a sphere; a double pendulum whose first
+    mass is missing; a cart with no mass): refused as degenerate. Before, the rank-1 case
+    returned accelerations of 1e16 and the others O(1) rounding noise, silently."""
+    q, v = state
+    c = jnp.array([0.3, -0.5, 0.8])
+    one_direction = lambda t, q, qdot, args: 0.5 * (qdot[0] @ c) ** 2 - q[0, 2]
+    no_first_mass = lambda t, q, qdot, args: 0.5 * jnp.sum((qdot[0] + qdot[1]) ** 2) - q[1, 2]
+    no_cart_mass = lambda t, q, qdot, args: 0.5 * jnp.sum((qdot["x"] + qdot["s"][0]) ** 2)
+    cart = {"x": sm.Euclidean(3), "s": sm.Spheres(1)}
+    cases = [
+        (sm.Lagrangian(one_direction), q[:1], v[:1]),
+        (sm.Lagrangian(no_first_mass), q, v),
+        (
+            sm.Lagrangian(no_cart_mass, space=cart),
+            {"x": jnp.zeros(3), "s": q[:1]},
+            {"x": jnp.ones(3), "s": v[:1]},
+        ),
+    ]
+    for system, q_, v_ in cases:
+        with pytest.raises(eqx.EquinoxRuntimeError, match=SINGULAR):
+            system.acceleration(0.0, q_, v_, None)
+
+
 @pytest.mark.parametrize("quadratic", [True, False])
 def test_degenerate_lagrangian_hamiltonian_forms(quadratic, state):
     q, v = state
