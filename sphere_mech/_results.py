@@ -16,7 +16,8 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
     nonfinite_initial = (
         "The equations of motion are not finite at the initial state: a singular reduced "
         "mass matrix (degenerate Lagrangian, e.g. a zero mass or length), a Legendre "
-        "transform that is not invertible there (sm.legendre), or NaN parameters."
+        "transform that is not invertible there (sm.legendre), a potential or force that "
+        "is NaN or infinite there, or NaN parameters."
     )
     event_root_failed = (
         "The root finder of `event` did not converge while locating the event (on the "

@@ -59,7 +59,11 @@ def simulate(
       computed during the run in forward mode for at most 8 differentiated scalars (memory
       independent of the steps), else `diffrax.RecursiveCheckpointAdjoint()` (about
       `sqrt(2 max_steps)` solver states); see `benchmarks/gradients.py`. For `jax.jvp`
-      and `jax.jacfwd` pass `diffrax.ForwardMode()`.
+      and `jax.jacfwd` pass `diffrax.ForwardMode()`. The default differentiates through
+      `system`'s array fields, `y0`, `args` and the times `t0`, `t1`, `dt0`, not through
+      a value that a function closes over (`L`, an event's condition) nor through save
+      times: pass such a value in `args` or as a field of an equinox Module, or give
+      `adjoint=diffrax.RecursiveCheckpointAdjoint()`.
     - `event`: a `diffrax.Event` that stops the run, e.g. `diffrax.Event(lambda t, y,
       args, **kw: y[0][0, 1], root_finder=optimistix.Newton(1e-12, 1e-12))` where the
       first point crosses `y = 0`; `sol.result` is then `RESULTS.event_occurred` (nothing

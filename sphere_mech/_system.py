@@ -17,7 +17,8 @@ from ._spaces import AbstractSpace
 
 SINGULAR_MESSAGE = (
     "the reduced mass matrix T^T (d^2 L / d v^2) T is singular or not finite: the "
-    "Lagrangian is degenerate at this state (for example a zero mass or length)"
+    "Lagrangian is degenerate at this state (for example a zero mass or length); or dL/dq "
+    "or the forces are NaN or infinite here"
 )
 NONFINITE_PARAMETERS = (
     "the equations of motion are not finite and args or the system's parameters contain "

