@@ -200,17 +200,11 @@ def test_fit_errors():
         sm.fit(damped_chain, START, ts, obs, mass_positions, y0=y0, segments=11)
     with pytest.raises(ValueError, match="positive"):
         sm.fit(damped_chain, dict(START, c=-1.0), ts, obs, mass_positions, y0=y0, positive=True)
+    two_segments = lambda states: sm.fit(
+        damped_chain, START, ts, obs, mass_positions, y0=y0, segments=2, segment_states=states
+    )
     with pytest.raises(ValueError, match="segment_states"):
-        sm.fit(
-            damped_chain,
-            START,
-            ts,
-            obs,
-            mass_positions,
-            y0=y0,
-            segments=2,
-            segment_states=(y0[0], y0[1]),
-        )
+        two_segments((y0[0], y0[1]))
     with pytest.raises(ValueError, match="model"):
         sm.fit(lambda p: p, START, ts, obs, mass_positions, y0=y0)
     with pytest.raises(TypeError, match="Gauss-Newton-type"):
@@ -245,16 +239,7 @@ def test_fit_errors():
         sm.fit(damped_chain, dict(START, c=jnp.nan), ts, obs, mass_positions, y0=y0)
     nan_states = (y0[0][None].at[0, 1, 2].set(jnp.nan), y0[1][None])
     with pytest.raises(ValueError, match=r"^fit: segment_states: q contains NaN or infinite"):
-        sm.fit(
-            damped_chain,
-            START,
-            ts,
-            obs,
-            mass_positions,
-            y0=y0,
-            segments=2,
-            segment_states=nan_states,
-        )
+        two_segments(nan_states)
     # the times: finite and strictly increasing (in each record's row)
     with pytest.raises(ValueError, match=r"^fit: ts must be finite and strictly increasing"):
         sm.fit(damped_chain, START, ts.at[3].set(ts[2]), obs, mass_positions, y0=y0)

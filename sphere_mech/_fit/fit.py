@@ -422,8 +422,9 @@ def fit(
     sim["adjoint"] = default if adjoint is None else adjoint
     params0 = as_arrays(params0)
     for path, x in jtu.tree_flatten_with_path(eqx.filter(params0, eqx.is_inexact_array))[0]:
-        if not (isinstance(x, jax.core.Tracer) or np.all(np.isfinite(gathered(x)))):
-            raise ValueError(f"fit: params0{jtu.keystr(path)} is not finite: {gathered(x)}.")
+        value = None if isinstance(x, jax.core.Tracer) else gathered(x)
+        if value is not None and not np.all(np.isfinite(value)):
+            raise ValueError(f"fit: params0{jtu.keystr(path)} is not finite: {value}.")
     flags = _positive_flags(params0, positive)
     dynamic, static = eqx.partition(params0, eqx.is_inexact_array)
     system0, args0 = model_output(model, params0)

@@ -319,8 +319,7 @@ class GeometricControl(AbstractDrive):
 
         **Returns:** `R_c`, `(3, 3)`."""
         F, b1_d = self.thrust_vector(t, x, v)
-        thrust = jnp.any(F != 0)
-        b3 = jnp.where(thrust, _unit(jnp.where(thrust, F, R[:, 2])), R[:, 2])
+        b3 = _unit(jnp.where(jnp.any(F != 0), F, R[:, 2]))
         b2 = _unit(jnp.cross(b3, b1_d))
         return jnp.stack([jnp.cross(b2, b3), b2, b3], axis=-1)
 

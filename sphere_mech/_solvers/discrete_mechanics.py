@@ -147,8 +147,8 @@ def substep(
     eps = jnp.finfo(tree_dtype(q0)).eps
     floor = ROUNDING * eps * tree_max_abs(q0) / jnp.abs(h)
     momentum = lambda v: jax.grad(system.lagrangian_qdot, argnums=2)(t0, q0, v, args)
-    rounding = jax.tree.map(lambda q: jnp.full_like(q, floor / tol), q0)
-    _, rounding = jax.jvp(momentum, (qdot0,), (rounding,))
+    chord_rounding = jax.tree.map(lambda q: jnp.full_like(q, floor / tol), q0)
+    _, rounding = jax.jvp(momentum, (qdot0,), (chord_rounding,))
     scale = lax.stop_gradient(residual_scale(dL_dv, tree_scale(h, dL_dq), rounding))
     unit = lax.stop_gradient(jnp.maximum(floor / tol, 1.0))
     # Predictor: the geodesic with velocity qdot0 + h/2 P qddot0 matches q(t0 + h) to O(h^3).
