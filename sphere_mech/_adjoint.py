@@ -48,39 +48,80 @@ def forward_mode_hint():
         ) from error
 
 
-@eqx.filter_custom_vjp
-def default_adjoint_run(inputs, *, opts, solve_with) -> diffrax.Solution:
-    r"""`solve_with(adjoint, *inputs, opts)` in reverse mode, the adjoint chosen at trace time
-    by `default_adjoint` from the number $P$ of differentiated scalars: for
-    $P \le$ `FORWARD_COLUMNS` (`BATCH_FORWARD_COLUMNS` if `opts.batched`) the Jacobian in
-    them, computed in forward mode during the run (memory: $P + 1$ solver states and the
-    $P \times$ outputs Jacobian), times the cotangent; else
+def default_adjoint_run(solve_with, inputs) -> diffrax.Solution:
+    r"""`solve_with(adjoint, *inputs)` differentiated in reverse mode, the adjoint chosen at
+    trace time by `default_adjoint` from the number $P$ of differentiated scalars: for
+    $P \le$ `FORWARD_COLUMNS` (`BATCH_FORWARD_COLUMNS` if the options say `batched`) the
+    Jacobian in them, computed in forward mode during the run (memory: $P + 1$ solver states
+    and the $P \times$ outputs Jacobian), times the cotangent; else
     `diffrax.RecursiveCheckpointAdjoint()` (memory: $\lfloor\sqrt{2 \cdot
     \text{max\_steps}}\rfloor$ loop-state checkpoints, 447 by default), through which an
     `RK4` step is differentiated one stage at a time (`stagewise_reverse`). Neither depends on
     the number of steps. A sharded batch (`opts.sharded`) always takes forward mode. No
-    forward mode (`jax.jvp`): pass `adjoint=diffrax.ForwardMode()`."""
-    return solve_with(diffrax.RecursiveCheckpointAdjoint(), *inputs, opts)
+    forward mode (`jax.jvp`): pass `adjoint=diffrax.ForwardMode()`.
+
+    The run is closure-converted first: arrays that the system's functions, an event or the
+    options close over (a parameter captured by `L`) are explicit inputs, differentiated
+    like `args`; the last element of `inputs` is the `Options`, whose arrays (save times)
+    are differentiated too."""
+    run = eqx.filter_closure_convert(
+        lambda inputs: solve_with(diffrax.RecursiveCheckpointAdjoint(), *inputs), inputs
+    )
+    return _run((run, inputs), solve_with=solve_with, closed_over=_ClosedOver(run.consts))
 
 
-def _split(perturbed, inputs, opts):
-    """The differentiated leaves of `inputs`, the rest, and the adjoint for them."""
-    x, rest = eqx.partition(inputs, perturbed)
+@dataclasses.dataclass(frozen=True, eq=False)
+class _ClosedOver:
+    """The values a run closes over, as its first conversion found them: kept alive, and
+    no PyTree (a keyword of `_run`, which is not differentiated)."""
+
+    values: list
+
+    def positions(self, values) -> list:
+        """For each of `values`, its position among these if it is a tracer among them."""
+        where = {id(v): i for i, v in enumerate(self.values) if isinstance(v, jax.core.Tracer)}
+        return [where.get(id(v)) if isinstance(v, jax.core.Tracer) else None for v in values]
+
+
+@eqx.filter_custom_vjp
+def _run(run_and_inputs, *, solve_with, closed_over) -> diffrax.Solution:
+    run, inputs = run_and_inputs
+    return run(inputs)
+
+
+def _choice(perturbed, run_and_inputs):
+    """The differentiated leaves, the rest, and the adjoint for them."""
+    x, rest = eqx.partition(run_and_inputs, perturbed)
     columns = sum(leaf.size for leaf in jax.tree.leaves(x))
+    opts = run_and_inputs[1][-1]
     return x, rest, default_adjoint(columns, opts.batched, opts.sharded)
 
 
-@default_adjoint_run.def_fwd
-def _fwd(perturbed, inputs, *, opts, solve_with):
-    x, rest, adjoint = _split(perturbed, inputs, opts)
-    if not isinstance(adjoint, diffrax.ForwardMode):
-        opts = dataclasses.replace(opts, solver=stagewise_reverse(opts.solver))
+@_run.def_fwd
+def _fwd(perturbed, run_and_inputs, *, solve_with, closed_over):
+    x, rest, adjoint = _choice(perturbed, run_and_inputs)
+    stagewise = not isinstance(adjoint, diffrax.ForwardMode)
+
+    def solve(inputs):
+        *inputs, opts = inputs
+        if stagewise:
+            opts = dataclasses.replace(opts, solver=stagewise_reverse(opts.solver))
+        return solve_with(adjoint, *inputs, opts)
+
+    # The run again with this adjoint, the values it closes over that the first conversion
+    # found (the same objects) replaced by those passed in, which carry the derivatives.
+    again = eqx.filter_closure_convert(solve, run_and_inputs[1])
+    positions = closed_over.positions(again.consts)
 
     def outputs(x):
-        sol = solve_with(adjoint, *eqx.combine(x, rest), opts)
+        run, inputs = eqx.combine(x, rest)
+        consts = [
+            c if i is None else run.consts[i] for c, i in zip(again.consts, positions, strict=True)
+        ]
+        sol = eqx.tree_at(lambda a: a.consts, again, consts)(inputs)
         return eqx.filter(sol, eqx.is_inexact_array), sol
 
-    if not isinstance(adjoint, diffrax.ForwardMode):
+    if stagewise:
         out, pullback, sol = jax.vjp(outputs, x, has_aux=True)
         return sol, (pullback, out)
     x_flat, unravel = ravel_pytree(x)
@@ -93,9 +134,9 @@ def _fwd(perturbed, inputs, *, opts, solve_with):
     return sol, (jacobian, out)
 
 
-@default_adjoint_run.def_bwd
-def _bwd(residuals, grad_sol, perturbed, inputs, *, opts, solve_with):
-    x, _, adjoint = _split(perturbed, inputs, opts)
+@_run.def_bwd
+def _bwd(residuals, grad_sol, perturbed, run_and_inputs, *, solve_with, closed_over):
+    x, _, adjoint = _choice(perturbed, run_and_inputs)
     pullback_or_jacobian, out = residuals
     cotangent = fill_zeros(eqx.filter(grad_sol, eqx.is_inexact_array), out)
     if not isinstance(adjoint, diffrax.ForwardMode):

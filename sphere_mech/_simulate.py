@@ -47,7 +47,9 @@ def simulate(
       required for fixed-step solvers, which get `diffrax.ConstantStepSize()`. Solvers
       with an error estimate (`Projected(diffrax.Tsit5())`, `LieRK4()`, ...) adapt their
       steps from `dt0`; for fixed steps with them, pass
-      `stepsize_controller=diffrax.ConstantStepSize()` too.
+      `stepsize_controller=diffrax.ConstantStepSize()` too. Fixed steps of a `dt0` that
+      does not divide `t1 - t0` end with a shorter step (`dt0=0.3` to `t1=1`: 0.3, 0.3,
+      0.3, 0.1).
     - `rtol`, `atol`: tolerances (> 0) of the default `diffrax.PIDController`; defaults
       `1e-8, 1e-10` in float64 and `1e-5, 1e-6` in float32.
     - `stepsize_controller`: any diffrax step-size controller instead.
@@ -60,14 +62,16 @@ def simulate(
       independent of the steps), else `diffrax.RecursiveCheckpointAdjoint()` (about
       `sqrt(2 max_steps)` solver states); see `benchmarks/gradients.py`. For `jax.jvp`
       and `jax.jacfwd` pass `diffrax.ForwardMode()`. The default differentiates through
-      `system`'s array fields, `y0`, `args` and the times `t0`, `t1`, `dt0`, not through
-      a value that a function closes over (`L`, an event's condition) nor through save
-      times: pass such a value in `args` or as a field of an equinox Module, or give
-      `adjoint=diffrax.RecursiveCheckpointAdjoint()`.
+      `system`'s array fields, `y0`, `args`, the times `t0`, `t1`, `dt0`, the save times
+      and the values that the functions close over (a parameter captured by `L`, by the
+      forces or by an event's condition).
     - `event`: a `diffrax.Event` that stops the run, e.g. `diffrax.Event(lambda t, y,
       args, **kw: y[0][0, 1], root_finder=optimistix.Newton(1e-12, 1e-12))` where the
       first point crosses `y = 0`; `sol.result` is then `RESULTS.event_occurred` (nothing
-      raises) and `sol.event_mask` says which event fired.
+      raises) and `sol.event_mask` says which event fired. With `SaveAt(ts=...,
+      t1=True)` the state where it stopped follows the last save time reached (diffrax
+      writes it into the first unreached slot, its time in `sol.ts`), and the rest are
+      `inf`: find it by `sol.ts`, not as `sol.ys[-1]`.
     - `throw`: on a run-time failure (`max_steps` reached, Newton iterations not
       converging, a NaN state, rates not finite at the start) `True` raises a
       `RuntimeError` naming the cause (in `jax.jit`, an equinox runtime error); `False`

@@ -327,8 +327,7 @@ def _initial_states(space, state_name, y0, raise_traced: bool):
 def solve(system, y0, t0, t1, dt0, args, opts: Options) -> diffrax.Solution:
     """`solve_with` the adjoint of `opts`, or `default_adjoint_run` when it is `None`."""
     if opts.adjoint is None:
-        inputs = (system, y0, t0, t1, dt0, args)
-        return default_adjoint_run(inputs, opts=opts, solve_with=solve_with)
+        return default_adjoint_run(solve_with, (system, y0, t0, t1, dt0, args, opts))
     return solve_with(opts.adjoint, system, y0, t0, t1, dt0, args, opts)
 
 

@@ -137,6 +137,46 @@ def test_between_the_thresholds(batch):
     assert np.all(np.abs(grad) > 1e-3)  # a gradient that could be wrong
 
 
+@pytest.mark.parametrize("columns", [1, FORWARD_COLUMNS], ids=["forward", "reverse"])
+def test_closed_over_values_and_save_times(columns):
+    """The default adjoint differentiates through a parameter that `L`, the forces and an
+    event's condition close over, and through a save time (before: a CustomVJPException
+    and equinox's "Unexpected tangent"), in forward mode (2 scalars) and reverse mode (9):
+    equal to the same parameter passed in `args` through diffrax's checkpointed adjoint,
+    and, for the save time, to central differences."""
+    q, v = _states()
+    lengths = jnp.linspace(1.0, 1.4, columns)
+
+    def loss(x, closed, adjoint=None):
+        k, time = x[:-1], x[-1]
+        gravity = lambda args: 9.81 * jnp.mean(args if closed is None else closed)
+        L = lambda t, q, qdot, args: 0.5 * jnp.sum(qdot**2) - gravity(args) * jnp.sum(q[:, 2])
+        forces = lambda t, q, qdot, args: -0.1 * gravity(args) * qdot
+        # Never fires (z <= 1), but its condition reads the parameter.
+        event = diffrax.Event(lambda t, y, args, **kw: 2.0 + gravity(args) - y[0][0, 2])
+        sol = sm.simulate(
+            sm.Lagrangian(L, forces=forces),
+            (q[0], v[0]),
+            T1,
+            args=k if closed is None else None,
+            saveat=diffrax.SaveAt(ts=jnp.stack([0.1, time])),
+            event=event,
+            adjoint=adjoint,
+            **GRADIENT_RUNS["fixed"],
+        )
+        assert sol.ts.shape == (2,)
+        return jnp.sum(sol.ys[0][-1] @ WEIGHTS) + jnp.sum(sol.ys[1][-1] ** 2)
+
+    x = jnp.append(lengths, 0.205)  # between two steps: the dense output is smooth there
+    grad = eqx.filter_jit(jax.grad(lambda x: loss(x, x[:-1])))(x)
+    checkpointed = diffrax.RecursiveCheckpointAdjoint()
+    reference = eqx.filter_jit(jax.grad(lambda x: loss(x, None, checkpointed)))(x)
+    np.testing.assert_allclose(grad, reference, rtol=1e-11, atol=1e-13)
+    fd = central_differences(eqx.filter_jit(lambda x: loss(x, None)), x)
+    np.testing.assert_allclose(grad[-1], fd[-1], rtol=1e-6)
+    assert np.all(np.abs(grad) > 1e-3)  # a gradient that could be wrong
+
+
 def test_choice_and_memory_of_the_default_adjoint(value_and_grad_default):
     """Forward mode (a Jacobian, no checkpoints) up to `FORWARD_COLUMNS` scalars, else
     `RecursiveCheckpointAdjoint` with diffrax's `sqrt(2 max_steps)` checkpoints (as

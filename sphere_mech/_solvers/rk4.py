@@ -71,8 +71,14 @@ class RK4(AbstractSolver):
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         del solver_state, made_jump
-        inputs = (terms, t0, t1, y0, args)
-        y1, k1, k4 = _stagewise_step(inputs) if self.stagewise_reverse else _step(*inputs)[0]
+        h = terms.contr(t0, t1)
+        if self.stagewise_reverse:
+            # Closure-converted: values that the vector field closes over (a parameter
+            # captured by `L`) are inputs of the step's `custom_vjp`, which differentiates them.
+            vf_prod = eqx.filter_closure_convert(terms.vf_prod, t0, y0, args, h)
+            y1, k1, k4 = _stagewise_step((vf_prod, h, t0, t1, y0, args))
+        else:
+            y1, k1, k4 = _step(terms.vf_prod, h, t0, t1, y0, args)[0]
         # Hermite dense output from the end slopes (k4 approximates f(t1, y1)).
         k = jtu.tree_map(lambda a, b: jnp.stack([a, b]), k1, k4)
         return y1, None, dict(y0=y0, y1=y1, k=k), None, RESULTS.successful
@@ -97,26 +103,25 @@ _B = RK4.tableau.b_sol[:4]
 `i` is evaluated at `y0 + sum_j _A[i, j] k_j`, and `y1 = y0 + sum_j _B[j] k_j`."""
 
 
-def _step(terms, t0, t1, y0, args):
-    """One step: `(y1, k1, k4)` and the four stages' states."""
-    h = terms.contr(t0, t1)
+def _step(vf_prod, h, t0, t1, y0, args):
+    """One step of `vf_prod(t, y, args, h)` (a term's, `h` its control over the step):
+    `(y1, k1, k4)` and the four stages' states."""
     tm = t0 + 0.5 * (t1 - t0)
-    k1 = terms.vf_prod(t0, y0, args, h)
+    k1 = vf_prod(t0, y0, args, h)
     y2 = axpy(y0, (0.5, k1))
-    k2 = terms.vf_prod(tm, y2, args, h)
+    k2 = vf_prod(tm, y2, args, h)
     y3 = axpy(y0, (0.5, k2))
-    k3 = terms.vf_prod(tm, y3, args, h)
+    k3 = vf_prod(tm, y3, args, h)
     y4 = axpy(y0, (1.0, k3))
-    k4 = terms.vf_prod(t1, y4, args, h)
+    k4 = vf_prod(t1, y4, args, h)
     y1 = axpy(y0, (1 / 6, k1), (1 / 3, k2), (1 / 3, k3), (1 / 6, k4))
     return (y1, k1, k4), (y0, y2, y3, y4)
 
 
-def _stage(i, terms, t0, t1, args, y):
+def _stage(i, vf_prod, h, t0, t1, args, y):
     """Stage `i` (traced, 0 to 3) of `_step` at its state `y`."""
-    h = terms.contr(t0, t1)
     tm = t0 + 0.5 * (t1 - t0)
-    return terms.vf_prod(jnp.stack([t0, tm, tm, t1])[i], y, args, h)
+    return vf_prod(jnp.stack([t0, tm, tm, t1])[i], y, args, h)
 
 
 @eqx.filter_custom_vjp
@@ -135,7 +140,7 @@ def _stagewise_bwd(stages, grad_out, perturbed, inputs):
     """The cotangents of `inputs` from those of `(y1, k1, k4)`: the stages in reverse order,
     each one `jax.vjp` of the vector field (its forward pass recomputed) inside a `lax.scan`,
     so that XLA compiles one stage's backward pass, not the step's four fused together."""
-    terms, t0, t1, y0, args = inputs
+    vf_prod, h, t0, t1, y0, args = inputs
     zero_state = jtu.tree_map(jnp.zeros_like, y0)
     g_y1, g_k1, g_k4 = (zero_state if g is None else fill_zeros(g, y0) for g in grad_out)
     # The stages' cotangents, before the stages after them add theirs (Python floats: no
@@ -150,7 +155,7 @@ def _stagewise_bwd(stages, grad_out, perturbed, inputs):
         g_k1,
         g_k4,
     )
-    shared, static = eqx.partition((terms, t0, t1, args), eqx.is_inexact_array)
+    shared, static = eqx.partition((vf_prod, h, t0, t1, args), eqx.is_inexact_array)
     stage = lambda i, shared, y: _stage(i, *eqx.combine(shared, static), y)
 
     def body(carry, i):
@@ -168,5 +173,5 @@ def _stagewise_bwd(stages, grad_out, perturbed, inputs):
 
     zeros = jtu.tree_map(jnp.zeros_like, shared)
     (_, g_y0, g_shared), _ = jax.lax.scan(body, (g_k, g_y1, zeros), jnp.arange(3, -1, -1))
-    g_terms, g_t0, g_t1, g_args = g_shared
-    return g_terms, g_t0, g_t1, g_y0, g_args
+    g_vf_prod, g_h, g_t0, g_t1, g_args = g_shared
+    return g_vf_prod, g_h, g_t0, g_t1, g_y0, g_args
