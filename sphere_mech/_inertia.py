@@ -109,7 +109,16 @@ class AbstractFastPath(AbstractLagrangianSystem):
         s = normalize(self.spheres(q))
         bands = self.inverse_inertia_bands(args)
         if bands is None:
-            inverse = _Dense(self.inertia(args).astype(s.dtype), s)
+            M = self.inertia(args)
+            base = self.base_axes is not None or self.rigid_body is not None
+            rows = s.shape[0] + base
+            if jnp.shape(M) != (rows, rows):
+                raise ValueError(
+                    f"inertia(args) must be a ({rows}, {rows}) matrix, one row for each of the "
+                    f"{s.shape[0]} points{' and the base' if base else ''}, got shape "
+                    f"{jnp.shape(M)}."
+                )
+            inverse = _Dense(M.astype(s.dtype), s)
         else:
             inverse = _Banded(*(b.astype(s.dtype) for b in bands), s)
         if self.rigid_body is not None:
@@ -192,6 +201,9 @@ class _Dense(_AbstractInverse):
 
     def __init__(self, M, s):
         k = M.shape[0] - s.shape[0]  # the first sphere's row
+        # Its symmetric part: the kinetic energy sees nothing else (a function's matrix is
+        # traced, so its symmetry cannot be checked), and the Cholesky solve reads one half.
+        M = 0.5 * (M + M.T)
         self.Minv, self.s = spd_solve(M, jnp.eye(M.shape[0], dtype=s.dtype)), s
         self.S = self.Minv[k:, k:] * jnp.sum(s[:, None] * s[None], axis=-1)
 
@@ -370,7 +382,8 @@ class ConstantInertiaLagrangian(_AbstractFixedDense):
 
     **Arguments:**
     - `inertia`: the `(n, n)` symmetric positive-definite scalar inertia matrix, or a
-      function `inertia(args) -> (n, n)`.
+      function `inertia(args) -> (n, n)` (traced: its matrix enters through its symmetric
+      part, the only part the kinetic energy sees).
     - `potential`: `U(t, q, args) -> scalar`.
     - `forces`: optional `forces(t, q, qdot, args) -> (n, 3)` (virtual-work convention)."""
 

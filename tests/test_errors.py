@@ -5,6 +5,7 @@ jit). Input within the documented tolerance is accepted."""
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 import pytest
 
 import sphere_mech as sm
@@ -200,6 +201,25 @@ def test_chain_constructor():
         sm.chain_pendulum(jnp.ones(2), jnp.ones(2), tip_force=jnp.ones(2))
     with pytest.raises(ValueError, match=r"inertia must be a square \(n, n\) matrix"):
         sm.ConstantInertiaLagrangian(jnp.ones((2, 3)), lambda t, q, args: 0.0)
+
+
+def test_inertia_function(state):
+    """An inertia function's matrix is traced: one of the wrong shape is refused at trace
+    time, and a nonsymmetric one gives `Lagrangian(L)`'s accelerations for the same `L`
+    (its symmetric part; before, the Cholesky solve read its lower half)."""
+    q, v = state
+    M = jnp.array([[2.0, 1.5], [-0.5, 1.0]])
+    U = lambda t, q, args: 9.81 * jnp.sum(q[:, 2])
+    T = lambda qdot: 0.5 * jnp.sum(M * (qdot @ qdot.T))
+    general = sm.Lagrangian(lambda t, q, qdot, args: T(qdot) - U(t, q, args))
+    fast = sm.ConstantInertiaLagrangian(lambda args: M, U)
+    np.testing.assert_allclose(
+        fast.acceleration(0.0, q, v), general.acceleration(0.0, q, v), rtol=1e-12, atol=1e-12
+    )
+    wrong = sm.ConstantInertiaLagrangian(lambda args: jnp.eye(3), U)
+    message = r"must be a \(2, 2\) matrix, one row for each of the 2 points, got shape \(3, 3\)"
+    with pytest.raises(ValueError, match=message):
+        wrong.acceleration(0.0, q, v)
 
 
 def test_errors_through_simulate(state):

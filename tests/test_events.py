@@ -58,11 +58,14 @@ def test_conical_orbit_period():
 
 
 def test_batch_of_periods_and_saved_states():
-    """Every trajectory stops at its own event; saves past it are `inf`; no error."""
+    """Every trajectory stops at its own event; saves past it are `inf`; no error. With
+    `ts` and `t1=True` in one `SubSaveAt`, the stop state follows the last save time
+    reached (as `simulate`'s docs say), not at the end."""
     thetas = jnp.linspace(0.2, 2.0, 4)
     y0 = jax.vmap(planar)(thetas)
     ts = jnp.linspace(0.0, 2.0, 41)
-    saveat = diffrax.SaveAt(subs=[diffrax.SubSaveAt(ts=ts), diffrax.SubSaveAt(t1=True)])
+    subs = [diffrax.SubSaveAt(ts=ts), diffrax.SubSaveAt(t1=True), diffrax.SubSaveAt(ts=ts, t1=True)]
+    saveat = diffrax.SaveAt(subs=subs)
     sol = sm.simulate_batch(
         PENDULUM, y0, 2.0, event=crossing(0), batch_args=False, saveat=saveat, **TOL
     )
@@ -74,6 +77,10 @@ def test_batch_of_periods_and_saved_states():
     for k, t in enumerate(t_event):
         assert np.all(np.isfinite(q[k][np.asarray(ts) < t]))
         assert np.all(np.isinf(q[k][np.asarray(ts) > t]))
+        reached = int(np.sum(np.asarray(ts) <= t))
+        assert float(sol.ts[2][k, reached]) == t
+        np.testing.assert_array_equal(sol.ys[2][0][k, reached], sol.ys[1][0][k, 0])
+        assert np.all(np.isinf(np.asarray(sol.ys[2][0][k, reached + 1 :])))
 
 
 def test_wrong_number_of_spheres_names_both_sizes(getkey):
