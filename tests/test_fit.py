@@ -252,7 +252,10 @@ def test_fit_errors():
 def test_shooting_segment_end_is_inf_where_the_solve_stops_early():
     """A segment's end state (the solve's own, not an interpolated save) is the state at
     `t1` when the solve gets there and `inf` when it stops before (here `max_steps`), as
-    are the observation times it does not reach: a continuity jump never hides a failure."""
+    are the observation times it does not reach: a continuity jump never hides a failure.
+    Each observation time holds its state or `inf`, never the state where the solve
+    stopped (which diffrax saves into the first unreached slot: before, `learn` and
+    `refine` trained on it as if it were the state at that time)."""
     from sphere_mech._fit.shooting import simulate_at
 
     system = sm.ConstantInertiaLagrangian(jnp.eye(1), lambda t, q, a: 9.81 * q[0, 2])
@@ -264,5 +267,12 @@ def test_shooting_segment_end_is_inf_where_the_solve_stops_early():
     full = sm.simulate(system, y0, 1.0, saveat=diffrax.SaveAt(ts=jnp.array([1.0])), **sim)
     np.testing.assert_allclose(q1, full.ys[0][0], rtol=1e-12, atol=1e-14)
     assert np.all(np.isfinite(q)) and np.all(np.isfinite(v))
-    (q, v), (q1, v1) = simulate_at(system, None, y0, 0.0, 1.0, ts, dict(sim, max_steps=3))
-    assert np.all(np.isinf(q1)) and np.all(np.isinf(v1)) and np.all(np.isinf(q[1]))
+    reference = sm.simulate(system, y0, 1.0, saveat=diffrax.SaveAt(ts=ts), **sim).ys
+    for max_steps in (3, 6):
+        (q, v), (q1, v1) = simulate_at(
+            system, None, y0, 0.0, 1.0, ts, dict(sim, max_steps=max_steps)
+        )
+        assert np.all(np.isinf(q1)) and np.all(np.isinf(v1)) and np.all(np.isinf(q[1]))
+        reached = np.all(np.isfinite(q[0]))
+        assert not reached or np.allclose(q[0], reference[0][0], rtol=1e-12, atol=1e-14)
+        assert not reached or np.allclose(v[0], reference[1][0], rtol=1e-10, atol=1e-12)

@@ -14,7 +14,7 @@ from jax.sharding import Mesh
 from jaxtyping import Array, PyTree
 
 from .._batch import map_on_devices
-from .._misc import check_integer, fill_zeros, tree_dtype
+from .._misc import check_integer, fill_zeros, rows, tree_dtype
 from .._results import RESULTS, describe_failures, gathered
 from .._simulate import simulate
 from .._solve import initial_states
@@ -96,7 +96,10 @@ def simulate_at(system, args, state, t0, t1, ts, sim: dict):
     sol = simulate(system, state, t1, t0=t0, args=args, saveat=saveat, throw=False, **sim)
     reached = sol.result == RESULTS.successful
     end = jtu.tree_map(lambda x: jnp.where(reached, x[-1], jnp.inf), sol.ys)
-    return jtu.tree_map(lambda x: x[:-1], sol.ys), end
+    # A solve that stopped early has its last state in the first slot of `ts` it did not
+    # reach (diffrax), with its own time: a save is at `ts` only where its time is.
+    saved = sol.ts[:-1] == jnp.asarray(ts, sol.ts.dtype)
+    return jtu.tree_map(lambda x: jnp.where(rows(saved, x[:-1]), x[:-1], jnp.inf), sol.ys), end
 
 
 def own_options(simulate_options, caller: str) -> dict:
