@@ -19,6 +19,8 @@ import numpy as np
 
 from ._drawing import Skeleton, cube, positions, skeleton, wireframe
 from ._misc import check_integer
+from ._scene.scene import Scene
+from ._spaces import Spheres
 from ._system import AbstractSystem
 
 MAX_FRAMES = 150
@@ -28,13 +30,21 @@ COLOURS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e
 
 
 def frame_indices(t: np.ndarray, frames: int) -> np.ndarray:
-    """At most `frames` indices of `t`, nearest to evenly spaced times."""
+    """At most `frames` increasing indices of `t` (a run's times: increasing, or decreasing
+    for a backward run), nearest to evenly spaced times."""
     if len(t) <= frames:
         return np.arange(len(t))
-    targets = np.linspace(t[0], t[-1], frames)
-    idx = np.clip(np.searchsorted(t, targets), 1, len(t) - 1)
-    idx = np.where(targets - t[idx - 1] < t[idx] - targets, idx - 1, idx)
+    s = t if t[-1] >= t[0] else -t  # increasing
+    targets = np.linspace(s[0], s[-1], frames)
+    idx = np.clip(np.searchsorted(s, targets), 1, len(s) - 1)
+    idx = np.where(targets - s[idx - 1] < s[idx] - targets, idx - 1, idx)
     return np.unique(idx)
+
+
+def _label(t: float, digits: int) -> str:
+    """A time with `digits` decimals, a zero unsigned (not `-0.000`)."""
+    label = f"{t:.{digits}f}"
+    return label.removeprefix("-") if float(label) == 0 else label
 
 
 def _joined(lines) -> np.ndarray:
@@ -154,9 +164,9 @@ def figure(
         for k in range(len(trails))
     ]
     data = [xyz | style for xyz, style in zip(points(0), styles, strict=True)] + _still(skel)
-    step = float(np.min(np.diff(t[idx]))) if len(idx) > 1 else 1.0
+    step = float(np.min(np.abs(np.diff(t[idx])))) if len(idx) > 1 else 1.0
     digits = int(np.clip(np.ceil(-np.log10(step)) if step > 0 else 3, 0, 4))
-    delay = float(np.clip(1000 * (t[idx[-1]] - t[idx[0]]) / max(len(idx) - 1, 1), 40, 100))
+    delay = float(np.clip(1000 * abs(t[idx[-1]] - t[idx[0]]) / max(len(idx) - 1, 1), 40, 100))
     axis = lambda k: dict(
         range=[centre[k] - half, centre[k] + half],
         autorange=False,
@@ -168,7 +178,7 @@ def figure(
         uirevision="sphere_mech",  # the camera stays where the user put it
         margin=dict(l=0, r=0, t=40 if title else 10, b=80),
         scene=dict(xaxis=axis(0), yaxis=axis(1), zaxis=axis(2), aspectmode="cube"),
-        **_controls([f"{s:.{digits}f}" for s in t[idx]], delay),
+        **_controls([_label(s, digits) for s in t[idx]], delay),
     )
     traces = list(range(len(styles)))
     frames_ = [dict(name=str(f), traces=traces, data=frame(f)) for f in range(len(idx))]
@@ -249,7 +259,13 @@ class Animation(str):
 
 
 def _trajectory(system, sol) -> tuple[np.ndarray, np.ndarray]:
-    """The finite save times `(T,)` of `sol` and the points drawn at them, `(T, p, 3)`."""
+    """The finite save times `(T,)` of `sol`, two or more, and the points drawn at them,
+    `(T, p, 3)`."""
+    if not isinstance(system, Scene) and not isinstance(system.space, Spheres):
+        raise ValueError(
+            "system_or_scene: animate draws a Scene or the points of a system on Spheres, "
+            f"got a system on {system.space}"
+        )
     ts, ys = sol.ts, sol.ys
     if isinstance(ts, list | tuple):  # SaveAt(subs=[...]): the first
         ts, ys = ts[0], ys[0]
@@ -261,7 +277,15 @@ def _trajectory(system, sol) -> tuple[np.ndarray, np.ndarray]:
             f" and q {jax.tree.map(np.shape, q)}"
         )
     keep = np.isfinite(t)  # SaveAt(steps=True) pads with inf
-    return t[keep], positions(system, jax.tree.map(lambda x: np.asarray(x)[keep], q))
+    t, q = t[keep], jax.tree.map(lambda x: np.asarray(x)[keep], q)
+    if len(t) < 2:
+        raise ValueError(
+            f"sol: expected states at two times or more, got {len(t)}; "
+            "save them with saveat=diffrax.SaveAt(ts=...)"
+        )
+    first = jax.tree.map(lambda x: x[0], q)
+    system.space.check_shapes(first, first, q_name="each q of sol")  # shapes only: v as q
+    return t, positions(system, q)
 
 
 def animate(
@@ -272,7 +296,10 @@ def animate(
     with no network needed (plotly.js is embedded, compressed: about 2 MB). A `Scene` is
     drawn from its kinetic terms at `scene.drawn_points(q)` (chains from their pivot or the
     moving `Base`, drawn as a square, a `RigidBase`'s arms and its `Rotors` as rings, beads
-    with their shared sphere); any other system as the points `q` on the unit sphere.
+    with their shared sphere); a system on `Spheres` (a plain `(n, 3)` state) as its points
+    `q` on the unit sphere about the origin. Any other system (on a dict of factors, on
+    `Rotations`) raises `ValueError`, and so do states `q` without the shapes of the
+    system's space (e.g. not `n` points on `Spheres(n)`).
 
     **Arguments:**
     - `system_or_scene`, `sol`: the system simulated and a solution of `sm.simulate` saved at
@@ -283,11 +310,6 @@ def animate(
     into a page's body to keep it).
     """
     t, x = _trajectory(system_or_scene, sol)
-    if len(t) < 2:
-        raise ValueError(
-            f"sol: expected states at two times or more, got {len(t)}; "
-            "save them with saveat=diffrax.SaveAt(ts=...)"
-        )
     check_integer(frames, "frames", 2)
     skel = skeleton(system_or_scene, x.shape[1])
     return Animation(player(skel, t, x, frames=frames))

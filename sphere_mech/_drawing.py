@@ -54,8 +54,8 @@ def _anchor(anchors: list, point) -> int:
 def skeleton(system, n: int) -> Skeleton:
     """The skeleton of a `Scene`'s `drawn_points(q)` from its kinetic terms' `drawing()`
     (links from the moving base where it has one: a `RigidBase`'s joint, its arms drawn as
-    `frame`, with `Rotors` at the ends of four); of any other system, `n` points on the
-    unit sphere."""
+    `frame`, with `Rotors` at the ends of four); of a system on `Spheres`, its `n` points on
+    the unit sphere."""
     if not isinstance(system, Scene):
         return Skeleton(np.zeros((1, 3)), (), ((np.zeros(3), 1.0),), np.arange(n))
     anchors, links, spheres, free = [], [], [], []
@@ -86,7 +86,8 @@ def skeleton(system, n: int) -> Skeleton:
 
 
 def positions(system, q) -> np.ndarray:
-    """The points drawn, `(T, p, 3)`: a scene's `drawn_points(q)`, else `q`."""
+    """The points drawn, `(T, p, 3)`: a scene's `drawn_points(q)`, else (a system on
+    `Spheres`) `q`."""
     return np.asarray(jax.vmap(system.drawn_points)(q) if isinstance(system, Scene) else q)
 
 

@@ -11,6 +11,7 @@ import subprocess
 import types
 from pathlib import Path
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import plotly.graph_objects as go
@@ -165,6 +166,49 @@ def test_animate_rejects_a_single_state_and_bad_frames():
     flat = types.SimpleNamespace(ts=jnp.zeros(3), ys=(jnp.zeros((3, 3)), jnp.zeros((3, 3))))
     with pytest.raises(ValueError, match=r"q \(T, n, 3\)"):
         sm.animate(scene, flat)
+
+
+def _labels(fig: dict) -> list[str]:
+    return [step["label"] for step in fig["layout"]["sliders"][0]["steps"]]
+
+
+def test_a_backward_run_is_animated_like_a_forward_one():
+    scene = sm.chain_pendulum(masses=[1.0], lengths=[1.0])
+    forward = _circling(1, 301)
+    backward = types.SimpleNamespace(ts=-forward.ts, ys=forward.ys)  # from t0 = 0 to t1 = -2
+    assert len(_figure(sm.animate(scene, backward))["frames"]) == MAX_FRAMES
+    ahead, back = (_figure(sm.animate(scene, sol, frames=30)) for sol in (forward, backward))
+    assert len(back["frames"]) == 30 and back["frames"] == ahead["frames"]  # t0 first, t1 last
+    assert back["layout"]["updatemenus"] == ahead["layout"]["updatemenus"]  # the same pace
+    assert _labels(back) == [s if s == "0.00" else f"-{s}" for s in _labels(ahead)]  # no -0.00
+    skel, x = skeleton(scene, 1), np.asarray(forward.ys[0][:4])
+    few = figure(skel, np.array([0.0, -2e-4, -4e-4, -6e-4]), x)
+    assert _labels(few) == ["0.0000", "-0.0002", "-0.0004", "-0.0006"]
+    rounded = figure(skel, np.array([0.3, 0.2, 0.1, 0.3 - 0.1 - 0.1 - 0.1]), x)  # last: -3e-17
+    assert _labels(rounded) == ["0.3", "0.2", "0.1", "0.0"]
+
+
+def test_animate_refuses_what_it_cannot_draw():
+    t = np.linspace(0.0, 1.0, 5)
+    solution = lambda q: types.SimpleNamespace(
+        ts=jnp.asarray(t), ys=(q, jax.tree.map(jnp.zeros_like, q))
+    )
+    down = jnp.tile(jnp.array([0.0, 0.0, -1.0]), (5, 1, 1))
+    space = {"cart": sm.Euclidean(1), "p": sm.Spheres(1)}
+    cart = sm.Lagrangian(lambda t, q, qdot, args: 0.5 * jnp.sum(qdot["p"] ** 2), space=space)
+    drawn = r"^system_or_scene: animate draws a Scene or the points of a system on Spheres, "
+    drawn += "got a system on "
+    with pytest.raises(ValueError, match=drawn + r"Product\(factors=\{'cart': Euclidean"):
+        sm.animate(cart, solution({"cart": jnp.zeros((5, 1)), "p": down}))
+    body = sm.Lagrangian(lambda t, q, qdot, args: 0.0, space=sm.Rotations(1))
+    with pytest.raises(ValueError, match=drawn + r"Rotations\(k=1"):
+        sm.animate(body, solution(jnp.tile(jnp.eye(3), (5, 1, 1, 1))))
+    one = sm.Lagrangian(lambda t, q, qdot, args: 0.0, space=sm.Spheres(1))
+    two = jnp.concatenate([down, down], axis=1)
+    for system in (one, sm.chain_pendulum(masses=[1.0], lengths=[1.0])):
+        with pytest.raises(ValueError, match=r"the state has 2 spheres but the system has 1"):
+            sm.animate(system, solution(two))
+    assert len(_figure(sm.animate(one, solution(down)))["frames"]) == 5
 
 
 def test_frame_indices_are_bounded_and_keep_both_ends():
