@@ -22,6 +22,20 @@ def check_integer(value, name: str, least: int = 1) -> None:
         raise ValueError(f"{name} must be {kind}, got {value!r}.")
 
 
+def check_positive(value, name: str) -> None:
+    """`value` one finite number > 0 (a Python or NumPy number or a 0-d array, not a bool;
+    a tracer passes), else a `ValueError` naming it: "`name` must be a finite number > 0"."""
+    if isinstance(value, jax.core.Tracer):
+        return
+    scalar = np.ndim(value) == 0 and not isinstance(value, bool | str)
+    try:
+        ok = scalar and 0 < float(value) < np.inf
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise ValueError(f"{name} must be a finite number > 0, got {value!r}.")
+
+
 def tree_add(a, b):
     """`a + b` leaf by leaf."""
     return jax.tree.map(operator.add, a, b)

@@ -307,10 +307,12 @@ def test_learn_rejects_bad_input(tmp_path):
         sm.learn(model, ts[:2], states, steps=1)
     with pytest.raises(ValueError, match="may not set 'adjoint'"):
         sm.learn(model, ts, states, steps=1, simulate_options={"adjoint": None})
-    with pytest.raises(ValueError, match="floor must be positive or None"):
-        sm.refine(model, ts, states, floor=0.0)
-    with pytest.raises(ValueError, match="damping must be positive"):
-        sm.refine(model, ts, states, damping=-1.0)
+    for floor in (0.0, np.inf):
+        with pytest.raises(ValueError, match="refine: floor must be a finite number > 0"):
+            sm.refine(model, ts, states, floor=floor)
+    for damping in (-1.0, np.inf):
+        with pytest.raises(ValueError, match="refine: damping must be a finite number > 0"):
+            sm.refine(model, ts, states, damping=damping)
     with pytest.raises(ValueError, match="refine: steps must be a positive integer, got 0"):
         sm.refine(model, ts, states, steps=0)
     with pytest.raises(ValueError, match="learn: steps must be a positive integer, got 2.5"):
@@ -373,6 +375,10 @@ def test_learn_rejects_bad_input(tmp_path):
         sm.learn(model, ts, states, steps=1, seed=-1)
     with pytest.raises(ValueError, match="input_scale must be a finite number > 0, got inf"):
         sm.LearnedLagrangian(1, key=jax.random.PRNGKey(1), input_scale=np.inf)
+    with pytest.raises(ValueError, match="input_scale must be a finite number > 0, got Array"):
+        sm.LearnedLagrangian(1, key=jax.random.PRNGKey(1), input_scale=jnp.array([1.0, 2.0]))
+    with pytest.raises(TypeError, match="learn: optimizer must be an optax GradientTransf"):
+        sm.learn(model, ts, states, steps=1, optimizer="adam")
     # a checkpoint that is a folder (written as it is, or with `.eqx` appended)
     (tmp_path / "out.eqx").mkdir()
     for folder in (tmp_path, tmp_path / "out"):

@@ -15,7 +15,7 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, PyTree
 
 from .._batch import batch_devices, batch_mesh, one_device
-from .._misc import as_arrays, check_integer, tree_add
+from .._misc import as_arrays, check_integer, check_positive, tree_add
 from .._results import gathered
 from .._solve import initial_states, state_pair
 from .._spaces import AbstractSpace
@@ -415,8 +415,7 @@ def fit(
             f"covariance are its last linearization; got {type(solver).__name__}."
         )
     check_integer(max_steps, "max_steps")
-    if not (isinstance(continuity, jax.core.Tracer) or 0 < float(continuity) < np.inf):
-        raise ValueError(f"continuity must be a finite number > 0, got {continuity!r}.")
+    check_positive(continuity, "continuity")
     sim = own_options(simulate_options, "fit")
     default = diffrax.ForwardMode() if jac == "fwd" else diffrax.RecursiveCheckpointAdjoint()
     sim["adjoint"] = default if adjoint is None else adjoint

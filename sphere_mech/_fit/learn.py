@@ -30,7 +30,7 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, PyTree
 
 from .._inertia import AbstractConstantInertiaLagrangian, check_spd_inertia
-from .._misc import all_finite, check_integer, tree_dtype
+from .._misc import all_finite, check_integer, check_positive, tree_dtype
 from .._results import describe_failures
 from .._solve import state_pair
 from .._solvers.projected import Projected
@@ -102,8 +102,7 @@ class LearnedLagrangian(AbstractConstantInertiaLagrangian):
             raise ValueError(f"inertia must have shape ({n}, {n}), got {M.shape}.")
         C = np.linalg.cholesky(check_spd_inertia(M))
         factor = np.tril(C, -1) + np.diag(np.log(np.diag(C)))
-        if not 0 < input_scale < np.inf:
-            raise ValueError(f"input_scale must be a finite number > 0, got {input_scale}.")
+        check_positive(input_scale, "input_scale")
         self.inertia_factor = jnp.asarray(factor, dtype=dtype)
         self.potential_linear = jnp.zeros((n, 3), dtype)
         self.input_scale = float(input_scale)
@@ -368,8 +367,11 @@ def learn(
     every = dict(print_every=print_every, checkpoint_every=checkpoint_every)
     _check_options("learn", checkpoint, every, dict(steps=steps, batch_size=batch_size))
     check_integer(seed, "learn: seed", 0)
-    if optimizer is None and not 0 < learning_rate < np.inf:
-        raise ValueError(f"learn: learning_rate must be a finite number > 0, got {learning_rate}.")
+    if optimizer is None:
+        check_positive(learning_rate, "learn: learning_rate")
+    elif not isinstance(optimizer, optax.GradientTransformation):
+        kind = type(optimizer).__name__
+        raise TypeError(f"learn: optimizer must be an optax GradientTransformation, got {kind}.")
     chunks = _Chunks.build(model, ts, states, simulate_options, "grad", "learn")
     residuals, num_chunks, (u0, static) = chunks.residuals, chunks.num, chunks.unknowns
     optimizer = optax.adam(learning_rate) if optimizer is None else optimizer
@@ -486,10 +488,9 @@ def refine(
     start = time.perf_counter()
     counts = dict(steps=steps, group_size=group_size)
     _check_options("refine", checkpoint, dict(print_every=print_every), counts)
-    if floor is not None and not floor > 0:
-        raise ValueError(f"refine: floor must be positive or None, got {floor!r}.")
-    if not damping > 0:
-        raise ValueError(f"refine: damping must be positive, got {damping!r}.")
+    if floor is not None:
+        check_positive(floor, "refine: floor")
+    check_positive(damping, "refine: damping")
     chunks = _Chunks.build(model, ts, states, simulate_options, "bwd", "refine")
     problem, (u0, static) = chunks.residuals, chunks.unknowns
     p0, unravel = ravel_pytree(u0)
