@@ -103,11 +103,17 @@ def segment_times(t0: float, t1: float, save_dt: float) -> tuple[np.ndarray, np.
     return np.stack(rows), np.array([min(m + 1, n_out - s) for s in starts])
 
 
+def fixed_steps(span, dt0):
+    """How many equal fixed steps a segment of length `span` takes: as many as `dt0` fits
+    (to rounding). Operators only: NumPy floats where a scene file is checked, traced
+    arrays in the run."""
+    return -(-(span / dt0 * (1 - 1e-12)) // 1)  # the ceiling
+
+
 def build(spec, t1=None) -> tuple[Program, jax.stages.Compiled]:
     """The `Program` of a `SceneSpec` (to another end time `t1`) and its compiled program."""
     import diffrax
     import equinox as eqx
-    import jax.numpy as jnp
 
     from ._misc import tree_dtype
     from ._results import RESULTS, code, failed
@@ -128,8 +134,8 @@ def build(spec, t1=None) -> tuple[Program, jax.stages.Compiled]:
         solver = WithWork(opts.solver) if forced else opts.solver
         saveat = diffrax.SaveAt(ts=ts, solver_state=forced)
         t_start, t_end, dt0 = times(tree_dtype((q, v)), t_start, ts[-1], spec.dt0)
-        if isinstance(opts.controller, diffrax.ConstantStepSize):  # as many as dt0 fits
-            dt0 = (t_end - t_start) / jnp.ceil((t_end - t_start) / dt0 * (1 - 1e-12))
+        if isinstance(opts.controller, diffrax.ConstantStepSize):
+            dt0 = (t_end - t_start) / fixed_steps(t_end - t_start, dt0)
         segment_opts = eqx.tree_at(lambda o: (o.saveat, o.solver), opts, (saveat, solver))
         sol = solve(system, (q, v), t_start, t_end, dt0, None, segment_opts)
         result = code(sol.result)

@@ -12,6 +12,7 @@ import numpy as np
 
 from ._geometry import constraint_error
 from ._program import build
+from ._scene_files import check_extent, checked_end
 from ._solve import tolerances
 from ._solvers.work import power_and_rate, work_step
 from ._spaces import BASE, chain_parts
@@ -57,8 +58,10 @@ class SceneResult:
       with a `RigidBase`, its joint and the ends of its arms last).
     - `error_t`: the times of `error`: `t`, or with forces the start and the end of every
       segment (steps of the solver, where the work is known).
-    - `error`: `(E - E(0)) / |E(0)|`, or with forces `E - E(0) - W` divided by the larger
-      of `max |E|`, `max |W|` (not divided where both are zero; the summary then says `null`).
+    - `error`: `E - E(0)` divided by the run's largest `|T| + |V|` (kinetic and potential
+      energies at `t`; `|E(0)|` would be no scale for a run that starts at `E = 0`), or
+      with forces `E - E(0) - W` divided by the larger of `max |E|`, `max |W|` (not
+      divided where the scale is zero; the summary then says `null`).
     - `constraint`: `max_i | |q_i| - 1 |` over `scene.spheres(q)` at `t`.
     - `summary`: what `summary.json` holds (solver, tolerances or step, steps, wall time,
       largest errors; with a `Base`, its final coordinates), strict JSON: what could not be
@@ -88,10 +91,14 @@ def run_scene(spec, *, t1=None, progress=False) -> SceneResult:
 
     **Arguments:**
     - `spec`, `t1`, `progress`: a `SceneSpec` (from `load_scene`), another end time (s)
-      instead of the file's, and whether to show a progress bar.
+      instead of the file's (checked as the command line's `--t1`, with the same words),
+      and whether to show a progress bar.
 
     **Returns:** a `SceneResult`.
     """
+    if t1 is not None:
+        t1 = checked_end(spec.path, spec.t0, t1, "t1")
+        check_extent(spec, t1)
     return scene_result(spec, build(spec, t1)[0].integrate(progress), t1)
 
 
@@ -136,10 +143,18 @@ def scene_result(spec, run, t1=None) -> SceneResult:
             "work_done_J": float(W[-1]),
         }
     else:
-        error_t, error = t, (energy - energy[0]) / abs(energy[0] or 1.0)
+        # Over the largest |T| + |V|, not |E(0)|: a run that starts at E = 0 (a pendulum
+        # released level with its pivot) has an energy scale all the same.
+        scale = np.max(np.abs(energy - potential) + np.abs(potential))
+        error_t, error = t, (energy - energy[0]) / scale if scale > 0 else energy - energy[0]
+        if not scale > 0:
+            reasons["max_relative_energy_error"] = (
+                "the kinetic and potential energies are zero throughout: no scale to divide by"
+            )
         report = {
-            "energy_report": "energy error (E(t) - E(0)) / |E(0)|",
-            "max_relative_energy_error": float(np.max(np.abs(error))),
+            "energy_report": "energy error (E(t) - E(0)) / max(|T| + |V|)",
+            "max_relative_energy_error": float(np.max(np.abs(error))) if scale > 0 else None,
+            "energy_scale_J": float(scale),
         }
     q, v = jax.tree.map(np.asarray, (q, v))
     constraint = np.asarray(jax.vmap(constraint_error)(scene.spheres(q)))

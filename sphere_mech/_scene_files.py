@@ -314,7 +314,7 @@ SIMULATE = {
     "dt0": "a step > 0 (s)",
     "rtol": "a number > 0",
     "atol": "a number > 0",
-    "max_steps": "an integer >= 1",
+    "max_steps": "an integer from 1 to 2147483647",
 }
 """The keys of `[simulate]`: keyword arguments of `sm.simulate` (defaults as there)."""
 _UNITS = {"t0": " s", "t1": " s", "dt0": " s", "rtol": "", "atol": ""}
@@ -355,6 +355,15 @@ class SceneSpec:
     max_steps: int
     save_dt: float
 
+    @property
+    def fixed_steps(self) -> bool:
+        """Whether the run takes fixed steps of (at most) `dt0`: a solver without an error
+        estimate, as `simulate` decides."""
+        opts = options(
+            dtype=np.float64, solver=self.solver, dt0=self.dt0, rtol=self.rtol, atol=self.atol
+        )
+        return isinstance(opts.controller, diffrax.ConstantStepSize)
+
 
 def _table(path, data, key: str, allowed) -> dict:
     table = data.get(key, {})
@@ -380,7 +389,7 @@ def _simulate_args(path, data, t1=None) -> dict:
             expected = f"expected {SIMULATE[field]}, got {_show(out[key])}"
             raise SceneFileError(path, f"simulate.{field}", expected)
     out["solver"] = _checked(path, "simulate.solver", lambda: parse_solver(out["solver_name"]))
-    opts = _checked(  # the options simulate would refuse, with its words
+    _checked(  # the options simulate would refuse, with its words
         path, "simulate", lambda: options(dtype=np.float64, **{k: out[k] for k in SIMULATE})
     )
     for key, unit in _UNITS.items():
@@ -388,31 +397,49 @@ def _simulate_args(path, data, t1=None) -> dict:
             expected = f"{key} must be at most {MAX_MAGNITUDE:g}{unit} in magnitude"
             raise SceneFileError(path, f"simulate.{key}", f"{expected} (got {_show(out[key])})")
     out["file_t1"] = out["t1"]
-    if t1 is not None:  # the command line's --t1, checked as t1
-        if not (isinstance(t1, int | float) and out["t0"] < t1 <= MAX_MAGNITUDE):
-            expected = f"a time in s after t0 = {out['t0']:g} and at most {MAX_MAGNITUDE:g}"
-            raise SceneFileError(path, "--t1", f"--t1 must be {expected} (got {t1})")
-        out["t1"] = float(t1)
-    steps = (out["t1"] - out["t0"]) / out["dt0"] if out["dt0"] else 0.0
-    if isinstance(opts.controller, diffrax.ConstantStepSize) and steps > out["max_steps"]:
-        expected = f"at most max_steps = {out['max_steps']} fixed steps from t0 to t1"
-        got = f"{out['dt0']:g}: {steps:.3g} steps"
-        raise SceneFileError(path, "simulate.dt0", f"dt0 must give {expected} (got {got})")
+    if t1 is not None:  # the command line's --t1
+        out["t1"] = checked_end(path, out["t0"], t1, "--t1")
     return out
 
 
-def _save_dt(path, table: dict, args: dict, numbers: int) -> float:
-    """`[output] save_dt` (default: the file's run / 1000); at most `MAX_SAVED` numbers saved."""
+def checked_end(path, t0: float, t1, name: str) -> float:
+    """Another end time `t1` (the command line's `--t1`, `run_scene`'s `t1`) as a float,
+    checked as `[simulate] t1` is; errors name it `name`."""
+    if not (isinstance(t1, int | float) and not isinstance(t1, bool) and t0 < t1 <= MAX_MAGNITUDE):
+        expected = f"a time in s after t0 = {t0:g} and at most {MAX_MAGNITUDE:g}"
+        raise SceneFileError(path, name, f"{name} must be {expected} (got {t1})")
+    return float(t1)
+
+
+def _save_dt(path, table: dict, args: dict) -> float:
+    """`[output] save_dt` (default: the file's run / 1000)."""
     save_dt = table.get("save_dt", (args["file_t1"] - args["t0"]) / 1000)
     if not (_number(save_dt) and save_dt > 0):
         expected = f"expected a step > 0 (s), got {_show(save_dt)}"
         raise SceneFileError(path, "output.save_dt", expected)
-    intervals = (args["t1"] - args["t0"]) / save_dt
+    return save_dt
+
+
+def check_extent(spec, t1: float):
+    """A run of `spec` to `t1` saves at most `MAX_SAVED` numbers and, with fixed steps, takes
+    at most `max_steps` steps, counted as the run takes them (each segment between saves as
+    many equal steps as `dt0` fits)."""
+    from ._program import fixed_steps, segment_times
+
+    path, t0, save_dt = spec.path, spec.t0, spec.save_dt
+    intervals = (t1 - t0) / save_dt
+    numbers = 2 * sum(np.size(x) for x in jax.tree.leaves(spec.y0[0]))  # of a state
     if not (intervals + 1) * numbers <= MAX_SAVED:
         expected = f"at most {MAX_SAVED:.0e} saved numbers from t0 to t1 ((t1 - t0) / save_dt"
         expected += f" = {intervals:.3g} intervals, {numbers} numbers a state) (got {save_dt:g})"
         raise SceneFileError(path, "output.save_dt", f"save_dt must give {expected}")
-    return save_dt
+    if spec.fixed_steps:
+        rows = segment_times(t0, t1, save_dt)[0]
+        steps = sum(int(fixed_steps(row[-1] - row[0], spec.dt0)) for row in rows)
+        if steps > spec.max_steps:
+            expected = f"at most max_steps = {spec.max_steps} fixed steps from t0 to t1"
+            got = f"{spec.dt0:g}: {steps} steps in {len(rows)} segments"
+            raise SceneFileError(path, "simulate.dt0", f"dt0 must give {expected} (got {got})")
 
 
 def _read(path: Path) -> dict:
@@ -446,7 +473,8 @@ def load_scene(path, t1=None) -> SceneSpec:
     scene = _scene(path, data.get("effects"))
     y0 = _initial(path, data.get("initial"), scene)
     args = _simulate_args(path, data, t1)
-    numbers = 2 * sum(np.size(x) for x in jax.tree.leaves(y0[0]))
-    save_dt = _save_dt(path, _table(path, data, "output", ("save_dt",)), args, numbers)
+    save_dt = _save_dt(path, _table(path, data, "output", ("save_dt",)), args)
     del args["file_t1"]
-    return SceneSpec(path, name, scene, y0, save_dt=save_dt, **args)
+    spec = SceneSpec(path, name, scene, y0, save_dt=save_dt, **args)
+    check_extent(spec, spec.t1)
+    return spec

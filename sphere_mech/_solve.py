@@ -21,6 +21,8 @@ from ._term import MechanicsTerm
 
 DEFAULT_MAX_STEPS = 100_000
 """Default `max_steps` of `simulate` and `simulate_batch` (past it: `max_steps_reached`)."""
+MAX_STEPS = 2**31 - 1
+"""The largest `max_steps`: diffrax counts steps in 32-bit integers without x64."""
 DEFAULT_TOLERANCES = {np.dtype("float64"): (1e-8, 1e-10), np.dtype("float32"): (1e-5, 1e-6)}
 """Default `(rtol, atol)` of the adaptive step-size controller, by dtype of `q`."""
 
@@ -148,10 +150,9 @@ def check_values(t0, t1, dt0, rtol, atol, max_steps, saveat=None, dtype=float) -
     for name, tol in (("rtol", rtol), ("atol", atol)):
         if tol is not None and not (math.isfinite(tol) and tol > 0):
             raise OptionError(name, f"{name} must be a finite number > 0 (got {tol:g})")
-    if max_steps is not None and not (is_integer(max_steps) and max_steps >= 1):
-        raise OptionError(
-            "max_steps", f"max_steps must be an integer >= 1 or None (got {max_steps!r})"
-        )
+    if max_steps is not None and not (is_integer(max_steps) and 1 <= max_steps <= MAX_STEPS):
+        expected = f"an integer from 1 to {MAX_STEPS} or None"
+        raise OptionError("max_steps", f"max_steps must be {expected} (got {max_steps!r})")
     for ts in [] if saveat is None else _save_times(saveat):
         if isinstance(ts, jax.core.Tracer):
             continue

@@ -4,6 +4,7 @@ outputs."""
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -20,7 +21,7 @@ from sphere_mech._cli import CACHE_ENV, cache_dir, main
 from sphere_mech._cli.figures import figure
 from sphere_mech._program import SEGMENTS, build, segment_times
 from sphere_mech._report import run_scene
-from sphere_mech._scene_files import load_scene
+from sphere_mech._scene_files import SceneFileError, load_scene
 
 EXAMPLES = sorted((Path(__file__).resolve().parents[1] / "examples").glob("*.toml"))
 FILES = ("trajectory.npz", "summary.json", "plot.png", "animation.html")
@@ -94,8 +95,8 @@ def test_default_run_writes_four_sane_files(default_run):
     assert summary["wall_time_s"] > 0
     assert summary["max_constraint_error"] < 1e-13
     assert 0 < summary["max_relative_energy_error"] < 1e-5
-    energy = data["energy"]
-    assert np.max(np.abs(energy - energy[0])) / abs(energy[0]) == pytest.approx(
+    energy, scale = data["energy"], summary["energy_scale_J"]
+    assert np.max(np.abs(energy - energy[0])) / scale == pytest.approx(
         summary["max_relative_energy_error"]
     )
     png = (out / "plot.png").read_bytes()
@@ -191,6 +192,26 @@ EDITS = {  # case: (text of GOOD, what replaces it, field, what the error says)
         '"RK4"\ndt0 = 1e-300',
         "simulate.dt0",
         "dt0 must give at most max_steps = 100000 fixed steps",
+    ),
+    "fixed steps in segments": (  # 100 segments of 0.005 s, each at least one step
+        '"Projected(Tsit5)"',
+        '"Projected(RK4)"\ndt0 = 0.1\nmax_steps = 99',
+        "simulate.dt0",
+        "dt0 must give at most max_steps = 99 fixed steps from t0 to t1 (got 0.1: 100 steps in "
+        "100 segments)",
+    ),
+    "huge max_steps": (
+        "t1 = 0.5",
+        "t1 = 0.5\nmax_steps = 100000000000000000000",
+        "simulate.max_steps",
+        "max_steps must be an integer from 1 to 2147483647 or None",
+    ),
+    "centers": (
+        '[[effects]]\ntype = "chain"\nmasses = [1.0, 1.0]\nlengths = [1.0, 1.0]',
+        '[[effects]]\ntype = "particles"\nmasses = 1.0\nradii = 1.0\ncount = 2\n'
+        "centers = [1.0, 2.0]",
+        "effects[0].centers",
+        "centers must be a (3,) or (2, 3) array, got shape (2,)",
     ),
     "deep solver": (
         '"Projected(Tsit5)"',
@@ -405,6 +426,42 @@ def test_sigint_is_one_line_and_status_130(tmp_path):
     assert not list(out.glob(".sphere-mech-*"))
 
 
+def test_a_signal_waits_for_the_files_moving_into_place(tmp_path, monkeypatch, capfd):
+    """The result files move into place under a lock that a signal's exit takes first: a
+    run interrupted then leaves all of its files or all of the last run's, never some of
+    each (before: trajectory.npz of one run beside summary.json of another), and says
+    which."""
+    import threading
+
+    import sphere_mech._cli as cli
+
+    exits, locked = [], []
+    cli._WRITTEN.clear()
+    monkeypatch.setattr(cli.os, "_exit", exits.append)
+    real_replace = os.replace
+    monkeypatch.setattr(
+        cli.os, "replace", lambda a, b: locked.append(cli._REPLACING.locked()) or real_replace(a, b)
+    )
+    with cli._REPLACING:  # files moving into place
+        stop = threading.Thread(target=cli._stop, args=(signal.SIGTERM,))
+        stop.start()
+        stop.join(0.5)
+        assert stop.is_alive() and not exits  # waiting
+    stop.join(5)
+    assert exits == [128 + signal.SIGTERM]
+    cli._REPLACING.release()  # taken by the stopped `_stop`
+    result = run_scene(load_scene(_bad(tmp_path, GOOD)))
+    cli.write_outputs(tmp_path / "out", result, load_scene(tmp_path / "bad.toml").scene)
+    assert locked == [True] * len(FILES)
+    cli._stop(signal.SIGTERM)
+    cli._REPLACING.release()
+    err = [line for line in capfd.readouterr().err.splitlines() if line]
+    assert err == [
+        "sphere-mech: terminated; earlier outputs kept",
+        "sphere-mech: terminated; this run's outputs written",
+    ]
+
+
 def test_stale_temporary_folders_are_removed(tmp_path, capsys):
     """A folder left by a killed run (its pid gone) is removed by the next run; one of a
     live process stays."""
@@ -439,6 +496,22 @@ def pendulum_result(tmp_path_factory):
     path.write_text(GOOD)
     spec = load_scene(path)
     return run_scene(spec), spec.scene
+
+
+def test_energy_error_is_relative_to_the_energy_scale(pendulum_result, tmp_path):
+    """`(E - E(0)) / max(|T| + |V|)`, also for a run that starts at `E(0) = 0` to rounding
+    (released at rest level with its pivot); before, divided by `|E(0)| = 1e-16`, it
+    reported a relative energy error of 1e6 for a correct run."""
+    result, _ = pendulum_result
+    kinetic = result.energy - result.potential
+    scale = np.max(np.abs(kinetic) + np.abs(result.potential))
+    np.testing.assert_allclose(result.error, (result.energy - result.energy[0]) / scale)
+    assert result.summary["energy_scale_J"] == pytest.approx(scale)
+    path = tmp_path / "level.toml"
+    path.write_text(GOOD.replace("[90.0, 120.0]", "[90.0, 90.0]"))
+    level = run_scene(load_scene(path))
+    assert abs(level.energy[0]) < 1e-14 and level.summary["energy_scale_J"] > 1.0
+    assert 0 < level.summary["max_relative_energy_error"] < 1e-6
 
 
 def test_figure_is_equal_aspect_and_shows_the_constraint_only_above_rounding(pendulum_result):
@@ -527,6 +600,14 @@ def test_end_time_must_follow_t0(tmp_path, capsys):
     assert not out.exists()
     spec = load_scene(path, 12.0)  # the reader applies --t1; save_dt stays the file's
     assert spec.t1 == 12.0 and spec.save_dt == pytest.approx(0.5 / 1000)
+    # run_scene's t1: the same check and words (before: it integrated backwards, or NaN
+    # raised "cannot convert float NaN to integer"), and the limits of a file's t1
+    for t1 in (5.0, float("nan"), True):
+        expected = f"{path}: t1: t1 must be a time in s after t0 = 10 and at most 1e+100 (got {t1})"
+        with pytest.raises(SceneFileError, match=f"^{re.escape(expected)}$"):
+            run_scene(spec, t1=t1)
+    with pytest.raises(SceneFileError, match=r"save_dt must give at most 1e\+08 saved numbers"):
+        run_scene(spec, t1=1e9)
 
 
 def test_output_folder_is_checked_before_integrating(tmp_path, capsys):

@@ -27,6 +27,8 @@ CACHE_ENV = "SPHERE_MECH_CACHE_DIR"
 TEMP_PREFIX = ".sphere-mech-"  # a run completes its files in `.sphere-mech-<pid>-<random>`
 STALE_AFTER_S = 24 * 3600  # such a folder, its process gone or older than this: removed
 _WRITING: set[Path] = set()  # this process's temporary folders, removed on a signal
+_REPLACING = threading.Lock()  # held while a run's files move into place: a signal waits
+_WRITTEN = threading.Event()  # set once they have
 
 
 def cache_dir() -> Path | None:
@@ -124,13 +126,15 @@ def write_outputs(out: Path, result, scene, *, animation: bool = True) -> None:
             name = result.summary["scene"]
             html = player(skeleton(scene, result.x.shape[1]), result.t, result.x, title=name)
             (tmp / "animation.html").write_text(page(html, name), encoding="utf-8")
-        for name in output_names(animation):
-            os.replace(tmp / name, out / name)
+        with _REPLACING:  # all of one run's files or all of the last's, never some of each
+            for name in output_names(animation):
+                os.replace(tmp / name, out / name)
+            if not animation:  # the folder describes one run
+                (out / "animation.html").unlink(missing_ok=True)
+            _WRITTEN.set()
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
         _WRITING.discard(tmp)
-    if not animation:  # the folder describes one run
-        (out / "animation.html").unlink(missing_ok=True)
 
 
 def _print_summary(s: dict, out: Path, animation: bool) -> None:
@@ -173,10 +177,13 @@ _SIGNALS = {signal.SIGINT: "interrupted", signal.SIGTERM: "terminated"}
 
 
 def _stop(signum: int) -> None:
-    """Remove this run's temporary folders, print one line and exit `128 + signum` at once."""
+    """Remove this run's temporary folders, print one line and exit `128 + signum` at once
+    (once the files being moved into place, if any, all are)."""
+    _REPLACING.acquire()
     for folder in list(_WRITING):
         shutil.rmtree(folder, ignore_errors=True)
-    os.write(2, f"\n{PROG}: {_SIGNALS[signum]}; earlier outputs kept\n".encode())
+    outputs = "this run's outputs written" if _WRITTEN.is_set() else "earlier outputs kept"
+    os.write(2, f"\n{PROG}: {_SIGNALS[signum]}; {outputs}\n".encode())
     os._exit(128 + signum)
 
 
@@ -210,6 +217,7 @@ def _on_signals():
 
 def main(argv=None) -> int:
     """The command line (see the module's docstring); returns the exit status."""
+    _WRITTEN.clear()
     restore = _on_signals()
     try:
         return _main(argv)

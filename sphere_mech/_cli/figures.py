@@ -93,7 +93,7 @@ def figure(result, scene):
     ax = fig.add_subplot(grid[:, 0], projection="3d")
     ax.legend(handles=draw_motion(ax, skel, result.t, result.x), fontsize=7, loc="upper left")
     _energy(fig.add_subplot(grid[0, 1]), result)
-    title = "relative energy error |E - E(0)| / |E(0)|"
+    title = "relative energy error |E - E(0)| / max(|T| + |V|)"
     if result.work is not None:
         title = "work-energy balance |E - E(0) - W| / scale"
     _semilogy(fig.add_subplot(grid[1, 1]), result.error_t, result.error, title)

@@ -339,7 +339,8 @@ class Particles(AbstractSphereMasses):
     def __init__(self, masses, radii, centers=(0.0, 0.0, 0.0), count: int | None = None):
         self.masses, self.radii = per_item(count, "count", masses=masses, radii=radii)
         centers = as_float(centers)
-        self.centers = jnp.broadcast_to(centers, (self.n, 3)) if centers.ndim == 1 else centers
+        one = centers.shape == (3,)  # one centre for all; any other shape is checked as is
+        self.centers = jnp.broadcast_to(centers, (self.n, 3)) if one else centers
 
     def drawing(self):  # each particle on a link from its centre
         centers = np.asarray(self.centers, float)
