@@ -377,6 +377,10 @@ def test_learn_rejects_bad_input(tmp_path):
         sm.LearnedLagrangian(1, key=jax.random.PRNGKey(1), input_scale=np.inf)
     with pytest.raises(ValueError, match="input_scale must be a finite number > 0, got Array"):
         sm.LearnedLagrangian(1, key=jax.random.PRNGKey(1), input_scale=jnp.array([1.0, 2.0]))
+    with pytest.raises(ValueError, match="dtype must be a floating dtype JAX runs in, got int32"):
+        sm.LearnedLagrangian(1, key=jax.random.PRNGKey(1), dtype="int32")
+    with jax.enable_x64(False), pytest.raises(ValueError, match="float64 needs jax_enable_x64"):
+        sm.LearnedLagrangian(1, key=jax.random.PRNGKey(1), dtype="float64")  # was float32
     with pytest.raises(TypeError, match="learn: optimizer must be an optax GradientTransf"):
         sm.learn(model, ts, states, steps=1, optimizer="adam")
     # a checkpoint that is a folder (written as it is, or with `.eqx` appended)

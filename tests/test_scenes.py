@@ -447,6 +447,10 @@ TAU = jnp.array([0.0, 0.0, 1.0])
             "inertia must be finite and at most 1e+100 in magnitude, got nan",
         ),
         (lambda: sm.Line([0.0] * 3, [1.0, 0, 0], [0, 0, -1.0]), "heading must not be vertical"),
+        (  # as VibratingSupport's (before: accepted)
+            lambda: sm.Harmonic(1.0, -2.0),
+            "angular_frequency must be >= 0 (rad/s), got -2.0",
+        ),
     ],
 )
 def test_invalid_parameters_raise_at_construction(build, message):

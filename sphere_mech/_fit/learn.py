@@ -95,6 +95,9 @@ class LearnedLagrangian(AbstractConstantInertiaLagrangian):
         dtype=None,
     ):
         dtype = jnp.zeros(()).dtype if dtype is None else jnp.dtype(dtype)
+        if not jnp.issubdtype(dtype, jnp.floating) or dtype != jax.dtypes.canonicalize_dtype(dtype):
+            x64 = " (float64 needs jax_enable_x64)" if dtype == jnp.float64 else ""
+            raise ValueError(f"dtype must be a floating dtype JAX runs in{x64}, got {dtype}.")
         for name, value, least in (("n", n, 1), ("width", width, 1), ("depth", depth, 0)):
             check_integer(value, name, least)
         M = np.eye(n) if inertia is None else np.asarray(inertia, dtype=float)

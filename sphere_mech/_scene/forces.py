@@ -337,7 +337,9 @@ class Harmonic(AbstractDrive):
     offset: jax.Array = eqx.field(default=0.0, converter=base.as_float)
 
     def __check_init__(self):
-        base.check_shape("angular_frequency", self.angular_frequency, (), "a scalar")
+        base.check_sign(  # as VibratingSupport's
+            "angular_frequency", self.angular_frequency, " (rad/s)", strict=False, scalar=True
+        )
         base.check_shape("phase", self.phase, (), "a scalar")
         if jnp.ndim(self.amplitude) != 1:
             got = jnp.shape(self.amplitude)
