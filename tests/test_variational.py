@@ -226,6 +226,15 @@ def test_newton_failure_is_reported():
     sol = fixed_steps(GENERAL, sm.Variational(), 0.9, Y0, t1=9.0, args=G, throw=False)
     assert sol.result != sm.RESULTS.successful
     assert np.all(np.isfinite(np.asarray(sol.ys[0])))
+    # Saved every 0.1: those inside the failed step are unreached (`inf`), as all after
+    # it; before, its dense output made up a curve from the last good state back to it.
+    saveat = diffrax.SaveAt(ts=jnp.linspace(0.0, 9.0, 91))
+    options = dict(t1=9.0, args=G, throw=False, saveat=saveat)
+    sol = fixed_steps(GENERAL, sm.Variational(), 0.9, Y0, **options)
+    finite = np.all(np.isfinite(np.asarray(sol.ys[0])), axis=(1, 2))
+    good = int(np.sum(finite))
+    steps = int(sol.stats["num_steps"])  # the failed one last
+    assert np.all(finite[:good]) and good == 9 * (steps - 1) + 1 and good < 91
     with pytest.raises(Exception, match="did not converge|onlinear solve"):
         fixed_steps(GENERAL, sm.Variational(), 0.9, Y0, t1=9.0, args=G)
 

@@ -5,10 +5,16 @@ from collections.abc import Callable
 from typing import ClassVar
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
-from diffrax import RESULTS, AbstractSolver, ThirdOrderHermitePolynomialInterpolation
+from diffrax import (
+    RESULTS,
+    AbstractLocalInterpolation,
+    AbstractSolver,
+    ThirdOrderHermitePolynomialInterpolation,
+)
 from jax import lax
 
 from .._misc import tree_dtype
@@ -16,6 +22,27 @@ from .._momentum import newton_tolerance
 from .._system import vector_field
 from .._term import MechanicsTerm, physical_time, system_of
 from .discrete_mechanics import check_lagrangian, substep
+
+
+class _StepInterpolation(AbstractLocalInterpolation):
+    """diffrax's cubic Hermite dense output of a step, `inf` inside a failed step: fixed
+    steps keep it, and the save times in it are unreached (before: a curve from y0 to y0)."""
+
+    t0: jax.Array
+    t1: jax.Array
+    hermite: ThirdOrderHermitePolynomialInterpolation
+    failed: jax.Array
+
+    def __init__(self, *, t0, t1, y0, y1, k, failed):
+        self.t0, self.t1, self.failed = t0, t1, failed
+        self.hermite = ThirdOrderHermitePolynomialInterpolation.from_k(
+            t0=t0, t1=t1, y0=y0, y1=y1, k=k
+        )
+
+    def evaluate(self, t0, t1=None, left=True):
+        y = self.hermite.evaluate(t0, t1, left)
+        unreached = self.failed & (True if t1 is not None else t0 > self.t0)
+        return jtu.tree_map(lambda x: jnp.where(unreached, jnp.inf, x), y)
 
 
 def composition_coefficients(order: int, composition: str) -> tuple[float, ...]:
@@ -67,7 +94,8 @@ class Variational(AbstractSolver):
     solver=Variational(), dt0=h)`, or `diffrax.diffeqsolve(sphere_mech.MechanicsTerm(
     system), Variational(), t0, t1, h, y0, args=args)`. A Newton iteration that does
     not converge is reported through the solution's `result` (raised by `simulate`
-    unless `throw=False`); the state then stays at the last good step.
+    unless `throw=False`); the state then stays at the last good step, and save times
+    inside the failed step are `inf`, as those after it.
 
     **Arguments:**
     - `order`: 2 (the basic step) or 4 (a symmetric composition of it).
@@ -98,9 +126,7 @@ class Variational(AbstractSolver):
     root_finder: str = eqx.field(static=True)
 
     term_structure: ClassVar = MechanicsTerm
-    interpolation_cls: ClassVar[Callable[..., ThirdOrderHermitePolynomialInterpolation]] = (
-        ThirdOrderHermitePolynomialInterpolation.from_k
-    )
+    interpolation_cls: ClassVar[Callable[..., AbstractLocalInterpolation]] = _StepInterpolation
 
     def __init__(
         self,
@@ -172,7 +198,8 @@ class Variational(AbstractSolver):
         keep = (result == RESULTS.successful) & (h != 0)
         y1, rates1 = jtu.tree_map(lambda a, b: jnp.where(keep, a, b), (y1, rates1), (y0, rates0))
         k = jtu.tree_map(lambda a, b: jnp.stack([h * a, h * b]), rates0, rates1)
-        return y1, None, dict(y0=y0, y1=y1, k=k), rates1, result
+        failed = result != RESULTS.successful
+        return y1, None, dict(y0=y0, y1=y1, k=k, failed=failed), rates1, result
 
     def func(self, terms, t0, y0, args):
         return terms.vf(t0, y0, args)
