@@ -447,6 +447,11 @@ TAU = jnp.array([0.0, 0.0, 1.0])
             "inertia must be finite and at most 1e+100 in magnitude, got nan",
         ),
         (lambda: sm.Line([0.0] * 3, [1.0, 0, 0], [0, 0, -1.0]), "heading must not be vertical"),
+        (  # as in a scene file (before: True taken as 1.0, "1" a JAX TypeError)
+            lambda: sm.Chain(True, 1.0),
+            "masses: expected a number or an array of numbers, got True",
+        ),
+        (lambda: sm.Chain(1.0, "1"), "lengths: expected a number or an array of numbers, got '1'"),
         (  # as VibratingSupport's (before: accepted)
             lambda: sm.Harmonic(1.0, -2.0),
             "angular_frequency must be >= 0 (rad/s), got -2.0",

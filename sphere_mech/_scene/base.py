@@ -18,8 +18,15 @@ MAX_COUNT = 100_000
 """The most items (links, particles, beads) one kinetic term may have."""
 
 
-def as_float(x) -> jax.Array:
-    """`x` as a floating array (float64 when x64 is enabled)."""
+def as_float(x, name: str | None = None) -> jax.Array:
+    """`x` as a floating array (float64 when x64 is enabled); booleans and strings (a NumPy
+    kind other than integer or floating) are refused, naming `name` if given."""
+    traced = any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(x))
+    if not traced and np.asarray(x).dtype.kind not in "iuf":
+        expected = f"a number or an array of numbers, got {x!r}"
+        if name is None:
+            raise TypeError(f"expected {expected}")
+        raise ParameterError(name, f"{name}: expected {expected}")
     x = jnp.asarray(x)
     return x if jnp.issubdtype(x.dtype, jnp.floating) else x.astype(jnp.result_type(float))
 
@@ -108,7 +115,7 @@ def per_item(count: int | None, count_name: str, **arrays) -> list[jax.Array]:
     if count is not None and not (is_integer(count) and 1 <= count <= MAX_COUNT):
         message = f"{count_name} must be an integer from 1 to {MAX_COUNT}, got {count!r}"
         raise ParameterError(count_name, message)
-    arrays = {k: as_float(v) for k, v in arrays.items()}
+    arrays = {k: as_float(v, k) for k, v in arrays.items()}
     if count is None:
         count = max((jnp.shape(v)[0] for v in arrays.values() if jnp.ndim(v) == 1), default=1)
     if not 1 <= count <= MAX_COUNT:
