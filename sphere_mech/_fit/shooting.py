@@ -98,7 +98,7 @@ def simulate_at(system, args, state, t0, t1, ts, sim: dict):
     end = jtu.tree_map(lambda x: jnp.where(reached, x[-1], jnp.inf), sol.ys)
     # A solve that stopped early has its last state in the first slot of `ts` it did not
     # reach (diffrax), with its own time: a save is at `ts` only where its time is.
-    saved = sol.ts[:-1] == jnp.asarray(ts, sol.ts.dtype)
+    saved = reached | (sol.ts[:-1] == jnp.asarray(ts, sol.ts.dtype))
     return jtu.tree_map(lambda x: jnp.where(rows(saved, x[:-1]), x[:-1], jnp.inf), sol.ys), end
 
 
