@@ -103,7 +103,7 @@ def segment_times(t0: float, t1: float, save_dt: float) -> tuple[np.ndarray, np.
     return np.stack(rows), np.array([min(m + 1, n_out - s) for s in starts])
 
 
-def fixed_steps(span, dt0):
+def fixed_step_count(span, dt0):
     """How many equal fixed steps a segment of length `span` takes: as many as `dt0` fits
     (to rounding). Operators only: NumPy floats where a scene file is checked, traced
     arrays in the run."""
@@ -135,7 +135,7 @@ def build(spec, t1=None) -> tuple[Program, jax.stages.Compiled]:
         saveat = diffrax.SaveAt(ts=ts, solver_state=forced)
         t_start, t_end, dt0 = times(tree_dtype((q, v)), t_start, ts[-1], spec.dt0)
         if isinstance(opts.controller, diffrax.ConstantStepSize):
-            dt0 = (t_end - t_start) / fixed_steps(t_end - t_start, dt0)
+            dt0 = (t_end - t_start) / fixed_step_count(t_end - t_start, dt0)
         segment_opts = eqx.tree_at(lambda o: (o.saveat, o.solver), opts, (saveat, solver))
         sol = solve(system, (q, v), t_start, t_end, dt0, None, segment_opts)
         result = code(sol.result)

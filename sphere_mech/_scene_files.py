@@ -424,7 +424,7 @@ def check_extent(spec, t1: float):
     """A run of `spec` to `t1` saves at most `MAX_SAVED` numbers and, with fixed steps, takes
     at most `max_steps` steps, counted as the run takes them (each segment between saves as
     many equal steps as `dt0` fits)."""
-    from ._program import fixed_steps, segment_times
+    from ._program import fixed_step_count, segment_times
 
     path, t0, save_dt = spec.path, spec.t0, spec.save_dt
     intervals = (t1 - t0) / save_dt
@@ -435,7 +435,7 @@ def check_extent(spec, t1: float):
         raise SceneFileError(path, "output.save_dt", f"save_dt must give {expected}")
     if spec.fixed_steps:
         rows = segment_times(t0, t1, save_dt)[0]
-        steps = sum(int(fixed_steps(row[-1] - row[0], spec.dt0)) for row in rows)
+        steps = sum(int(fixed_step_count(row[-1] - row[0], spec.dt0)) for row in rows)
         if steps > spec.max_steps:
             expected = f"at most max_steps = {spec.max_steps} fixed steps from t0 to t1"
             got = f"{spec.dt0:g}: {steps} steps in {len(rows)} segments"
