@@ -118,6 +118,16 @@ def strict_json(summary: dict, reasons: dict) -> dict:
     return out | ({"not_computed": reasons} if reasons else {})
 
 
+def _relative(deviation, scale, key, what, reasons):
+    """`deviation / scale` and its largest magnitude (the summary's `key`); where `scale`
+    is 0, `deviation` itself and `None`, with the reason recorded in `reasons[key]`."""
+    if scale > 0:
+        relative = deviation / scale
+        return relative, float(np.max(np.abs(relative)))
+    reasons[key] = f"{what} are zero throughout: no scale to divide by"
+    return deviation, None
+
+
 def scene_result(spec, run, t1=None) -> SceneResult:
     """The `SceneResult` of `run` (from `Program.integrate`) of `spec` up to `t1`."""
     scene, args, forced = spec.scene, None, spec.scene.has_forces
@@ -129,16 +139,12 @@ def scene_result(spec, run, t1=None) -> SceneResult:
     e_s, W, reasons = None, None, {}
     if forced:  # at the start and the end of every segment: the solver's own steps
         e_s, W, error_t = energy[run.work_index], run.work, t[run.work_index]
-        balance = e_s - e_s[0] - W
         scale = max(np.max(np.abs(e_s)), np.max(np.abs(W)))
-        error = balance / scale if scale > 0 else balance
-        if not scale > 0:
-            reasons["max_relative_work_energy_balance"] = (
-                "the energy and the work are zero throughout: no scale to divide by"
-            )
+        key = "max_relative_work_energy_balance"
+        error, worst = _relative(e_s - e_s[0] - W, scale, key, "the energy and the work", reasons)
         report = {
             "energy_report": "work-energy balance E(t) - E(0) - W(t)",
-            "max_relative_work_energy_balance": float(np.max(np.abs(error))) if scale > 0 else None,
+            key: worst,
             "balance_scale_J": float(scale),
             "work_done_J": float(W[-1]),
         }
@@ -146,14 +152,12 @@ def scene_result(spec, run, t1=None) -> SceneResult:
         # Over the largest |T| + |V|, not |E(0)|: a run that starts at E = 0 (a pendulum
         # released level with its pivot) has an energy scale all the same.
         scale = np.max(np.abs(energy - potential) + np.abs(potential))
-        error_t, error = t, (energy - energy[0]) / scale if scale > 0 else energy - energy[0]
-        if not scale > 0:
-            reasons["max_relative_energy_error"] = (
-                "the kinetic and potential energies are zero throughout: no scale to divide by"
-            )
+        key, what = "max_relative_energy_error", "the kinetic and potential energies"
+        error_t = t
+        error, worst = _relative(energy - energy[0], scale, key, what, reasons)
         report = {
             "energy_report": "energy error (E(t) - E(0)) / max(|T| + |V|)",
-            "max_relative_energy_error": float(np.max(np.abs(error))) if scale > 0 else None,
+            key: worst,
             "energy_scale_J": float(scale),
         }
     q, v = jax.tree.map(np.asarray, (q, v))

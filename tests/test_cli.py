@@ -627,7 +627,8 @@ def test_output_folder_is_checked_before_integrating(tmp_path, capsys):
 
 def test_still_forced_scene_writes_strict_json(tmp_path, capsys):
     """A forced scene in which nothing moves: the relative work-energy balance (0/0) is
-    null with its reason, and summary.json is strict JSON (no NaN)."""
+    null with its reason, and summary.json is strict JSON (no NaN); so is the relative
+    energy error of the same scene unforced."""
     out = tmp_path / "out"
     assert run_cli(_bad(tmp_path, STILL), out, "--no-progress", "--no-animation") == 0
     text = (out / "summary.json").read_text()
@@ -638,6 +639,13 @@ def test_still_forced_scene_writes_strict_json(tmp_path, capsys):
     # the tolerances the run used: the file sets none, so simulate's float64 defaults
     assert (summary["rtol"], summary["atol"]) == sm.DEFAULT_TOLERANCES[np.dtype("float64")]
     assert "balance null (relative) (not computed" in capsys.readouterr().out
+    # unforced (no damping): the relative energy error is null, with its reason
+    free = STILL.replace('[[effects]]\ntype = "joint_damping"\ncoefficient = 0.5\n', "")
+    assert free != STILL
+    assert run_cli(_bad(tmp_path, free), out, "--no-progress", "--no-animation") == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["max_relative_energy_error"] is None and summary["energy_scale_J"] == 0.0
+    assert "energies are zero" in summary["not_computed"]["max_relative_energy_error"]
 
 
 def test_strict_json_replaces_what_is_not_finite():
