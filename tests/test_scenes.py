@@ -422,6 +422,10 @@ TAU = jnp.array([0.0, 0.0, 1.0])
             "TipForce.point must be an integer sphere index in [-2, 2) (the scene has 2 "
             "spheres), got 1.0",
         ),
+        (
+            lambda: sm.Spring(1.0, 0, 1.0),
+            "a must be an integer sphere index or a (3,) anchor point, got shape ()",
+        ),
         (lambda: sm.Chain(1.0, 1.0, links=True), "links must be an integer from 1 to 100000"),
         (lambda: sm.Chain(1.0, 1.0, links=2.0), "links must be an integer from 1 to 100000"),
         (

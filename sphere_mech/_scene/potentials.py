@@ -58,7 +58,9 @@ class Spring(AbstractPotential):
         anchors = []
         for name, end, i in zip("ab", (a, b), self.ends, strict=True):
             anchor = base.as_float(jnp.zeros(3) if i is not None else end)
-            if i is None:
+            if i is None:  # a float such as 1.0 is neither: say what an end may be
+                what = "an integer sphere index or a (3,) anchor point"
+                base.check_shape(name, anchor, (3,), what)
                 base.check_vector(name, anchor)
             anchors.append(anchor)
         self.anchors = jnp.stack(anchors)
