@@ -71,8 +71,9 @@ def check_shape(name: str, x, shape: tuple, what: str) -> None:
         raise ParameterError(name, f"{name} must be {what}, got shape {jnp.shape(x)}")
 
 
-def check_vector(name: str, x, unit: bool = False) -> None:
-    check_shape(name, x, (3,), "a (3,) vector")
+def check_vector(name: str, x, unit: bool = False, what: str = "a (3,) vector") -> None:
+    """A finite `(3,)` vector (`what` names it in the shape error), of length 1 if `unit`."""
+    check_shape(name, x, (3,), what)
     check_magnitude(name, x)
     tol = unit_tolerance(jnp.result_type(x))
     if unit and _concrete(x) and not abs(np.linalg.norm(x) - 1.0) <= tol:

@@ -59,9 +59,9 @@ class Spring(AbstractPotential):
         for name, end, i in zip("ab", (a, b), self.ends, strict=True):
             anchor = base.as_float(jnp.zeros(3) if i is not None else end)
             if i is None:  # a float such as 1.0 is neither: say what an end may be
-                what = "an integer sphere index or a (3,) anchor point"
-                base.check_shape(name, anchor, (3,), what)
-                base.check_vector(name, anchor)
+                base.check_vector(
+                    name, anchor, what="an integer sphere index or a (3,) anchor point"
+                )
             anchors.append(anchor)
         self.anchors = jnp.stack(anchors)
         self.stiffness, self.rest_length = stiffness, rest_length
