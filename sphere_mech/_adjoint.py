@@ -34,17 +34,19 @@ with the number of differentiated scalars per trajectory."""
 
 
 @contextlib.contextmanager
-def forward_mode_hint():
-    """JAX's refusal of forward mode through the default adjoint (a `jax.custom_vjp`)
-    becomes an error that says what to pass instead."""
+def forward_mode_hint(adjoint: diffrax.AbstractAdjoint | None):
+    """JAX's refusal of forward mode through a reverse-mode `adjoint` (the default, `None`,
+    or e.g. `diffrax.RecursiveCheckpointAdjoint()`: a `jax.custom_vjp`) becomes an error
+    that names that adjoint and says what to pass instead."""
     try:
         yield
     except TypeError as error:
         if "custom_vjp" not in str(error):
             raise
+        which = "the default adjoint" if adjoint is None else f"adjoint={adjoint!r}"
         raise TypeError(
             "forward-mode differentiation (jax.jvp, jax.jacfwd) of a run needs "
-            "adjoint=diffrax.ForwardMode(); the default adjoint is reverse mode"
+            f"adjoint=diffrax.ForwardMode(); {which} is reverse mode"
         ) from error
 
 

@@ -191,7 +191,7 @@ def simulate_batch(
     y0 = run.y0
     if mesh is not None:  # each process's slices (global arrays), laid on the batch's mesh
         batched, y0 = _on_mesh((batched, y0), mesh)
-    with forward_mode_hint(), one_device(devices):
+    with forward_mode_hint(run.opts.adjoint), one_device(devices):
         sol = _solve_batch(static, chunk, mesh, shared, batched, y0, run.valid, size, padded)
     return raise_on_failure(sol, run.opts.max_steps, "simulate_batch") if run.throw else sol
 

@@ -61,7 +61,8 @@ def simulate(
       computed during the run in forward mode for at most 8 differentiated scalars (memory
       independent of the steps), else `diffrax.RecursiveCheckpointAdjoint()` (about
       `sqrt(2 max_steps)` solver states); see `benchmarks/gradients.py`. For `jax.jvp`
-      and `jax.jacfwd` pass `diffrax.ForwardMode()`. The default differentiates through
+      and `jax.jacfwd` pass `diffrax.ForwardMode()`; second derivatives: `jax.hessian`
+      (forward over reverse), not `jax.grad` of `jax.grad`. The default differentiates through
       `system`'s array fields, `y0`, `args`, the times `t0`, `t1`, `dt0`, the save times
       and the values that the functions close over (a parameter captured by `L`, by the
       forces or by an event's condition).
@@ -83,6 +84,6 @@ def simulate(
     space) with a leading time axis and whose `result` is an `sm.RESULTS` code.
     """
     run = prepare(system, y0, args, **run_options(locals()))
-    with forward_mode_hint():
+    with forward_mode_hint(run.opts.adjoint):
         sol = _solve(run.system, run.y0, run.t0, run.t1, run.dt0, run.args, run.opts)
     return raise_on_failure(sol, max_steps, "simulate") if throw else sol

@@ -311,8 +311,9 @@ def test_nan_parameter_is_named_not_the_mass_matrix(state):
 
 def test_forward_mode_without_forward_adjoint_says_what_to_pass():
     """`jax.jacfwd` through `simulate` and `simulate_batch` with the default (reverse-mode)
-    adjoint names the fix, `adjoint=diffrax.ForwardMode()`, instead of JAX's bare
-    "can't apply forward-mode autodiff (jvp) to a custom_vjp function"; with it, it works."""
+    adjoint, or with a reverse-mode adjoint the user passed, names that adjoint and the fix,
+    `adjoint=diffrax.ForwardMode()`, instead of JAX's bare "can't apply forward-mode
+    autodiff (jvp) to a custom_vjp function"; with it, it works."""
     import diffrax
 
     system = sm.Lagrangian(lambda t, q, v, g: 0.5 * jnp.sum(v * v) - g * q[0, 2])
@@ -326,7 +327,13 @@ def test_forward_mode_without_forward_adjoint_says_what_to_pass():
         return sm.simulate_batch(system, y0, 0.2, args=g[None]).ys[0][0, -1, 0, 0]
 
     for f in (final, batch_final):
-        with pytest.raises(TypeError, match=r"adjoint=diffrax\.ForwardMode\(\)"):
+        with pytest.raises(
+            TypeError,
+            match=r"needs adjoint=diffrax\.ForwardMode\(\); the default adjoint is reverse mode",
+        ):
             jax.jacfwd(f)(jnp.asarray(9.81))
+    chosen = diffrax.RecursiveCheckpointAdjoint()  # a reverse-mode adjoint the user chose
+    with pytest.raises(TypeError, match=r"; adjoint=RecursiveCheckpointAdjoint\(\) is reverse"):
+        jax.jacfwd(lambda g: final(g, chosen))(jnp.asarray(9.81))
     forward = jax.jacfwd(lambda g: final(g, diffrax.ForwardMode()))(jnp.asarray(9.81))
     assert jnp.isfinite(forward)

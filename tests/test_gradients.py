@@ -81,6 +81,20 @@ def test_default_gradient_matches_differences_and_old_adjoint(value_and_grad_def
     assert np.all(np.abs(grad) > 1e-2)  # a gradient that could be wrong
 
 
+def test_second_derivatives_forward_over_reverse(value_and_grad_default):
+    """`jax.hessian` (forward mode over the default adjoint's reverse mode) against
+    central differences of the compiled gradient; reverse over reverse is refused by JAX
+    (diffrax's loops have no reverse mode of their reverse mode), as documented."""
+    loss = _loss(False, "fixed", None)
+    hessian = eqx.filter_jit(jax.hessian(loss))(LENGTHS)
+    fd = central_differences(lambda x: value_and_grad_default(x)[1], LENGTHS)
+    np.testing.assert_allclose(hessian, fd, rtol=1e-6, atol=1e-8)
+    np.testing.assert_allclose(hessian, hessian.T, rtol=1e-10)
+    assert np.all(np.abs(np.diag(hessian)) > 1e-2)  # a Hessian that could be wrong
+    with pytest.raises(ValueError, match="Reverse-mode differentiation does not work"):
+        jax.grad(lambda x: jax.grad(loss)(x)[0])(LENGTHS)
+
+
 @pytest.mark.parametrize(
     ("batch", "kind"),
     [(True, "fixed"), (False, "adaptive")],
