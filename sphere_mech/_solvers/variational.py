@@ -95,7 +95,11 @@ class Variational(AbstractSolver):
     system), Variational(), t0, t1, h, y0, args=args)`. A Newton iteration that does
     not converge is reported through the solution's `result` (raised by `simulate`
     unless `throw=False`); the state then stays at the last good step, and save times
-    inside the failed step are `inf`, as those after it.
+    inside the failed step are `inf`, as those after it. diffrax labels that kept state
+    with the failed step's end time (its `SaveAt(t1=True)` or `steps=True` entry): the
+    time where the run stopped is one step earlier. The state is kept rather than made
+    `inf` so that an event's condition does not change sign on the failed step, which
+    diffrax would report as the event instead of the failure.
 
     **Arguments:**
     - `order`: 2 (the basic step) or 4 (a symmetric composition of it).
