@@ -23,15 +23,14 @@ from _harness import publish, pyplot, save_figure, table, timing
 
 jax.config.update("jax_enable_x64", True)
 sys.path.insert(0, str(pathlib.Path(__file__).parents[1] / "tests"))
-from test_fit import START, TRUE, _initial_states, _record, damped_chain, mass_positions  # noqa: E402
+from helpers import SIM, chain_initial_states  # noqa: E402
+from test_fit import START, TRUE, _record, damped_chain, mass_positions  # noqa: E402
 
 import sphere_mech as sm  # noqa: E402
 
-SIM = dict(rtol=1e-7, atol=1e-9)
-
 
 def main():
-    y0 = jax.tree.map(lambda x: x[0], _initial_states(1))
+    y0 = jax.tree.map(lambda x: x[0], chain_initial_states(1))
     ts, obs = _record(y0, 5.0, 51, jax.random.PRNGKey(0))
 
     def loss(p, adjoint):
