@@ -7,16 +7,20 @@ import os
 CORES = os.cpu_count() or 1
 
 
-def parse_options(description, add_arguments=None, argv=None):
-    """`--quick`, `--device cpu|gpu`, `--dtype`, `--mjx`, plus what `add_arguments(parser)`
-    adds; on CPU, asks XLA for one device per core. Call before importing JAX."""
+def parse_options(description, add_arguments=None, argv=None, mjx=True):
+    """`--quick`, `--device cpu|gpu`, `--dtype`, `--mjx` (if `mjx`: the script has an MJX
+    run; else `opts.mjx` is False), plus what `add_arguments(parser)` adds; on CPU, asks
+    XLA for one device per core. Call before importing JAX."""
     parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--quick", action="store_true", help="fewer sizes and steps")
     parser.add_argument("--device", choices=("cpu", "gpu"), default="cpu")
     parser.add_argument(
         "--dtype", choices=("float32", "float64"), help="default: float64 on cpu, float32 on gpu"
     )
-    parser.add_argument("--mjx", action="store_true", help="also run MJX on the CPU")
+    if mjx:
+        parser.add_argument("--mjx", action="store_true", help="also run MJX on the CPU")
+    else:
+        parser.set_defaults(mjx=False)
     if add_arguments is not None:
         add_arguments(parser)
     opts = parser.parse_args(argv)

@@ -1,16 +1,18 @@
 """Cost of one acceleration evaluation: the constant-inertia fast path against the general
 autodiff path, on the same Lagrangian.
 
-The chain pendulum (`sm.chain_pendulum`, the paper's Corollary 1: constant scalar
-inertia, no Hessian of L) against `sm.Lagrangian(chain.lagrangian)` (the Hessian of the
-same L by forward-over-reverse autodiff and a 2n x 2n solve), both with a tip force and a
-base torque, in float64, for n = 1, 2, 4, 8, 16, 32 links. Each is `jax.jit`-compiled
-(compile time reported separately), `jax.vmap`-ed over a batch of states, and timed as the
-median over repeats of the wall time per batch divided by the batch size. The two paths
-are first checked to agree. The baseline is the general path measured in the same run.
+The chain pendulum (`sm.chain_pendulum`, the paper's Corollary 1: constant scalar inertia,
+no Hessian of L) against `sm.Lagrangian(chain.lagrangian)` (the Hessian of the same L by
+forward-over-reverse autodiff and a 2n x 2n solve), both with a tip force and a base
+torque, in float64, for n = 1, 2, 4, 8, 16, 32, 64 links (1 to 8 with `--quick`). Each is
+`jax.jit`-compiled (compile time reported separately), `jax.vmap`-ed over a batch of
+states, and timed as the median over repeats of the wall time per batch divided by the
+batch size. The two paths are first checked to agree. The baseline is the general path
+measured in the same run.
 A third column times Hamilton's equations of `sm.legendre(chain)` (the inverse Legendre
 map by the same O(n) fast path, gradients by the envelope theorem) against the chain's
-own accelerations. Prints a markdown table; writes benchmarks/results/fast_path.{png,md}.
+own accelerations. Prints a markdown table; writes benchmarks/results/fast_path.{png,md}
+(`fast_path_quick.*` with `--quick`).
 
 Second table: the variational integrator on the same chains, whose Newton solve uses the
 same O(n) multiplier solve. Cost per step of one trajectory (`sm.simulate`, float64,
@@ -249,11 +251,12 @@ def main():
     opts = parser.parse_args()
     ns = [1, 2, 4, 8] if opts.quick else [1, 2, 4, 8, 16, 32, 64]
     repeats = 5 if opts.quick else 20
+    stem = "fast_path" + ("_base" if opts.base else "") + ("_quick" if opts.quick else "")
     if opts.base:
         loads = [os.getloadavg()[0]]
         rows = base_rows(ns, opts.batch, repeats)
         loads.append(os.getloadavg()[0])
-        publish(base_table(rows, opts.batch, repeats, machine(loads)), "fast_path_base.md")
+        publish(base_table(rows, opts.batch, repeats, machine(loads)), f"{stem}.md")
         return
     rows = []
     for n in ns:
@@ -297,7 +300,7 @@ def main():
     var_rows = variational_rows(ns[1:], opts.dt, opts.steps, var_repeats)
     var_table = variational_table(var_rows, opts.dt, opts.steps, var_repeats)
     print()
-    publish(header + table(columns, cells, "r" * len(columns)) + "\n\n" + var_table, "fast_path.md")
+    publish(header + table(columns, cells, "r" * len(columns)) + "\n\n" + var_table, f"{stem}.md")
 
     n_arr = np.array([r[0] for r in rows])
     fig, (ax1, ax2, ax3) = pyplot().subplots(1, 3, figsize=(15, 4))
@@ -330,7 +333,7 @@ def main():
     fig.suptitle(
         f"Chain pendulum, float64: accelerations (batch {opts.batch}) and integrator steps"
     )
-    save_figure(fig, "fast_path.png")
+    save_figure(fig, f"{stem}.png")
 
 
 if __name__ == "__main__":

@@ -392,7 +392,9 @@ def load(path, system: str, dtype="float64"):
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--system", choices=["magnet", "chain3", "chain5"], required=True)
+    parser.add_argument(
+        "--system", choices=["magnet", "chain3", "chain5"], help="required unless --summary"
+    )
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--quick", action="store_true", help="small data, few steps")
     parser.add_argument("--steps", type=int, default=None)
@@ -441,6 +443,8 @@ def main(argv=None):
     args = parser.parse_args(argv)
     if args.summary:
         return summary(args.out)
+    if args.system is None:
+        parser.error("--system is required (unless --summary)")
     tk = task(args.system)
     num_train, num_test = (80, 20) if args.quick else (800, 200)
     steps = args.steps or (50 if args.quick else 5000)

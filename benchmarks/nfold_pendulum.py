@@ -30,7 +30,7 @@ Comparison at equal error: for each method and P, its evaluations and accepted s
 interpolated (log-log, between its tolerances) at the baseline's final error.
 
     python benchmarks/nfold_pendulum.py           # full run (about 15 min on 2 cores)
-    python benchmarks/nfold_pendulum.py --quick   # P = 2 and 20, three methods (< 2 min)
+    python benchmarks/nfold_pendulum.py --quick   # P = 2 and 20, 2 methods + baseline (< 2 min)
 
 Writes `<out>/nfold_pendulum{,_quick}.{md,json,png}`.
 """
@@ -397,7 +397,9 @@ def figure(rows, ps, out, name):
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="P = 2 and 20, three methods")
+    parser.add_argument(
+        "--quick", action="store_true", help="P = 2 and 20, two methods and the baseline"
+    )
     parser.add_argument("--out", default=str(RESULTS_DIR))
     a = parser.parse_args(argv)
     ps = (2, 20) if a.quick else tuple(range(2, 21, 2))

@@ -43,7 +43,7 @@ def _sizes(parser):
     parser.add_argument("--batches", type=int, nargs="+", help="batch sizes")
 
 
-OPTS = parse_options(__doc__.splitlines()[0], _sizes)
+OPTS = parse_options(__doc__.splitlines()[0], _sizes, mjx=False)
 
 import os  # noqa: E402
 

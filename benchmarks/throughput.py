@@ -22,7 +22,8 @@ Then pendulum-steps per second (trajectories x steps / wall time, after compilat
 median of 3 repeats, one for runs over 5 s) for n = 2, 8, 32 links and batch 1, 64, 1024,
 8192, with the ratio to the peer (MuJoCo on CPU, MJX on GPU) measured in the same run;
 then the cost of one step of a single trajectory against n. Prints markdown tables and
-writes benchmarks/results/throughput_<device>.{png,md,json}.
+writes benchmarks/results/throughput.{png,md,json} (CPU, float64; else
+`throughput_<device>_<dtype>.*`; `_quick` added with `--quick`).
 
     python benchmarks/throughput.py [--quick] [--device cpu|gpu] [--dtype float32|float64]
 
@@ -330,7 +331,7 @@ def main():
         "throughput"
         if (OPTS.device, OPTS.dtype) == ("cpu", "float64")
         else f"throughput_{OPTS.device}_{OPTS.dtype}"
-    )
+    ) + ("_quick" if quick else "")
     store = RESULTS / f"{stem}.json"
     records = {"batch": {}, "cost": {}, "agreement": {}}
     if OPTS.merge and store.exists():

@@ -29,7 +29,7 @@ integrated with the same diffrax solver; and a motion that passes within ~1e-6 r
 angle chart's pole, where the angle baseline's cost or error blows up while ours does not.
 
     python benchmarks/work_precision.py           # full run, < ~10 min on 2 cores
-    python benchmarks/work_precision.py --quick   # < 1 min (run by the test suite)
+    python benchmarks/work_precision.py --quick   # < 1 min (run by notebooks/04_accuracy)
     python benchmarks/work_precision.py --scenes drone   # one scene, merged into the results
 
 Writes `<out>/work_precision.{md,png,json}` (`work_precision_quick.*` with `--quick`).
@@ -594,8 +594,9 @@ def _pole(t1, info, log):
 
 
 SCENES = ("double", "triple", "chain", "pole", "drone")
-"""The scenes' keys for `--scenes`, in the order of the full run (`--quick`: double and
-pole only)."""
+"""The scenes' keys for `--scenes`, in the order of the full run."""
+QUICK_SCENES = ("double", "pole")
+"""The scenes of the quick run (`--quick`)."""
 
 
 def scenes_of(quick, keys, info, log):
@@ -713,6 +714,8 @@ def main(argv=None):
         "rows into the results already in --out",
     )
     args = parser.parse_args(argv)
+    if args.quick and args.scenes and not set(args.scenes) <= set(QUICK_SCENES):
+        parser.error(f"--quick runs only the scenes {', '.join(QUICK_SCENES)}")
     return run(quick=args.quick, out=args.out, scenes=args.scenes)
 
 
