@@ -8,7 +8,7 @@ jaxprs included) and time one step of `simulate` with fixed-step `Projected(RK4(
 compiling.
 Ratios are to the gravity-only scene measured in the same run.
 
-Run: python benchmarks/effects_cost.py   (writes benchmarks/results/effects_cost.png)
+Run: python benchmarks/effects_cost.py   (writes benchmarks/results/effects_cost.{md,png})
 """
 
 import equinox as eqx
@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 
 jax.config.update("jax_enable_x64", True)
-from _harness import publish, pyplot, save_figure, table, timings  # noqa: E402
+from _harness import load, machine, publish, pyplot, save_figure, table, timings  # noqa: E402
 
 import sphere_mech as sm  # noqa: E402
 
@@ -72,7 +72,9 @@ def main():
         for _, sc, _ in cases
     ]
     # interleaved rounds: machine load affects all alike
+    loads = [load()]
     measured = timings([lambda c=c: c[2](c[1], y0) for c in cases], REPEATS, what="the scenes")
+    loads.append(load())
     rows = [
         (name, e, t.median / STEPS, t.min / STEPS)
         for (name, _, _), e, t in zip(cases, eqns, measured, strict=True)
@@ -81,7 +83,7 @@ def main():
     publish(
         f"Cost of effects, {N_LINKS}-link chain, fixed-step Projected(RK4), dt={DT}, "
         f"{STEPS} steps, median of {REPEATS} interleaved rounds; ratios to gravity-only "
-        f"in the same run\n\n"
+        f"in the same run ({machine(loads)}).\n\n"
         + table(
             [
                 "scene",
@@ -103,7 +105,8 @@ def main():
                 for name, e, t, t_min in rows
             ],
             "lrrrrr",
-        )
+        ),
+        "effects_cost.md",
     )
     fig, axes = pyplot().subplots(1, 2, figsize=(11, 4))
     names = [r[0] for r in rows]
