@@ -59,7 +59,6 @@ benchmarks/results/gradients_learned.md.
 
 import argparse
 import json
-import platform
 
 import diffrax
 import equinox as eqx
@@ -69,7 +68,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 jax.config.update("jax_enable_x64", True)
-from _harness import RESULTS, load, publish, pyplot, save_figure, table, timings  # noqa: E402
+from _harness import RESULTS, load, machine, publish, pyplot, save_figure, table, timings  # noqa: E402
 
 import sphere_mech as sm  # noqa: E402
 from sphere_mech._adjoint import BATCH_FORWARD_COLUMNS, FORWARD_COLUMNS  # noqa: E402
@@ -80,7 +79,14 @@ SOLVERS = {  # name: (solver, dt0, t1)
     "Tsit5 (adaptive)": (sm.Projected(diffrax.Tsit5()), 1e-2, 1.0),
 }
 BATCH = {2: 256, 8: 64}
-MACHINE = f"{platform.processor() or platform.machine()}, {jax.devices()[0].platform}"
+
+
+def _machine(loads, flags: str) -> str:
+    """The tables' line on where and how they were measured."""
+    return (
+        f"Machine: {machine(loads)}, JAX on {jax.devices()[0].platform}; "
+        f"`python benchmarks/gradients.py{flags}`.\n\n"
+    )
 
 
 def _states(n, batch, dtype):
@@ -181,9 +187,9 @@ def rk4_batch(repeats=7):
     publish(
         "value_and_grad time / forward time of `simulate_batch` with `Projected(RK4())` at "
         "dt0 = 1e-3 over 0.3 s (300 steps), medians of 7 repeats.\n\n"
-        f"Machine: {MACHINE} (2-core CPU shared with other processes), `python "
-        f"benchmarks/gradients.py --rk4-batch`; load average (1 min) {min(loads):.1f} to "
-        f"{max(loads):.1f} during the run.\n\n" + text + "\n",
+        + _machine(loads, " --rk4-batch")
+        + text
+        + "\n",
         "gradients_rk4_batch.md",
     )
 
@@ -296,10 +302,7 @@ def where(repeats=7):
         "value_and_grad time / forward time. The floor: a forward pass, the forward "
         "recomputed once, and four pullbacks of the vector field a step (its measured "
         "pullback time). The jvp: the vector field's `jax.jvp` with 2 tangents under "
-        "`vmap`, as forward mode runs it.\n\n"
-        f"Machine: {MACHINE} (2-core CPU shared with other processes), `python "
-        f"benchmarks/gradients.py --where`; load average (1 min) {min(loads):.1f} to "
-        f"{max(loads):.1f} during the run.\n\n" + text + "\n",
+        "`vmap`, as forward mode runs it.\n\n" + _machine(loads, " --where") + text + "\n",
         "gradients_where.md",
     )
 
@@ -386,9 +389,9 @@ def bare(repeats=7):
         "1e-10 in float64, 2e-2 in float32); medians of 7 repeats, the six programs of a "
         "row taking turns; ratios are value_and_grad time / the same program's forward "
         "time (forward mode: value and `jax.jacfwd`).\n\n"
-        f"Machine: {MACHINE} (2-core CPU shared with other processes), `python "
-        f"benchmarks/gradients.py --bare`; load average (1 min) {min(loads):.1f} to "
-        f"{max(loads):.1f} during the run.\n\n" + text + "\n",
+        + _machine(loads, " --bare")
+        + text
+        + "\n",
         "gradients_bare.md",
     )
 
@@ -430,9 +433,9 @@ def chunks(repeats=5, n=8, batch=1024, sizes=(16, 64, 256, 1024)):
         f"The batched RK4 row at B = {batch}, n = {n}, float64 (`simulate_batch`, "
         "`Projected(RK4())`, dt0 = 1e-3 over 0.3 s, the default adjoint) with each chunk "
         f"size; medians of {repeats} repeats, a row's two programs taking turns.\n\n"
-        f"Machine: {MACHINE} (2-core CPU shared with other processes), `python "
-        f"benchmarks/gradients.py --chunks`; load average (1 min) {min(loads):.1f} to "
-        f"{max(loads):.1f} during the run.\n\n" + text + "\n",
+        + _machine(loads, " --chunks")
+        + text
+        + "\n",
         "gradients_chunks.md",
     )
 
@@ -514,9 +517,9 @@ def learned(repeats=15):
         + ") and dtype, reverse mode through the whole RK4 step (as `learn` runs it) "
         f"and stage by stage (the default adjoint's reverse mode); medians of {repeats} "
         "repeats, a row's three programs taking turns.\n\n"
-        f"Machine: {MACHINE} (2-core CPU shared with other processes), `python "
-        f"benchmarks/gradients.py --learned`; load average (1 min) {min(loads):.1f} to "
-        f"{max(loads):.1f} during the run.\n\n" + text + "\n",
+        + _machine(loads, " --learned")
+        + text
+        + "\n",
         "gradients_learned.md",
     )
 
@@ -583,10 +586,9 @@ def main():
     )
     suffix = "_quick" if quick else ""
     publish(
-        f"value_and_grad time / forward time.\n\nMachine: {MACHINE} (2-core shared CPU when run "
-        f"by the project), `python benchmarks/gradients.py{' --quick' * quick}`; load "
-        f"average (1 min) {min(loads):.1f} to {max(loads):.1f} during the run.\n"
-        f"Forward-mode Jacobian when at most {FORWARD_COLUMNS} scalars are "
+        "value_and_grad time / forward time.\n\n"
+        + _machine(loads, " --quick" * quick)
+        + f"Forward-mode Jacobian when at most {FORWARD_COLUMNS} scalars are "
         f"differentiated in `simulate`, {BATCH_FORWARD_COLUMNS} in `simulate_batch` "
         "(here the n lengths).\n\n" + text + "\n",
         f"gradients{suffix}.md",
