@@ -13,7 +13,9 @@ tol 1e-8 against the closed form `sqrt(l/g) K(sin^2(1/2))`. Fixed-step rows:
 
     python benchmarks/dense_output.py     # about a minute on 2 cores
 
-Prints a markdown table (nothing is written).
+Prints a markdown table and writes it, with the event times, to
+benchmarks/results/dense_output.md; the figure (error between steps against error at
+them, one point per solver and tolerance or step) to benchmarks/results/dense_output.png.
 """
 
 import sys
@@ -29,7 +31,7 @@ from scipy.special import ellipk
 
 jax.config.update("jax_enable_x64", True)
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _harness, when the tests import us
-from _harness import publish, table  # noqa: E402
+from _harness import publish, pyplot, save_figure, table  # noqa: E402
 
 import sphere_mech as sm  # noqa: E402
 
@@ -100,7 +102,7 @@ def event_time(solver, tol=1e-8):
 
 def main():
     ref = reference()
-    rows = []
+    rows, points = [], []
     for name, inner in (
         ("Dopri5", diffrax.Dopri5()),
         ("Tsit5", diffrax.Tsit5()),
@@ -108,6 +110,7 @@ def main():
     ):
         for tol in (1e-6, 1e-9, 1e-12):
             at_steps, at_ts, _, _ = errors(sm.LieRK(inner), tol, ref)
+            points.append((f"LieRK({name})", at_steps, at_ts))
             rows.append(
                 (
                     f"LieRK({name})",
@@ -125,18 +128,30 @@ def main():
     ):
         for dt in (7e-3, 7e-4):  # steps that do not fall on the 0.01 s grid of TS
             at_steps, at_ts, _, _ = errors(solver, None, ref, dt=dt)
+            points.append((name, at_steps, at_ts))
             ratio = f"{at_ts / at_steps:.1f}"
             rows.append((name, f"dt {dt:.0e}", f"{at_steps:.1e}", f"{at_ts:.1e}", ratio))
     columns = ["solver", "tol or step", "max error at steps", "max error at SaveAt(ts)", "ratio"]
-    publish(table(columns, rows))
     exact = np.sqrt(LENGTH / G) * ellipk(np.sin(0.5) ** 2)
-    print(f"\nevent at tol 1e-8, exact time {exact:.12f} s:")
+    events = [f"Event at tol 1e-8, exact time {exact:.12f} s:"]
     for name, solver in (
         ("LieRK(Dopri8)", sm.LieRK(diffrax.Dopri8())),
         ("Projected(Dopri8)", sm.Projected(diffrax.Dopri8())),
     ):
         t = event_time(solver)
-        print(f"  {name}: {t:.12f} s, off by {t - exact:.1e} s")
+        events.append(f"- {name}: {t:.12f} s, off by {t - exact:.1e} s")
+    publish(table(columns, rows) + "\n\n" + "\n".join(events) + "\n", "dense_output.md")
+
+    fig, ax = pyplot().subplots(figsize=(5.5, 4.5))
+    for i, name in enumerate(dict.fromkeys(name for name, *_ in points)):
+        xy = [(a, b) for n, a, b in points if n == name]
+        ax.loglog(*zip(*xy, strict=True), "o", color=f"C{i}", label=name)
+    lo, hi = min(min(p[1:]) for p in points), max(max(p[1:]) for p in points)
+    ax.loglog([lo, hi], [lo, hi], "k:", lw=1, label="equal")
+    ax.set(xlabel="max error at the steps", ylabel="max error at SaveAt(ts) (between steps)")
+    ax.set_title("dense output against the steps (spherical pendulum, 3 s)", fontsize=9)
+    ax.legend(fontsize=7)
+    save_figure(fig, "dense_output.png")
 
 
 if __name__ == "__main__":
