@@ -173,9 +173,20 @@ def load():
     return os.getloadavg()[0]
 
 
+def cpu_name():
+    """The processor: its architecture, then its model name where Linux gives it."""
+    info = Path("/proc/cpuinfo")
+    names = [
+        line.split(":", 1)[1].strip()
+        for line in (info.read_text().splitlines() if info.exists() else [])
+        if line.startswith("model name")
+    ]
+    return f"{platform.machine()} CPU" + (f" ({names[0]})" if names else "")
+
+
 def machine(loads):
     """The processor, its cores and the range of the load averages `loads`."""
     return (
-        f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+        f"{cpu_name()}, {os.cpu_count()} cores, "
         f"load average {min(loads):.1f}-{max(loads):.1f} during the runs"
     )

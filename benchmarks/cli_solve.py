@@ -5,7 +5,7 @@ compiled first, then `Program.integrate`: every segment, the work of the forces 
 against `sm.simulate` with the file's solver, tolerances and `max_steps`, saving at the
 same times (`SaveAt(ts=...)`, compiled first, `block_until_ready`). Medians (and minima)
 of `--repeats` runs (default 3) in one process, neither compiling again. Prints a
-markdown table and writes benchmarks/results/cli_solve.md.
+markdown table and writes benchmarks/results/cli_solve.{md,png} (all scenes only).
 
     python benchmarks/cli_solve.py [--repeats 3] [scenes ...]
 """
@@ -19,7 +19,7 @@ jax.config.update("jax_enable_x64", True)
 
 import diffrax  # noqa: E402
 import numpy as np  # noqa: E402
-from _harness import load, machine, publish, table, timing  # noqa: E402
+from _harness import load, machine, publish, pyplot, save_figure, table, timing  # noqa: E402
 
 import sphere_mech as sm  # noqa: E402
 from sphere_mech._program import build  # noqa: E402
@@ -61,9 +61,10 @@ def main():
     parser.add_argument("scenes", nargs="*", type=pathlib.Path)
     ns = parser.parse_args()
     scenes = ns.scenes or sorted((ROOT / "examples").glob("*.toml"))
-    rows, loads = [], [load()]
+    rows, loads, medians = [], [load()], []
     for path in scenes:
         cli, simulate, segments = scene_times(path, ns.repeats)
+        medians.append((path.stem, cli.median, simulate.median))
         forced = load_scene(path).scene.has_forces
         rows.append(
             (
@@ -86,6 +87,16 @@ def main():
         + "\n",
         None if ns.scenes else "cli_solve.md",
     )
+    if not ns.scenes:
+        fig, ax = pyplot().subplots(figsize=(8, 3.8))
+        x = np.arange(len(medians))
+        ax.bar(x - 0.2, [m[1] for m in medians], 0.4, label="sphere-mech run (integration)")
+        ax.bar(x + 0.2, [m[2] for m in medians], 0.4, label="sm.simulate")
+        ax.set_xticks(x, [m[0] for m in medians], rotation=20, fontsize=8)
+        ax.set(yscale="log", ylabel="solve time after compiling (s)")
+        ax.set_title(machine(loads), fontsize=8)
+        ax.legend(fontsize=8)
+        save_figure(fig, "cli_solve.png")
 
 
 if __name__ == "__main__":

@@ -7,7 +7,7 @@ bar (printed when the first segment of the integration is dispatched: "time to f
 step"), and to the process's exit (total, with plot.png and animation.html written).
 The pairs run alternately, each with a fresh cache folder; the table gives medians and
 the ratio second / first of the same pairs. Prints a markdown table and writes
-benchmarks/results/cli_startup.md.
+benchmarks/results/cli_startup.{md,png} (the figure: every pair's times).
 
     python benchmarks/cli_startup.py [--repeats 5]
 """
@@ -22,7 +22,7 @@ import tempfile
 import threading
 import time
 
-from _harness import load, machine, publish, table
+from _harness import load, machine, publish, pyplot, save_figure, table
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 COMMAND = "import sys; from sphere_mech._cli import main; sys.exit(main())"
@@ -96,6 +96,16 @@ def main():
         + "\n",
         "cli_startup.md",
     )
+    fig, axes = pyplot().subplots(1, 2, figsize=(8, 3.5), sharey=True)
+    for ax, i, what in zip(axes, (0, 1), ("time to first step", "total"), strict=True):
+        for run, color in (("first", "C3"), ("second", "C0")):
+            times = [r[i] for r in rows[run]]
+            ax.plot(range(1, repeats + 1), times, "o-", color=color, label=f"{run} run")
+        ax.set(xlabel="pair", title=what, ylim=(0, None))
+    axes[0].set_ylabel("seconds from process start")
+    axes[0].legend(fontsize=8)
+    fig.suptitle(f"sphere-mech run, default scene; {machine(loads)}", fontsize=8)
+    save_figure(fig, "cli_startup.png")
 
 
 if __name__ == "__main__":

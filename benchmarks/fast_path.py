@@ -34,7 +34,6 @@ evaluation as in the first table. Writes benchmarks/results/fast_path_base.md.
 """
 
 import argparse
-import os
 
 import equinox as eqx
 import jax
@@ -42,7 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 
 jax.config.update("jax_enable_x64", True)
-from _harness import machine, publish, pyplot, save_figure, table, timing  # noqa: E402
+from _harness import load, machine, publish, pyplot, save_figure, table, timing  # noqa: E402
 
 import sphere_mech as sm  # noqa: E402
 
@@ -253,9 +252,9 @@ def main():
     repeats = 5 if opts.quick else 20
     stem = "fast_path" + ("_base" if opts.base else "") + ("_quick" if opts.quick else "")
     if opts.base:
-        loads = [os.getloadavg()[0]]
+        loads = [load()]
         rows = base_rows(ns, opts.batch, repeats)
-        loads.append(os.getloadavg()[0])
+        loads.append(load())
         publish(base_table(rows, opts.batch, repeats, machine(loads)), f"{stem}.md")
         return
     rows = []

@@ -56,8 +56,6 @@ OPTS = parse_options(__doc__.splitlines()[0])
 
 import datetime  # noqa: E402
 import json  # noqa: E402
-import pathlib  # noqa: E402
-import platform  # noqa: E402
 from typing import NamedTuple  # noqa: E402
 
 import diffrax  # noqa: E402
@@ -67,7 +65,7 @@ import numpy as np  # noqa: E402
 
 jax.config.update("jax_enable_x64", OPTS.dtype == "float64")
 import _peers as peers  # noqa: E402
-from _harness import RESULTS, load, publish, pyplot, save_figure, table  # noqa: E402
+from _harness import RESULTS, cpu_name, load, publish, pyplot, save_figure, table  # noqa: E402
 from _peers import DT, HAVE_MJX, G, chain_xml, final_positions, joint_state  # noqa: E402
 
 import sphere_mech as sm  # noqa: E402
@@ -330,17 +328,6 @@ def report(records, stem, setting):
     axes[0].set_ylabel("system-steps per second")
     fig.suptitle(setting, fontsize=9)
     save_figure(fig, f"{stem}.png")
-
-
-def cpu_name():
-    """The processor's model name (Linux), after the architecture."""
-    info = pathlib.Path("/proc/cpuinfo")
-    names = [
-        line.split(":", 1)[1].strip()
-        for line in (info.read_text().splitlines() if info.exists() else [])
-        if line.startswith("model name")
-    ]
-    return f"{platform.machine()} CPU" + (f" ({names[0]})" if names else "")
 
 
 def main():

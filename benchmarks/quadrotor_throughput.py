@@ -45,7 +45,6 @@ def _sizes(parser):
 
 OPTS = parse_options(__doc__.splitlines()[0], _sizes, mjx=False)
 
-import os  # noqa: E402
 
 import diffrax  # noqa: E402
 import jax  # noqa: E402
@@ -55,7 +54,7 @@ import numpy as np  # noqa: E402
 
 jax.config.update("jax_enable_x64", OPTS.dtype == "float64")
 import _peers as peers  # noqa: E402
-from _harness import machine, publish, pyplot, save_figure, table  # noqa: E402
+from _harness import load, machine, publish, pyplot, save_figure, table  # noqa: E402
 
 import sphere_mech as sm  # noqa: E402
 
@@ -202,10 +201,10 @@ def measure(n, budget):
 def main():
     require_device(OPTS)
     budget = (5e4 if OPTS.quick else 2e5) * (100 if GPU else 1)
-    loads = [os.getloadavg()[0]]
+    loads = [load()]
     agreement = {n: check_agreement(n) for n in LINKS}
     records = {n: measure(n, budget) for n in LINKS}
-    loads.append(os.getloadavg()[0])
+    loads.append(load())
     where = f"{machine(loads)}, {OPTS.dtype}"
     if GPU:
         where = f"sphere_mech on {jax.devices()[0].device_kind}, MuJoCo on {where}"
