@@ -31,11 +31,8 @@ def test_every_benchmark_script_imports():
         timeout=600,
     )
     assert run.returncode == 0, run.stderr[-3000:]
-    lines = [
-        line.split()
-        for line in run.stdout.splitlines()
-        if line.split()[0] in {"imported", "missing"}
-    ]
+    words = (line.split() for line in run.stdout.splitlines())
+    lines = [w for w in words if w[:1] in (["imported"], ["missing"])]
     assert sorted(line[1] for line in lines) == names
     missing = {line[1]: line[2] for line in lines if line[0] == "missing"}
     assert set(missing.values()) <= PEERS, missing
