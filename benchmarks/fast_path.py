@@ -27,7 +27,7 @@ Third table (`--base`, alone): the same chains hanging from a moving base (a dro
 an attitude, the chain hung 5 cm from its centre of mass), the scene's O(n) fast path
 against its general autodiff twin (the same energies through `sm.Lagrangian` on the
 product space) and against the fixed-pivot chain of the same n, per acceleration
-evaluation as in the first table. Writes benchmarks/results/fast_path_base.md.
+evaluation as in the first table. Writes benchmarks/results/fast_path_base.{md,png}.
 
     python benchmarks/fast_path.py [--quick] [--dt 1e-3] [--steps 1000]
     python benchmarks/fast_path.py --base [--quick]
@@ -256,6 +256,16 @@ def main():
         rows = base_rows(ns, opts.batch, repeats)
         loads.append(load())
         publish(base_table(rows, opts.batch, repeats, machine(loads)), f"{stem}.md")
+        fig, ax = pyplot().subplots(figsize=(5.5, 3.8))
+        for name in BASES:
+            picked = [(n, s / f) for base, n, f, s, _, _ in rows if base == name]
+            ax.loglog(*zip(*picked, strict=True), "o-", label=name)
+        ax.set_xscale("log", base=2)
+        ax.set_xticks(ns, [str(n) for n in ns])
+        ax.set(xlabel="links n", ylabel="general path / fast path\n(time per evaluation)")
+        ax.set_title(f"chains on a moving base\n{machine(loads)}", fontsize=7)
+        ax.legend(fontsize=8)
+        save_figure(fig, f"{stem}.png")
         return
     rows = []
     for n in ns:

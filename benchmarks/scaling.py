@@ -14,10 +14,11 @@ recompilation) and checks its states against the baseline's; the reported time i
 slowest process's. Throughput: pendulum-steps per second; parallel efficiency: t1 / (k tk).
 On a machine with fewer free cores than k the workers share cores and the efficiency
 shows that, not the method (the table records the load average). Writes
-benchmarks/results/scaling_<device>.{md,png} (or under `--out`).
+benchmarks/results/scaling_<device>[_quick].{md,png} (or `--name`, e.g. `scaling_cpu_16core`
+for the 16-core run the docs show; under `--out` if given).
 
     python benchmarks/scaling.py [--quick] [--device cpu|gpu] [--k 2 4 ...] [--batch B]
-        [--n N] [--steps S] [--grad] [--out DIR]
+        [--n N] [--steps S] [--grad] [--out DIR] [--name STEM]
 """
 
 import argparse
@@ -44,6 +45,7 @@ def options(argv=None):
     parser.add_argument("--steps", type=int, help="RK4 steps (default 1000, quick 200)")
     parser.add_argument("--grad", action="store_true", help="also time jax.grad")
     parser.add_argument("--out", help="folder for the results (default benchmarks/results)")
+    parser.add_argument("--name", help="the results' file stem (default scaling_<device>[_quick])")
     parser.add_argument("--worker", nargs=4, metavar=("RANK", "PROCS", "PORT", "OUT"))
     opts = parser.parse_args(argv)
     opts.batch = opts.batch or (64 if opts.quick else 1024)
@@ -170,10 +172,8 @@ def main(opts):
         f"RK4 steps, {opts.device}; {machine(loads)}.\n\n"
     )
     out = opts.out or RESULTS
-    name = None if opts.quick else f"scaling_{opts.device}"
-    publish(what + table(columns, rows, "rrrrrr" + "rr" * opts.grad), name and name + ".md", out)
-    if name is None:
-        return
+    name = opts.name or f"scaling_{opts.device}" + ("_quick" if opts.quick else "")
+    publish(what + table(columns, rows, "rrrrrr" + "rr" * opts.grad), name + ".md", out)
     plt = pyplot()
     keys = ["run"] + ["grad"] * opts.grad
     fig, axes = plt.subplots(1, len(keys), figsize=(5 * len(keys), 3.8), squeeze=False)
