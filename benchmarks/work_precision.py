@@ -594,9 +594,8 @@ def _pole(t1, info, log):
 
 
 SCENES = ("double", "triple", "chain", "pole", "drone")
-"""The scenes' keys for `--scenes`, in the order of the full run."""
-QUICK_SCENES = ("double", "pole")
-"""The scenes of the quick run (`--quick`)."""
+"""The scenes' keys for `--scenes`, in the order of the full run (`--quick`: double and
+pole only)."""
 
 
 def scenes_of(quick, keys, info, log):
@@ -614,6 +613,9 @@ def scenes_of(quick, keys, info, log):
             pole=lambda: _pole(5.0, info, log),
             drone=lambda: drone_cable_scene(3.0),
         )
+    if keys is not None and not set(keys) <= set(builders):
+        run = "quick" if quick else "full"
+        raise ValueError(f"the {run} run has only the scenes {', '.join(builders)}")
     return [build() for key, build in builders.items() if keys is None or key in keys]
 
 
@@ -714,8 +716,6 @@ def main(argv=None):
         "rows into the results already in --out",
     )
     args = parser.parse_args(argv)
-    if args.quick and args.scenes and not set(args.scenes) <= set(QUICK_SCENES):
-        parser.error(f"--quick runs only the scenes {', '.join(QUICK_SCENES)}")
     return run(quick=args.quick, out=args.out, scenes=args.scenes)
 
 
