@@ -426,6 +426,17 @@ def test_sigint_is_one_line_and_status_130(tmp_path):
     assert not list(out.glob(".sphere-mech-*"))
 
 
+def test_signals_are_taken_over_before_jax_is_imported():
+    """`main` takes over SIGINT before anything heavy is imported: importing the command
+    line imports no JAX (before: Ctrl-C during JAX's import, a second or more, gave a
+    KeyboardInterrupt traceback and status -2; seen in this file's SIGINT test on a loaded
+    machine)."""
+    code = "import sys, sphere_mech._cli; print(sorted({'jax', 'numpy'} & set(sys.modules)))"
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=_env())
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[]"
+
+
 def test_a_signal_waits_for_the_files_moving_into_place(tmp_path, monkeypatch, capfd):
     """The result files move into place under a lock that a signal's exit takes first: a
     run interrupted then leaves all of its files or all of the last run's, never some of

@@ -17,8 +17,8 @@ import threading
 import time
 from pathlib import Path
 
-import jax
-
+# JAX is imported where it is used, after `main` has taken over SIGINT and SIGTERM: Ctrl-C
+# during its import (a second or more) is then one line and status 130, not a traceback.
 PROG = "sphere-mech"
 DEFAULT_SCENE = Path(__file__).resolve().parents[1] / "scenes" / "default.toml"
 
@@ -47,6 +47,8 @@ def cache_dir() -> Path | None:
 
 def enable_compilation_cache(folder: Path) -> None:
     """Keep every compiled program in JAX's persistent cache under `folder` (call first)."""
+    import jax
+
     jax.config.update("jax_compilation_cache_dir", str(folder))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
@@ -154,6 +156,8 @@ def _print_summary(s: dict, out: Path, animation: bool) -> None:
 
 def run(scene=None, out=Path("sphere_mech_out"), *, t1=None, progress=True, animation=True):
     """Run a scene file (default: the packaged one), optionally up to `t1`; returns the summary."""
+    import jax
+
     from .._report import run_scene
     from .._scene_files import load_scene
 
