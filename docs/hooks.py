@@ -330,7 +330,9 @@ def scene_file_reference() -> str:
             "|---|---|",
             *simulate,
             "",
-            "Solver names: `Projected(<solver>)`, `Variational`, `Variational(order=4)`, "
+            "Solver names: `Projected(<solver>)`, "
+            "`LieRK(<solver>[, action='SE3'|'SO3xR3'][, error='state'|'algebra'])`, "
+            "`Variational`, `Variational(order=4)`, "
             + ", ".join(f"`{k}`" for k in files.PLAIN_SOLVERS)
             + " (parentheses optional).",
             "",

@@ -156,7 +156,7 @@ def simulate_batch(
       which and the first one's cause. `False` never raises for a run-time failure:
       `sol.result` holds each trajectory's `sm.RESULTS` code (NaN parameters:
       `nonfinite_initial`; invalid initial state: `invalid_initial`); a failed trajectory
-      moves the others by 1e-14 to 1e-11 at most, through `Projected`'s first stages
+      moves the others by 1e-14 to 1e-10 at most, through `Projected`'s first stages
       (docs/batched.md). With an adaptive controller a NaN vector field rejects steps until
       `max_steps`, which the batch waits for (fixed steps stop it).
     - `chunk_size`: the most trajectories per `vmap` on a device (default: about `512 / n`

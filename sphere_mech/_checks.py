@@ -105,8 +105,9 @@ def off_rotation(R, q_name: str = "q") -> tuple[jax.Array, str]:
     tol = unit_tolerance(jnp.result_type(R))
     off = (rotation_error(R) > tol) | jnp.any(jnp.linalg.det(R) < 0)
     return off, (
-        f"{q_name} is not a rotation: some R^T R differs from I by more than {tol:g} or has "
-        "det R < 0 (orthonormalize it, e.g. with sphere_mech.nearest_rotation)."
+        f"{q_name} is not a rotation: some R^T R differs from I by more than {tol:g} "
+        "(orthonormalize it, e.g. with sphere_mech.nearest_rotation) or has det R < 0 (a "
+        "reflection, which no orthonormalization turns into a rotation)."
     )
 
 

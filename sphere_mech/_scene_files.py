@@ -380,18 +380,17 @@ def _simulate_args(path, data, t1=None) -> dict:
     defaults = inspect.signature(simulate).parameters
     out = {k: table.get(k, defaults[k].default) for k in SIMULATE if k != "t1"}
     out |= {"t1": table["t1"], "solver_name": table.get("solver", "Projected(Tsit5)")}
-    number = lambda x: x is None or _number(x)
-    checks = dict(t0=_number, t1=lambda x: _number(x) and x > out["t0"], dt0=number, rtol=number)
-    checks |= dict(atol=number, max_steps=_integer, solver_name=lambda x: isinstance(x, str))
-    for key, ok in checks.items():
-        if not ok(out[key]):
-            field = key.removesuffix("_name")
-            expected = f"expected {SIMULATE[field]}, got {_show(out[key])}"
-            raise SceneFileError(path, f"simulate.{field}", expected)
+    if not isinstance(out["solver_name"], str):
+        expected = f"expected {SIMULATE['solver']}, got {_show(out['solver_name'])}"
+        raise SceneFileError(path, "simulate.solver", expected)
     out["solver"] = _checked(path, "simulate.solver", lambda: parse_solver(out["solver_name"]))
-    _checked(  # the options simulate would refuse, with its words
+    _checked(  # the options simulate would refuse (types, values), with its words
         path, "simulate", lambda: options(dtype=np.float64, **{k: out[k] for k in SIMULATE})
     )
+    if not out["t1"] > out["t0"]:
+        raise SceneFileError(
+            path, "simulate.t1", f"expected {SIMULATE['t1']}, got {_show(out['t1'])}"
+        )
     for key, unit in _UNITS.items():
         if out[key] is not None and not abs(out[key]) <= MAX_MAGNITUDE:
             expected = f"{key} must be at most {MAX_MAGNITUDE:g}{unit} in magnitude"

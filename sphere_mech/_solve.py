@@ -55,6 +55,18 @@ class Options(eqx.Module):
     sharded: bool = eqx.field(static=True, default=False)  # ... over several devices
 
 
+OBJECT_OPTIONS = {
+    "stepsize_controller": (
+        diffrax.AbstractStepSizeController,
+        "a diffrax step-size controller, e.g. diffrax.PIDController(rtol=1e-8, atol=1e-10)",
+    ),
+    "saveat": (diffrax.SaveAt, "a diffrax.SaveAt, e.g. diffrax.SaveAt(ts=ts)"),
+    "adjoint": (diffrax.AbstractAdjoint, "a diffrax adjoint, e.g. diffrax.ForwardMode()"),
+    "event": (diffrax.Event, "a diffrax.Event, e.g. diffrax.Event(cond_fn)"),
+}
+"""The options that are diffrax objects: the class each must be, and what to pass."""
+
+
 def options(
     *,
     dtype,
@@ -73,6 +85,11 @@ def options(
     event=None,
 ) -> "Options":
     """`simulate`'s options (`simulate_batch`'s if `batched`), checked and completed."""
+    objects = dict(stepsize_controller=stepsize_controller, saveat=saveat, adjoint=adjoint)
+    for name, value in (objects | dict(event=event)).items():
+        kind, expected = OBJECT_OPTIONS[name]
+        if value is not None and not isinstance(value, kind):
+            raise OptionError(name, f"{name} must be {expected} or None (got {value!r})")
     check_values(t0, t1, dt0, rtol, atol, max_steps, saveat, dtype)
     solver = default_solver() if solver is None else as_solver(solver)
     if stepsize_controller is not None:
@@ -105,6 +122,7 @@ def options(
     # in the state's dtype, as t0, t1 and dt0 (`times`): saved states and times keep it
     saveat = eqx.tree_at(_save_times, saveat, replace_fn=lambda ts: jnp.asarray(ts, dtype))
     meter = diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter()
+    max_steps = None if max_steps is None else int(max_steps)  # a NumPy integer: static
     return Options(solver, controller, saveat, adjoint, meter, event, max_steps, batched)
 
 
@@ -120,7 +138,22 @@ def _concrete(x) -> float | None:
     """A concrete scalar as a float; `None` for `None`, a tracer or a non-scalar."""
     if x is None or isinstance(x, jax.core.Tracer) or np.ndim(x) != 0:
         return None
-    return float(x)
+    try:
+        return float(x)
+    except OverflowError:  # a Python integer beyond float64: infinite, refused as such
+        return math.inf if x > 0 else -math.inf
+
+
+def _real(x) -> bool:
+    """A real number or array of them: a Python or NumPy int or float (not a bool), or an
+    array (or tracer) of an integer or floating dtype; not a string or a complex number."""
+    if isinstance(x, bool | str | bytes | complex):
+        return False
+    if isinstance(x, int | float | np.integer | np.floating):
+        return True
+    return isinstance(x, jax.Array | np.ndarray) and (
+        jnp.issubdtype(x.dtype, jnp.integer) or jnp.issubdtype(x.dtype, jnp.floating)
+    )
 
 
 def check_values(t0, t1, dt0, rtol, atol, max_steps, saveat=None, dtype=float) -> None:
@@ -132,6 +165,8 @@ def check_values(t0, t1, dt0, rtol, atol, max_steps, saveat=None, dtype=float) -
     time and tolerance a scalar."""
     named = dict(t0=t0, t1=t1, dt0=dt0, rtol=rtol, atol=atol)
     for name, x in named.items():
+        if x is not None and not _real(x):
+            raise OptionError(name, f"{name} must be a real number (got {x!r})")
         if x is not None and jnp.ndim(x) != 0:
             raise OptionError(name, f"{name} must be a scalar (got shape {jnp.shape(x)})")
     t0, t1, dt0, rtol, atol = map(_concrete, named.values())

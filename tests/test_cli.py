@@ -187,6 +187,9 @@ EDITS = {  # case: (text of GOOD, what replaces it, field, what the error says)
         "g must be finite and at most 1e+100",
     ),
     "huge t1": ("t1 = 0.5", "t1 = 1e308", "simulate.t1", "t1 must be at most 1e+100 s"),
+    # simulate's own words (sm.simulate(..., t1=True) says the same)
+    "boolean t1": ("t1 = 0.5", "t1 = true", "simulate.t1", "t1 must be a real number (got True)"),
+    "t1 before t0": ("t1 = 0.5", "t1 = -0.5", "simulate.t1", "expected a time in s after t0"),
     "tiny fixed step": (
         '"Projected(Tsit5)"',
         '"RK4"\ndt0 = 1e-300',

@@ -264,6 +264,20 @@ def test_initial_state_checks():
         (dict(max_steps=10**20), rf"^{MAX_STEPS_MESSAGE} \(got 100000000000000000000\)$"),
         (dict(t0=float("inf")), r"^t0 must be a finite time \(got inf\)$"),
         (dict(t0=jnp.zeros(2)), r"^t0 must be a scalar \(got shape \(2,\)\)$"),
+        # before: a string or a bool was taken as a number (t0="0.5", dt0=True: a step of
+        # 1), a string tolerance failed inside diffrax, and a huge integer overflowed
+        (dict(t0="0.5"), r"^t0 must be a real number \(got '0.5'\)$"),
+        (dict(dt0=True), r"^dt0 must be a real number \(got True\)$"),
+        (dict(rtol="1e-6"), r"^rtol must be a real number \(got '1e-6'\)$"),
+        (dict(t0=-(10**400)), r"^t0 must be a finite time \(got -inf\)$"),
+        # before: AttributeErrors from inside diffrax ('str' object has no attribute 'wrap')
+        (
+            dict(stepsize_controller="pid"),
+            r"^stepsize_controller must be a diffrax step-size controller, .* \(got 'pid'\)$",
+        ),
+        (dict(saveat=[0.0, 0.5]), r"^saveat must be a diffrax.SaveAt, .* \(got \[0.0, 0.5\]\)$"),
+        (dict(adjoint="forward"), r"^adjoint must be a diffrax adjoint, .* \(got 'forward'\)$"),
+        (dict(event=print), r"^event must be a diffrax.Event, e.g. diffrax.Event\(cond_fn\)"),
         (dict(solver=42), r"^solver must be a diffrax solver instance.*\(got 42\)$"),
         (
             dict(solver="Tsit6"),
@@ -288,6 +302,13 @@ def test_option_values_are_checked_before_tracing(options, message):
         sm.simulate(SYSTEM, (Q0, V0), T1, args=G, **options)
     with pytest.raises(ValueError, match=message):
         sm.simulate_batch(SYSTEM, (Q0[None], V0[None]), T1, args=G, batch_args=False, **options)
+
+
+def test_numpy_integer_max_steps(eager):
+    """`max_steps` as a NumPy integer (before: equinox's TracerBoolConversionError, the
+    value made static as an array): the same run as with a Python int."""
+    sol = run((Q0, V0), max_steps=np.int64(100_000))
+    assert tree_allclose(sol.ys, eager.ys, rtol=0.0, atol=0.0)
 
 
 def test_solver_by_name_or_class(eager):
