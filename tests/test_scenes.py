@@ -456,6 +456,18 @@ TAU = jnp.array([0.0, 0.0, 1.0])
             "masses: expected a number or an array of numbers, got True",
         ),
         (lambda: sm.Chain(1.0, "1"), "lengths: expected a number or an array of numbers, got '1'"),
+        # a field's converter names it, as a scene file does (before: an unnamed TypeError
+        # "expected a number ...", and raw NumPy errors for a ragged list or a string radius)
+        (lambda: sm.Gravity("9.81"), "g: expected a number or an array of numbers, got '9.81'"),
+        (lambda: sm.PDTorque(None), "kp: expected a number or an array of numbers, got None"),
+        (
+            lambda: sm.SharedSphere(1.0, radius="1", count=2),
+            "radius: expected a number or an array of numbers, got '1'",
+        ),
+        (
+            lambda: sm.Chain([1.0, [2.0]], 1.0),
+            "masses: expected a number or an array of numbers, got [1.0, [2.0]]",
+        ),
         (  # as VibratingSupport's (before: accepted)
             lambda: sm.Harmonic(1.0, -2.0),
             "angular_frequency must be >= 0 (rad/s), got -2.0",

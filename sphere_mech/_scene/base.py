@@ -18,17 +18,26 @@ MAX_COUNT = 100_000
 """The most items (links, particles, beads) one kinetic term may have."""
 
 
-def as_float(x, name: str | None = None) -> jax.Array:
-    """`x` as a floating array (float64 when x64 is enabled); booleans and strings (a NumPy
-    kind other than integer or floating) are refused, naming `name` if given."""
+def as_float(x, name: str) -> jax.Array:
+    """`x` as a floating array (float64 when x64 is enabled); booleans, strings, `None` and
+    ragged lists (anything NumPy does not read as an integer or floating array) are
+    refused with a `ParameterError` naming the field `name`."""
     traced = any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(x))
-    if not traced and np.asarray(x).dtype.kind not in "iuf":
-        expected = f"a number or an array of numbers, got {x!r}"
-        if name is None:
-            raise TypeError(f"expected {expected}")
-        raise ParameterError(name, f"{name}: expected {expected}")
+    if not traced:
+        try:
+            kind = np.asarray(x).dtype.kind
+        except ValueError:  # ragged: "setting an array element with a sequence"
+            kind = "O"
+        if kind not in "iuf":
+            expected = f"a number or an array of numbers, got {x!r}"
+            raise ParameterError(name, f"{name}: expected {expected}")
     x = jnp.asarray(x)
     return x if jnp.issubdtype(x.dtype, jnp.floating) else x.astype(jnp.result_type(float))
+
+
+def number(name: str):
+    """The converter of the field `name`: `as_float`, its errors naming the field."""
+    return lambda x: as_float(x, name)
 
 
 class ParameterError(ValueError):

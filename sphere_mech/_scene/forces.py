@@ -26,7 +26,7 @@ def _drive(name: str, on_base: bool = False):
     def convert(x):
         if callable(x):
             return x
-        x = base.as_float(x)
+        x = base.as_float(x, name)
         if not on_base:
             base.check_vector(name, x)
         elif jnp.ndim(x) != 1:
@@ -77,7 +77,7 @@ class JointDamping(AbstractForce):
     - `coefficient`: `c` (N m s, `>= 0`), a scalar or one value per sphere.
     """
 
-    coefficient: jax.Array = eqx.field(converter=base.as_float)
+    coefficient: jax.Array = eqx.field(converter=base.number("coefficient"))
 
     def __check_init__(self):
         base.check_sign("coefficient", self.coefficient, " (N m s)", strict=False)
@@ -136,9 +136,9 @@ class PDTorque(AbstractDrive):
     - `link`: the index of the link whose direction is measured (static).
     """
 
-    kp: jax.Array = eqx.field(converter=base.as_float)
-    kd: jax.Array = eqx.field(default=0.0, converter=base.as_float)
-    target: jax.Array = eqx.field(default=(0.0, 0.0, 1.0), converter=base.as_float)
+    kp: jax.Array = eqx.field(converter=base.number("kp"))
+    kd: jax.Array = eqx.field(default=0.0, converter=base.number("kd"))
+    target: jax.Array = eqx.field(default=(0.0, 0.0, 1.0), converter=base.number("target"))
     link: int = eqx.field(default=0, static=True)
 
     def __check_init__(self):
@@ -191,10 +191,10 @@ class VibratingSupport(AbstractForce):
     - `direction`: the unit vector of the motion.
     """
 
-    amplitude: jax.Array = eqx.field(converter=base.as_float)
-    angular_frequency: jax.Array = eqx.field(converter=base.as_float)
-    direction: jax.Array = eqx.field(default=(0.0, 0.0, 1.0), converter=base.as_float)
-    phase: jax.Array = eqx.field(default=0.0, converter=base.as_float)
+    amplitude: jax.Array = eqx.field(converter=base.number("amplitude"))
+    angular_frequency: jax.Array = eqx.field(converter=base.number("angular_frequency"))
+    direction: jax.Array = eqx.field(default=(0.0, 0.0, 1.0), converter=base.number("direction"))
+    phase: jax.Array = eqx.field(default=0.0, converter=base.number("phase"))
 
     def __check_init__(self):
         base.check_sign("amplitude", self.amplitude, " (m)", strict=False, scalar=True)
@@ -296,12 +296,12 @@ class PDPosition(AbstractDrive):
     - `step_time`: when the set point changes (s).
     """
 
-    kp: jax.Array = eqx.field(converter=base.as_float)
-    kd: jax.Array = eqx.field(default=0.0, converter=base.as_float)
-    target: jax.Array = eqx.field(default=0.0, converter=base.as_float)
-    feedforward: jax.Array = eqx.field(default=0.0, converter=base.as_float)
-    step: jax.Array = eqx.field(default=0.0, converter=base.as_float)
-    step_time: jax.Array = eqx.field(default=0.0, converter=base.as_float)
+    kp: jax.Array = eqx.field(converter=base.number("kp"))
+    kd: jax.Array = eqx.field(default=0.0, converter=base.number("kd"))
+    target: jax.Array = eqx.field(default=0.0, converter=base.number("target"))
+    feedforward: jax.Array = eqx.field(default=0.0, converter=base.number("feedforward"))
+    step: jax.Array = eqx.field(default=0.0, converter=base.number("step"))
+    step_time: jax.Array = eqx.field(default=0.0, converter=base.number("step_time"))
 
     def __check_init__(self):
         base.check_sign("kp", self.kp, " (N/m)", strict=False, scalar=True)
@@ -331,10 +331,10 @@ class Harmonic(AbstractDrive):
     - `offset`: a constant part, of the force's shape (or a scalar).
     """
 
-    amplitude: jax.Array = eqx.field(converter=base.as_float)
-    angular_frequency: jax.Array = eqx.field(converter=base.as_float)
-    phase: jax.Array = eqx.field(default=0.0, converter=base.as_float)
-    offset: jax.Array = eqx.field(default=0.0, converter=base.as_float)
+    amplitude: jax.Array = eqx.field(converter=base.number("amplitude"))
+    angular_frequency: jax.Array = eqx.field(converter=base.number("angular_frequency"))
+    phase: jax.Array = eqx.field(default=0.0, converter=base.number("phase"))
+    offset: jax.Array = eqx.field(default=0.0, converter=base.number("offset"))
 
     def __check_init__(self):
         base.check_sign(  # as VibratingSupport's

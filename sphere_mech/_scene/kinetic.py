@@ -21,6 +21,7 @@ from .base import (
     check_shape,
     check_sign,
     check_vector,
+    number,
     per_item,
 )
 
@@ -72,7 +73,7 @@ class Chain(AbstractKinetic):
         payload: jax.Array = 0.0,
     ):
         self.masses, self.lengths = per_item(links, "links", masses=masses, lengths=lengths)
-        self.base, self.payload = as_float(base), as_float(payload)
+        self.base, self.payload = as_float(base, "base"), as_float(payload, "payload")
 
     def __check_init__(self):
         check_sign("masses", self.masses, " (kg)")
@@ -165,11 +166,11 @@ class Base(AbstractBase):
     - `position`: its point at `x = 0`, a `(3,)` point (m).
     """
 
-    mass: jax.Array = eqx.field(converter=as_float)
+    mass: jax.Array = eqx.field(converter=number("mass"))
     axes: jax.Array = eqx.field(
-        default=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)), converter=as_float
+        default=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)), converter=number("axes")
     )
-    position: jax.Array = eqx.field(default=(0.0, 0.0, 0.0), converter=as_float)
+    position: jax.Array = eqx.field(default=(0.0, 0.0, 0.0), converter=number("position"))
 
     def __check_init__(self):
         check_sign("mass", self.mass, " (kg)", scalar=True)
@@ -193,7 +194,7 @@ class Base(AbstractBase):
 
 def inertia_matrix(x) -> jax.Array:
     """A `(3,)` of principal moments as `diag(x)`; a `(3, 3)` as is."""
-    x = as_float(x)
+    x = as_float(x, "inertia")
     return jnp.diag(x) if jnp.shape(x) == (3,) else x
 
 
@@ -238,10 +239,10 @@ class RigidBase(AbstractBase):
       `e3` (m, `> 0`; default 0.2; for pictures only).
     """
 
-    mass: jax.Array = eqx.field(converter=as_float)
+    mass: jax.Array = eqx.field(converter=number("mass"))
     inertia: jax.Array = eqx.field(converter=inertia_matrix)
-    attach: jax.Array = eqx.field(default=(0.0, 0.0, 0.0), converter=as_float)
-    size: jax.Array = eqx.field(default=0.2, converter=as_float)
+    attach: jax.Array = eqx.field(default=(0.0, 0.0, 0.0), converter=number("attach"))
+    size: jax.Array = eqx.field(default=0.2, converter=number("size"))
 
     def __check_init__(self):
         check_sign("mass", self.mass, " (kg)", scalar=True)
@@ -338,7 +339,7 @@ class Particles(AbstractSphereMasses):
 
     def __init__(self, masses, radii, centers=(0.0, 0.0, 0.0), count: int | None = None):
         self.masses, self.radii = per_item(count, "count", masses=masses, radii=radii)
-        centers = as_float(centers)
+        centers = as_float(centers, "centers")
         one = centers.shape == (3,)  # one centre for all; any other shape is checked as is
         self.centers = jnp.broadcast_to(centers, (self.n, 3)) if one else centers
 
@@ -361,8 +362,8 @@ class SharedSphere(AbstractSphereMasses):
     center: jax.Array
 
     def __init__(self, masses, radius=1.0, center=(0.0, 0.0, 0.0), count: int | None = None):
-        check_sign("radius", radius, " (m)", scalar=True)
-        self.center, self.radius = as_float(center), as_float(radius)
+        self.center, self.radius = as_float(center, "center"), as_float(radius, "radius")
+        check_sign("radius", self.radius, " (m)", scalar=True)
         check_vector("center", self.center)
         (self.masses,) = per_item(count, "count", masses=masses)
 

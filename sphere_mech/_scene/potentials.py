@@ -25,8 +25,8 @@ class Gravity(AbstractPotential):
     - `direction`: the unit vector gravity points along.
     """
 
-    g: jax.Array = eqx.field(default=9.81, converter=base.as_float)
-    direction: jax.Array = eqx.field(default=(0.0, 0.0, -1.0), converter=base.as_float)
+    g: jax.Array = eqx.field(default=9.81, converter=base.number("g"))
+    direction: jax.Array = eqx.field(default=(0.0, 0.0, -1.0), converter=base.number("direction"))
 
     def __check_init__(self):
         base.check_sign("g", self.g, " (m/s^2)", strict=False, scalar=True)
@@ -46,8 +46,8 @@ class Spring(AbstractPotential):
     - `stiffness`, `rest_length`: `k` (N/m) and `L0` (m), scalars `>= 0`.
     """
 
-    stiffness: jax.Array = eqx.field(converter=base.as_float)
-    rest_length: jax.Array = eqx.field(converter=base.as_float)
+    stiffness: jax.Array = eqx.field(converter=base.number("stiffness"))
+    rest_length: jax.Array = eqx.field(converter=base.number("rest_length"))
     anchors: jax.Array
     ends: tuple = eqx.field(static=True)
 
@@ -57,7 +57,7 @@ class Spring(AbstractPotential):
         self.ends = tuple(int(e) if is_integer(e) else None for e in (a, b))
         anchors = []
         for name, end, i in zip("ab", (a, b), self.ends, strict=True):
-            anchor = base.as_float(jnp.zeros(3) if i is not None else end)
+            anchor = base.as_float(jnp.zeros(3) if i is not None else end, name)
             if i is None:  # a float such as 1.0 is neither: say what an end may be
                 base.check_vector(
                     name, anchor, what="an integer sphere index or a (3,) anchor point"
@@ -95,7 +95,7 @@ class Bending(AbstractPotential):
     - `stiffness`: `k` (N m per rad^2), `>= 0`: a scalar or one value per joint.
     """
 
-    stiffness: jax.Array = eqx.field(converter=base.as_float)
+    stiffness: jax.Array = eqx.field(converter=base.number("stiffness"))
 
     def __check_init__(self):
         base.check_sign("stiffness", self.stiffness, " (N m per rad^2)", strict=False)
@@ -128,10 +128,10 @@ class PairInteraction(AbstractPotential):
       at most `MAX_PAIRS` pairs (about 4500 masses).
     """
 
-    strength: jax.Array = eqx.field(converter=base.as_float)
-    exponent: jax.Array = eqx.field(default=1.0, converter=base.as_float)
+    strength: jax.Array = eqx.field(converter=base.number("strength"))
+    exponent: jax.Array = eqx.field(default=1.0, converter=base.number("exponent"))
     charges: jax.Array | None = eqx.field(
-        default=None, converter=lambda c: c if c is None else base.as_float(c)
+        default=None, converter=lambda c: c if c is None else base.as_float(c, "charges")
     )
     masses: tuple[int, ...] | None = eqx.field(default=None, static=True)
 

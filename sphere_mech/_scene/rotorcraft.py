@@ -81,14 +81,20 @@ class Rotors(AbstractForce):
         model_torque_coefficient=None,
     ):
         if not callable(command):
-            command = base.as_float(command)
+            command = base.as_float(command, "command")
             base.check_shape("command", command, (4,), "a (4,) vector (f, M1, M2, M3)")
             base.check_magnitude("command", command)
         self.command = command
-        self.arm, self.torque_coefficient = base.as_float(arm), base.as_float(torque_coefficient)
+        self.arm = base.as_float(arm, "arm")
+        self.torque_coefficient = base.as_float(torque_coefficient, "torque_coefficient")
+        optional = dict(
+            min_thrust=min_thrust,
+            max_thrust=max_thrust,
+            model_arm=model_arm,
+            model_torque_coefficient=model_torque_coefficient,
+        )
         self.min_thrust, self.max_thrust, self.model_arm, self.model_torque_coefficient = (
-            None if x is None else base.as_float(x)
-            for x in (min_thrust, max_thrust, model_arm, model_torque_coefficient)
+            None if x is None else base.as_float(x, name) for name, x in optional.items()
         )
 
     def __check_init__(self):
@@ -166,10 +172,10 @@ class Hover(AbstractCommand):
     - `heading`: the desired body `e1`, a unit `(3,)` vector (default `e1`).
     """
 
-    position: jax.Array = eqx.field(default=(0.0, 0.0, 0.0), converter=base.as_float)
-    heading: jax.Array = eqx.field(default=(1.0, 0.0, 0.0), converter=base.as_float)
-    step: jax.Array = eqx.field(default=(0.0, 0.0, 0.0), converter=base.as_float)
-    step_time: jax.Array = eqx.field(default=0.0, converter=base.as_float)
+    position: jax.Array = eqx.field(default=(0.0, 0.0, 0.0), converter=base.number("position"))
+    heading: jax.Array = eqx.field(default=(1.0, 0.0, 0.0), converter=base.number("heading"))
+    step: jax.Array = eqx.field(default=(0.0, 0.0, 0.0), converter=base.number("step"))
+    step_time: jax.Array = eqx.field(default=0.0, converter=base.number("step_time"))
 
     def __check_init__(self):
         base.check_vector("position", self.position)
@@ -190,9 +196,9 @@ class Line(AbstractCommand):
     - `heading`: the desired body `e1`, a unit `(3,)` vector (default `e1`).
     """
 
-    start: jax.Array = eqx.field(converter=base.as_float)
-    velocity: jax.Array = eqx.field(converter=base.as_float)
-    heading: jax.Array = eqx.field(default=(1.0, 0.0, 0.0), converter=base.as_float)
+    start: jax.Array = eqx.field(converter=base.number("start"))
+    velocity: jax.Array = eqx.field(converter=base.number("velocity"))
+    heading: jax.Array = eqx.field(default=(1.0, 0.0, 0.0), converter=base.number("heading"))
 
     def __check_init__(self):
         base.check_vector("start", self.start)
@@ -215,11 +221,11 @@ class Circle(AbstractCommand):
     - `heading`: the desired body `e1`, a unit `(3,)` vector (default `e1`).
     """
 
-    center: jax.Array = eqx.field(converter=base.as_float)
-    radius: jax.Array = eqx.field(converter=base.as_float)
-    angular_frequency: jax.Array = eqx.field(converter=base.as_float)
-    phase: jax.Array = eqx.field(default=0.0, converter=base.as_float)
-    heading: jax.Array = eqx.field(default=(1.0, 0.0, 0.0), converter=base.as_float)
+    center: jax.Array = eqx.field(converter=base.number("center"))
+    radius: jax.Array = eqx.field(converter=base.number("radius"))
+    angular_frequency: jax.Array = eqx.field(converter=base.number("angular_frequency"))
+    phase: jax.Array = eqx.field(default=0.0, converter=base.number("phase"))
+    heading: jax.Array = eqx.field(default=(1.0, 0.0, 0.0), converter=base.number("heading"))
 
     def __check_init__(self):
         base.check_vector("center", self.center)
@@ -271,14 +277,14 @@ class GeometricControl(AbstractDrive):
     - `g`: gravity (m/s^2, default 9.81).
     """
 
-    mass: jax.Array = eqx.field(converter=base.as_float)
+    mass: jax.Array = eqx.field(converter=base.number("mass"))
     inertia: jax.Array = eqx.field(converter=inertia_matrix)
-    kx: jax.Array = eqx.field(converter=base.as_float)
-    kv: jax.Array = eqx.field(converter=base.as_float)
-    kR: jax.Array = eqx.field(converter=base.as_float)
-    kOmega: jax.Array = eqx.field(converter=base.as_float)
+    kx: jax.Array = eqx.field(converter=base.number("kx"))
+    kv: jax.Array = eqx.field(converter=base.number("kv"))
+    kR: jax.Array = eqx.field(converter=base.number("kR"))
+    kOmega: jax.Array = eqx.field(converter=base.number("kOmega"))
     command: AbstractCommand | Callable = Hover()
-    g: jax.Array = eqx.field(default=9.81, converter=base.as_float)
+    g: jax.Array = eqx.field(default=9.81, converter=base.number("g"))
 
     def __check_init__(self):
         base.check_sign("mass", self.mass, " (kg)", scalar=True)
