@@ -464,6 +464,14 @@ TAU = jnp.array([0.0, 0.0, 1.0])
             lambda: sm.SharedSphere(1.0, radius="1", count=2),
             "radius: expected a number or an array of numbers, got '1'",
         ),
+        (  # before: True taken as a mass of 1, "9.81" as 9.81
+            lambda: sm.chain_pendulum([True, True], [1.0, 1.0]),
+            "masses: expected a number or an array of numbers, got [True, True]",
+        ),
+        (
+            lambda: sm.chain_pendulum([1.0], [1.0], g="9.81"),
+            "g: expected a number or an array of numbers, got '9.81'",
+        ),
         (
             lambda: sm.Chain([1.0, [2.0]], 1.0),
             "masses: expected a number or an array of numbers, got [1.0, [2.0]]",

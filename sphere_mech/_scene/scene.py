@@ -10,7 +10,14 @@ import numpy as np
 from .._inertia import AbstractFastPath
 from .._misc import tree_dtype
 from .._spaces import AbstractSpace, chain_attitude, chain_parts, chain_space, chain_state
-from .base import AbstractEffect, AbstractForce, AbstractKinetic, AbstractPotential, ParameterError
+from .base import (
+    AbstractEffect,
+    AbstractForce,
+    AbstractKinetic,
+    AbstractPotential,
+    ParameterError,
+    as_float,
+)
 from .forces import BaseTorque, TipForce
 from .kinetic import AbstractBase, Chain, chain_inertia, chain_inverse_bands
 from .potentials import Gravity
@@ -251,9 +258,11 @@ def chain_pendulum(masses, lengths, g=9.81, *, torque=None, tip_force=None) -> S
 
     **Returns:** the `Scene` (state `(q, qdot)`, Corollary-1 fast path).
     """
-    dtype = jnp.result_type(jnp.asarray(masses), float)
-    chain = Chain(jnp.asarray(masses, dtype), jnp.asarray(lengths, dtype))
-    effects = [chain, Gravity(jnp.asarray(g, dtype))]
+    masses = as_float(masses, "masses")  # checked before any conversion: True is no mass
+    lengths, g = (
+        as_float(x, name).astype(masses.dtype) for x, name in ((lengths, "lengths"), (g, "g"))
+    )
+    effects = [Chain(masses, lengths), Gravity(g)]
     effects += [] if torque is None else [BaseTorque(torque)]
     effects += [] if tip_force is None else [TipForce(tip_force)]
     return Scene(*effects)
