@@ -79,14 +79,15 @@ def _integer(x) -> bool:
 
 
 def _numbers(x) -> bool:
-    """A finite number or a rectangular, non-empty (nested) array of them."""
+    """A number or a rectangular (nested) array of them. NaN, infinities and empty arrays
+    pass: the checks that read them say why not, in the words they use in Python."""
     if _integer(x):
         return abs(x) <= MAX_MAGNITUDE  # a float: TOML integers may be longer
     if isinstance(x, float):
-        return math.isfinite(x)
-    if not (isinstance(x, list) and len(x) > 0):
+        return True
+    if not isinstance(x, list):
         return False
-    return all(_numbers(a) for a in x) and len({np.shape(a) for a in x}) == 1
+    return all(_numbers(a) for a in x) and len({np.shape(a) for a in x}) <= 1
 
 
 def _number(x) -> bool:
@@ -94,14 +95,15 @@ def _number(x) -> bool:
 
 
 KINDS = {
-    int: ("an integer", lambda x: x if _integer(x) else None),
+    # a float too: the effect refuses it, in its own words ("links must be an integer ...")
+    int: ("an integer", lambda x: x if _integer(x) or isinstance(x, float) else None),
     jax.Array: (
         "a number or an array of numbers",
         lambda x: np.asarray(x, dtype=float) if _numbers(x) else None,
     ),
     tuple[int, ...]: (
         "an array of integers",
-        lambda x: tuple(x) if isinstance(x, list) and all(map(_integer, x)) else None,
+        lambda x: tuple(x) if isinstance(x, list) and _numbers(x) and np.ndim(x) == 1 else None,
     ),
     Callable: (f"an inline table {{ type = ... }} ({', '.join(DRIVES)})", lambda x: None),
     rotorcraft.AbstractCommand: (
@@ -413,7 +415,7 @@ def checked_end(path, t0: float, t1, name: str) -> float:
 def _save_dt(path, table: dict, args: dict) -> float:
     """`[output] save_dt` (default: the file's run / 1000)."""
     save_dt = table.get("save_dt", (args["file_t1"] - args["t0"]) / 1000)
-    if not (_number(save_dt) and save_dt > 0):
+    if not (_number(save_dt) and 0 < save_dt < math.inf):
         expected = f"expected a step > 0 (s), got {_show(save_dt)}"
         raise SceneFileError(path, "output.save_dt", expected)
     return save_dt

@@ -126,7 +126,20 @@ EDITS = {  # case: (text of GOOD, what replaces it, field, what the error says)
     "unknown field": (MASSES, MASSES + "\ncolour = 1", "effects[0].colour", "no such field"),
     "missing field": ("lengths = [1.0, 1.0]\n", "", "effects[0].lengths", "missing"),
     "wrong type": (MASSES, 'masses = "heavy"', "effects[0].masses", "array of numbers"),
-    "wrong integer": (MASSES, "masses = 1.0\nlinks = 2.5", "effects[0].links", "an integer"),
+    # the effect's own words, as in Python (before: the loader's "expected an integer, got
+    # 2.5", and "expected a number ..., got nan" where sm.Gravity(nan) names finiteness)
+    "wrong integer": (
+        MASSES,
+        "masses = 1.0\nlinks = 2.5",
+        "effects[0].links",
+        "links must be an integer from 1 to 100000, got 2.5",
+    ),
+    "nan g": (
+        'type = "gravity"',
+        'type = "gravity"\ng = nan',
+        "effects[1].g",
+        "g must be finite and at most 1e+100 in magnitude, got nan",
+    ),
     "old table": ("[simulate]", "[integrator]", "integrator", "no such field"),
     "old key": ("t1 = 0.5", "duration = 0.5", "simulate.duration", "no such field"),
     "bad solver": ("Projected(Tsit5)", "rk4", "simulate.solver", "spelled as in Python"),
