@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._checks import off_rotation, unit_tolerance
+from ._checks import off_rotation, off_tangent, off_unit
 from ._geometry import hat
 from ._scene import forces, kinetic, potentials, rotorcraft
 from ._scene.base import MAX_MAGNITUDE, ParameterError
@@ -273,12 +273,12 @@ def _spheres_initial(path, table, n: int):
         raise SceneFileError(path, "initial", "either q and qdot, or angles and rates")
     if "q" in table:
         q, qdot = _per_sphere(path, table, "q", n), np.zeros((n, 3))
-        norms = np.linalg.norm(q, axis=-1)
-        bad = int(np.argmax(np.abs(norms - 1.0)))
-        if abs(norms[bad] - 1.0) > unit_tolerance(q.dtype):
-            expected = f"unit vectors (length 1 within {unit_tolerance(q.dtype):g})"
-            expected += f", got length {norms[bad]:.6g} for q[{bad}]"
-            raise SceneFileError(path, "initial.q", expected)
+        off, message = off_unit(q)  # simulate's check and words
+        if off:
+            norms = np.linalg.norm(q, axis=-1)
+            bad = int(np.argmax(np.abs(norms - 1.0)))
+            message += f" Got length {norms[bad]:.6g} for q[{bad}]."
+            raise SceneFileError(path, "initial.q", message)
     else:
         missing = [key for key in ("polar_deg", "azimuth_deg") if key not in table]
         if missing:
@@ -295,12 +295,9 @@ def _spheres_initial(path, table, n: int):
         qdot = rate_th[:, None] * e_th + rate_ph[:, None] * e_ph
     if "qdot" in table:
         qdot = _per_sphere(path, table, "qdot", n)
-    if np.any(
-        np.abs(np.sum(q * qdot, axis=-1))
-        > unit_tolerance(q.dtype) * (1.0 + np.linalg.norm(qdot, axis=-1))
-    ):
-        expected = "velocities tangent to the spheres (q_i . qdot_i = 0)"
-        raise SceneFileError(path, "initial.qdot", expected)
+    off, message = off_tangent(q, qdot, "qdot")  # simulate's check and words
+    if off:
+        raise SceneFileError(path, "initial.qdot", message)
     return jnp.asarray(q / np.linalg.norm(q, axis=-1, keepdims=True)), jnp.asarray(qdot)
 
 

@@ -154,7 +154,15 @@ EDITS = {  # case: (text of GOOD, what replaces it, field, what the error says)
         "polar_deg = [90.0, 120.0]\nazimuth_deg = [0.0, 90.0]",
         "q = [[1.0, 0.0, 0.0], [1.0, 1.0, 0.0]]",
         "initial.q",
-        "unit vectors",
+        # simulate's words (before: the file's own check, "unit vectors (length 1 within ...)")
+        "q is not on the spheres: some |q_i| differs from 1 by more than 1e-06 (normalize q, "
+        "e.g. with sphere_mech.normalize). Got length 1.41421 for q[1].",
+    ),
+    "not tangent": (  # simulate's check: relative to the largest speed, not each sphere's
+        "polar_deg = [90.0, 120.0]\nazimuth_deg = [0.0, 90.0]",
+        "q = [[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]\nqdot = [[0.1, 0.0, 0.0], [0.0, 1.0, 0.0]]",
+        "initial.qdot",
+        "qdot is not tangent to the spheres: some q_i . qdot_i exceeds 1e-06 (relative)",
     ),
     "negative mass": (
         MASSES,
