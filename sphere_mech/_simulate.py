@@ -48,8 +48,9 @@ def simulate(
       with an error estimate (`Projected(diffrax.Tsit5())`, `LieRK4()`, ...) adapt their
       steps from `dt0`; for fixed steps with them, pass
       `stepsize_controller=diffrax.ConstantStepSize()` too. Fixed steps of a `dt0` that
-      does not divide `t1 - t0` end with a shorter step (`dt0=0.3` to `t1=1`: 0.3, 0.3,
-      0.3, 0.1).
+      does not divide `t1 - t0`: diffrax ends the first at `t0 + dt0`, the others at
+      `t0 + k (t1 - t0) / N`, `N = ceil((t1 - t0) / dt0)`, so none is longer than `dt0`
+      (`dt0=0.3` to `t1=1`: steps of 0.3, 0.2, 0.25, 0.25).
     - `rtol`, `atol`: tolerances (> 0) of the default `diffrax.PIDController`; defaults
       `1e-8, 1e-10` in float64 and `1e-5, 1e-6` in float32.
     - `stepsize_controller`: any diffrax step-size controller instead.

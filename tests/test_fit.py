@@ -212,6 +212,15 @@ def test_fit_errors():
         sm.fit(damped_chain, START, ts, obs, mass_positions, y0=y0, solver=best)
     with pytest.raises(ValueError, match="max_steps must be a positive integer"):
         sm.fit(damped_chain, START, ts, obs, mass_positions, y0=y0, max_steps=0)
+    # simulate's check and words, before tracing (before: diffrax's runtime error after
+    # compiling the fit, its times traced)
+    backwards = dict(solver=sm.Projected(sm.RK4()), dt0=-0.05)
+    with pytest.raises(ValueError, match=r"^dt0 must have the sign of t1 - t0"):
+        sm.fit(damped_chain, START, ts, obs, mass_positions, y0=y0, simulate_options=backwards)
+    with pytest.raises(ValueError, match=r"^rtol must be a real number \(got '1e-6'\)$"):
+        sm.fit(
+            damped_chain, START, ts, obs, mass_positions, y0=y0, simulate_options={"rtol": "1e-6"}
+        )
     for continuity in (0.0, -1.0, float("nan")):
         with pytest.raises(ValueError, match="continuity must be a finite number > 0"):
             sm.fit(damped_chain, START, ts, obs, mass_positions, y0=y0, continuity=continuity)

@@ -307,6 +307,8 @@ def test_learn_rejects_bad_input(tmp_path):
         sm.learn(model, ts[:2], states, steps=1)
     with pytest.raises(ValueError, match="may not set 'adjoint'"):
         sm.learn(model, ts, states, steps=1, simulate_options={"adjoint": None})
+    with pytest.raises(ValueError, match=r"^dt0 must have the sign of t1 - t0"):  # untraced
+        sm.learn(model, ts, states, steps=1, simulate_options={"dt0": -0.01})
     for floor in (0.0, np.inf):
         with pytest.raises(ValueError, match="refine: floor must be a finite number > 0"):
             sm.refine(model, ts, states, floor=floor)

@@ -304,6 +304,16 @@ def test_option_values_are_checked_before_tracing(options, message):
         sm.simulate_batch(SYSTEM, (Q0[None], V0[None]), T1, args=G, batch_args=False, **options)
 
 
+def test_fixed_steps_that_do_not_divide_the_interval():
+    """As `simulate`'s docstring says (it said 0.3, 0.3, 0.3, 0.1): the first step is
+    `dt0`, the others end at `t0 + k (t1 - t0) / N`, `N = ceil((t1 - t0) / dt0)`."""
+    steps = diffrax.SaveAt(steps=True)
+    sol = sm.simulate(
+        SYSTEM, (Q0, V0), T1, args=G, solver=sm.Projected(sm.RK4()), dt0=0.3, saveat=steps
+    )
+    np.testing.assert_allclose(sol.ts[:5], [0.3, 0.5, 0.75, 1.0, np.inf], rtol=1e-15)
+
+
 def test_numpy_integer_max_steps(eager):
     """`max_steps` as a NumPy integer (before: equinox's TracerBoolConversionError, the
     value made static as an array): the same run as with a Python int."""

@@ -437,7 +437,7 @@ def fit(
         )
     check_integer(max_steps, "max_steps")
     check_positive(continuity, "continuity")
-    sim = own_options(simulate_options, "fit")
+    sim = own_options(simulate_options, "fit", ts)
     default = diffrax.ForwardMode() if jac == "fwd" else diffrax.RecursiveCheckpointAdjoint()
     sim["adjoint"] = default if adjoint is None else adjoint
     params0 = as_arrays(params0)

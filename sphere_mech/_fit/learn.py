@@ -221,7 +221,7 @@ def _default_sim(ts, simulate_options, name):
     by a chunk's 8 steps (the tasks of `benchmarks/learned_lagrangian.py`, 2 RK4 steps per
     observation, 100 chunks) the loop recomputed steps from 4 checkpoints, and a training
     step took 1.3x (chain3) to 1.4x (magnet) as long."""
-    sim = own_options(simulate_options, name)
+    sim = own_options(simulate_options, name, ts)
     sim.setdefault("solver", Projected(RK4()))
     if "dt0" not in sim:
         ts = np.asarray(ts)

@@ -17,7 +17,7 @@ from .._batch import map_on_devices
 from .._misc import check_integer, fill_zeros, rows, tree_dtype
 from .._results import RESULTS, describe_failures, gathered
 from .._simulate import simulate
-from .._solve import initial_states
+from .._solve import check_values, initial_states
 from .._spaces import AbstractSpace
 from .._system import AbstractSystem
 
@@ -102,12 +102,20 @@ def simulate_at(system, args, state, t0, t1, ts, sim: dict):
     return jtu.tree_map(lambda x: jnp.where(rows(saved, x[:-1]), x[:-1], jnp.inf), sol.ys), end
 
 
-def own_options(simulate_options, caller: str) -> dict:
-    """A copy of the caller's `simulate_options`, refusing those the caller sets itself."""
+def own_options(simulate_options, caller: str, ts) -> dict:
+    """A copy of the caller's `simulate_options`, refusing those the caller sets itself;
+    their values checked as `simulate` checks them (the observation times `ts` the
+    direction of integration), before anything is traced: inside the caller's program the
+    times are traced and only diffrax would refuse, after compiling."""
     sim = dict(simulate_options or {})
     for key in ("saveat", "t0", "args", "adjoint", "throw"):
         if key in sim:
             raise ValueError(f"simulate_options may not set {key!r}; {caller} sets it.")
+    if not isinstance(ts, jax.core.Tracer):  # the caller's own check names bad times
+        times = np.asarray(ts, dtype=float)
+        times = times[np.isfinite(times)]
+        ends = (times.min(), times.max()) if times.size else (None, None)
+        check_values(*ends, *(sim.get(k) for k in ("dt0", "rtol", "atol", "max_steps")))
     return sim
 
 
