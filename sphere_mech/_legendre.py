@@ -76,6 +76,11 @@ def angular(system: AbstractSystem) -> AbstractSystem:
       `Scene`, ...) or a `Hamiltonian`; one in angular variables raises `TypeError`.
 
     **Returns:** an `AngularLagrangian` or an `AngularHamiltonian`, forces carried over."""
+    if not isinstance(system, AbstractSystem):  # a bare L or H: say what to wrap it in
+        raise TypeError(
+            f"angular() takes a Lagrangian or Hamiltonian system (sm.Lagrangian(L), "
+            f"sm.Hamiltonian(H), a Scene, ...), got {type(system).__name__}."
+        )
     if system.angular:
         raise TypeError(
             f"angular() takes a form-1 or form-3 system; {type(system).__name__} "

@@ -258,6 +258,12 @@ def test_functions_and_inertia_checked_at_construction():
         r"Hamiltonian\.$",
     ):
         sm.Lagrangian(hamiltonian)
+    # the reverse: a bare function where a system is expected (angular: an AttributeError)
+    L = lambda t, q, qdot, args: 0.5 * jnp.sum(qdot**2)
+    with pytest.raises(TypeError, match=r"^angular\(\) takes a Lagrangian or Hamiltonian system"):
+        sm.angular(L)
+    with pytest.raises(TypeError, match=r"^legendre\(\) takes a Lagrangian system"):
+        sm.legendre(L)
     with pytest.raises(
         ValueError,
         match=r"^L must be a function L\(t, q, qdot, args\) \(4 "
