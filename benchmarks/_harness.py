@@ -17,6 +17,8 @@ import time
 from pathlib import Path
 from typing import Any, NamedTuple
 
+import numpy as np
+
 RESULTS = Path(__file__).resolve().parent / "results"
 COMPILE_EVENTS = (
     "/jax/core/compile/jaxpr_to_mlir_module_duration",
@@ -123,6 +125,17 @@ def timings(fns, repeats=5, what=None):
     ]
 
 
+def random_states(n, batch, seed=0, speed=1.0):
+    """`batch` random states of `n` spheres, `sm.random_state` under `vmap` on the keys
+    split from `PRNGKey(seed)`: `(q, v)`, each `(batch, n, 3)`."""
+    import jax
+
+    import sphere_mech as sm
+
+    keys = jax.random.split(jax.random.PRNGKey(seed), batch)
+    return jax.vmap(lambda k: sm.random_state(k, n, speed=speed))(keys)
+
+
 def table(columns, rows, align=None):
     """A markdown table: header cells `columns`, `rows` of cells (`str` of each), `align`
     one letter a column, "l" (`---`) or "r" (`---:`); default all "l"."""
@@ -166,6 +179,16 @@ def save_figure(fig, name, out=RESULTS, dpi=120, layout=True):
     fig.savefig(out / name, dpi=dpi)
     plt.close(fig)
     print(f"figure: {out / name}", flush=True)
+
+
+def bars(ax, labels, series, fontsize=8, rotation=0):
+    """A grouped bar chart on `ax`: one group per label in `labels`, one bar in each group
+    per entry of `series` (`{legend: values}`, a value per label)."""
+    x, width = np.arange(len(labels)), 0.8 / len(series)
+    for k, (name, values) in enumerate(series.items()):
+        ax.bar(x + (k - (len(series) - 1) / 2) * width, values, width, label=name)
+    ax.set_xticks(x, labels, fontsize=fontsize, rotation=rotation)
+    ax.legend(fontsize=8)
 
 
 def load():

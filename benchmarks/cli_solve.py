@@ -19,7 +19,7 @@ jax.config.update("jax_enable_x64", True)
 
 import diffrax  # noqa: E402
 import numpy as np  # noqa: E402
-from _harness import load, machine, publish, pyplot, save_figure, table, timing  # noqa: E402
+from _harness import bars, load, machine, publish, pyplot, save_figure, table, timing  # noqa: E402
 
 import sphere_mech as sm  # noqa: E402
 from sphere_mech._program import build  # noqa: E402
@@ -89,13 +89,13 @@ def main():
     )
     if not ns.scenes:
         fig, ax = pyplot().subplots(figsize=(8, 3.8))
-        x = np.arange(len(medians))
-        ax.bar(x - 0.2, [m[1] for m in medians], 0.4, label="sphere-mech run (integration)")
-        ax.bar(x + 0.2, [m[2] for m in medians], 0.4, label="sm.simulate")
-        ax.set_xticks(x, [m[0] for m in medians], rotation=20, fontsize=8)
+        series = {
+            "sphere-mech run (integration)": [m[1] for m in medians],
+            "sm.simulate": [m[2] for m in medians],
+        }
+        bars(ax, [m[0] for m in medians], series, rotation=20)
         ax.set(yscale="log", ylabel="solve time after compiling (s)")
         ax.set_title(machine(loads), fontsize=8)
-        ax.legend(fontsize=8)
         save_figure(fig, "cli_solve.png")
 
 

@@ -41,7 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 
 jax.config.update("jax_enable_x64", True)
-from _harness import load, machine, publish, pyplot, save_figure, table, timing  # noqa: E402
+from _harness import load, machine, publish, pyplot, random_states, save_figure, table, timing  # noqa: E402
 
 import sphere_mech as sm  # noqa: E402
 
@@ -87,7 +87,7 @@ def base_rows(ns, batch, repeats):
     rows = []
     for n in ns:
         keys = jax.random.split(jax.random.PRNGKey(n), batch)
-        s, sdot = jax.vmap(lambda k, n=n: sm.random_state(k, n))(keys)
+        s, sdot = random_states(n, batch, seed=n)
         fixed, _ = make_systems(n)
         pivot, _ = time_per_evaluation(batched_rates(fixed), s, sdot, repeats)
         for name, make in BASES.items():
@@ -270,8 +270,7 @@ def main():
     rows = []
     for n in ns:
         chain, general = make_systems(n)
-        keys = jax.random.split(jax.random.PRNGKey(n), opts.batch)
-        q, qdot = jax.vmap(lambda k, n=n: sm.random_state(k, n))(keys)
+        q, qdot = random_states(n, opts.batch, seed=n)
         fast_fn, general_fn = batched_rates(chain), batched_rates(general)
         hamilton_fn = batched_rates(sm.legendre(chain))
         mu = jax.vmap(lambda q_, v_, c=chain: c.momentum(0.0, q_, v_, None))(q, qdot)

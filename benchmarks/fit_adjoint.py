@@ -19,7 +19,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from _harness import publish, pyplot, save_figure, table, timing
+from _harness import bars, publish, pyplot, save_figure, table, timing
 
 jax.config.update("jax_enable_x64", True)
 sys.path.insert(0, str(pathlib.Path(__file__).parents[1] / "tests"))
@@ -78,13 +78,13 @@ def main():
     print("\nfitted / true - 1:", {k: f"{float(fitted[k] / TRUE[k] - 1):+.1e}" for k in TRUE})
 
     fig, ax = pyplot().subplots(figsize=(5, 3))
-    x = np.arange(len(rows))
-    ax.bar(x - 0.2, [r[1] for r in rows], 0.4, label="reverse (RecursiveCheckpointAdjoint)")
-    ax.bar(x + 0.2, [r[2] for r in rows], 0.4, label="forward (ForwardMode)")
-    ax.set_xticks(x, [r[0] for r in rows])
+    series = {
+        "reverse (RecursiveCheckpointAdjoint)": [r[1] for r in rows],
+        "forward (ForwardMode)": [r[2] for r in rows],
+    }
+    bars(ax, [r[0] for r in rows], series, fontsize=10)
     ax.set_yscale("log")
     ax.set_ylabel("time [s]")
-    ax.legend(fontsize=8)
     save_figure(fig, "fit_adjoint.png")
 
 

@@ -20,7 +20,7 @@ default adjoint's reverse mode: checkpointed reverse mode with the whole step tr
 (`RecursiveCheckpointAdjoint()`, the default's reverse mode before), stage by stage
 (`RK4(stagewise_reverse=True)`, its reverse mode now) and the default (forward mode
 at n = 2, 2 differentiated scalars; reverse mode at n = 8); writes
-benchmarks/results/gradients_rk4_batch.md.
+benchmarks/results/gradients_rk4_batch.{md,png}.
 
 `--where`: where the time of the batched RK4 rows' reverse pass goes (float64): the vector
 field's reverse pass against its forward pass (`jax.vjp` with the forward recomputed, as the
@@ -30,7 +30,7 @@ runs it: the least such a pass can cost against the forward one), the floor of a
 reverse pass that recomputes each step once (forward + recomputed forward + four vector
 field pullbacks a step), and the checkpointed reverse pass with `checkpoints` at half, one
 and four times the 300 steps (the default: `floor(sqrt(2 max_steps))` = 447); writes
-benchmarks/results/gradients_where.md.
+benchmarks/results/gradients_where.{md,png}.
 
 `--bare`: the same batched RK4 rows (n = 2 with B = 256, n = 8 with B = 64, float32 and
 float64) against the smallest program that takes the same steps: the library's own step
@@ -39,11 +39,11 @@ float64) against the smallest program that takes the same steps: the library's o
 step's intermediates, reverse mode recomputing each step once (`jax.checkpoint` on the
 step), and forward mode (`jax.jacfwd`, n columns). Whether the ratio comes from the
 library's loop and adjoint or from the vector field's derivative; writes
-benchmarks/results/gradients_bare.md.
+benchmarks/results/gradients_bare.{md,png}.
 
 `--chunks`: the batched RK4 row at B = 1024, n = 8, float64, at 16, 64 (the default at
 n = 8), 256 and 1024 trajectories per `vmap` (`simulate_batch`'s `chunk_size`): whether
-how the batch is split moves the ratio; writes benchmarks/results/gradients_chunks.md.
+how the batch is split moves the ratio; writes benchmarks/results/gradients_chunks.{md,png}.
 
 `--learned`: the training step of `sm.learn` on the tasks of
 `benchmarks/learned_lagrangian.py` (a `LearnedLagrangian`: an MLP potential): its minibatch
@@ -51,7 +51,7 @@ loss (100 chunks, L1, each task's dtype and RK4 steps per observation) and the l
 value_and_grad, reverse mode through the whole RK4 step transposed by JAX (`RK4()` under an
 explicit `RecursiveCheckpointAdjoint`, as `learn` runs it) and stage by stage
 (`RK4(stagewise_reverse=True)`, as the default adjoint's reverse mode runs it); writes
-benchmarks/results/gradients_learned.md.
+benchmarks/results/gradients_learned.{md,png}.
 
     python benchmarks/gradients.py [--quick | --rk4-batch | --where | --bare | --chunks |
                                     --learned]
@@ -68,7 +68,18 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 jax.config.update("jax_enable_x64", True)
-from _harness import RESULTS, load, machine, publish, pyplot, save_figure, table, timings  # noqa: E402
+from _harness import (  # noqa: E402
+    RESULTS,
+    bars,
+    load,
+    machine,
+    publish,
+    pyplot,
+    random_states,
+    save_figure,
+    table,
+    timings,
+)
 
 import sphere_mech as sm  # noqa: E402
 from sphere_mech._adjoint import BATCH_FORWARD_COLUMNS, FORWARD_COLUMNS  # noqa: E402
@@ -89,9 +100,21 @@ def _machine(loads, flags: str) -> str:
     )
 
 
+def ratio_figure(labels, series, name, loads, flags, targets=((4, "goal: 4x"),), log=False):
+    """Grouped bars of the ratios `series` (`{legend: a ratio per label}`) per row label,
+    with the horizontal `targets` (`(value, legend)`), written as `name`."""
+    fig, ax = pyplot().subplots(figsize=(min(12, 4 + 0.7 * len(labels)), 3.8))
+    bars(ax, labels, series, fontsize=7)
+    for (value, label), style in zip(targets, ("--", ":"), strict=False):
+        ax.axhline(value, color="k", ls=style, lw=0.8, label=label)
+    ax.set(ylabel="value_and_grad / forward", yscale="log" if log else "linear")
+    ax.set_title(f"{machine(loads)}\n`python benchmarks/gradients.py{flags}`", fontsize=7)
+    ax.legend(fontsize=7)
+    save_figure(fig, name)
+
+
 def _states(n, batch, dtype):
-    keys = jax.random.split(jax.random.PRNGKey(0), batch)
-    q, v = jax.vmap(lambda k: sm.random_state(k, n, speed=0.5))(keys)
+    q, v = random_states(n, batch, speed=0.5)
     return q.astype(dtype), v.astype(dtype)
 
 
@@ -191,6 +214,14 @@ def rk4_batch(repeats=7):
         + text
         + "\n",
         "gradients_rk4_batch.md",
+    )
+    names = ("whole step (before)", "stage by stage (now)", "default")
+    ratio_figure(
+        [f"n={n} B={b}\n{dt}" for n, b, dt, *_ in rows],
+        {k: [r[4 + i].median / r[3].median for r in rows] for i, k in enumerate(names)},
+        "gradients_rk4_batch.png",
+        loads,
+        " --rk4-batch",
     )
 
 
@@ -305,6 +336,12 @@ def where(repeats=7):
         "`vmap`, as forward mode runs it.\n\n" + _machine(loads, " --where") + text + "\n",
         "gradients_where.md",
     )
+    series = {"floor (recompute once)": [r[6] for r in rows]}
+    series["default"] = [r[7][0].median / r[5].median for r in rows]
+    for i, k in enumerate(counts):
+        series[f"checkpoints = {k}"] = [r[7][1 + i].median / r[5].median for r in rows]
+    labels = [f"n={n} B={b}" for n, b, *_ in rows]
+    ratio_figure(labels, series, "gradients_where.png", loads, " --where")
 
 
 def bare_loss(n, dtype, remat=False):
@@ -394,6 +431,12 @@ def bare(repeats=7):
         + "\n",
         "gradients_bare.md",
     )
+    names = ("plain scan: reverse, stored", "reverse, recomputed", "forward mode (n columns)")
+    series = {"library: default": [r[4].median / r[3].median for r in rows]}
+    for i, k in enumerate(names):
+        series[k] = [r[6 + i].median / r[5].median for r in rows]
+    labels = [f"n={n} B={b}\n{dt}" for n, b, dt, *_ in rows]
+    ratio_figure(labels, series, "gradients_bare.png", loads, " --bare", log=True)
 
 
 def chunks(repeats=5, n=8, batch=1024, sizes=(16, 64, 256, 1024)):
@@ -438,6 +481,12 @@ def chunks(repeats=5, n=8, batch=1024, sizes=(16, 64, 256, 1024)):
         + "\n",
         "gradients_chunks.md",
     )
+    series = {
+        "value_and_grad / forward": [g.median / f.median for _, f, g in rows],
+        "value_and_grad / fastest forward": [g.median / fastest for _, f, g in rows],
+    }
+    labels = [f"chunk {size}" for size, *_ in rows]
+    ratio_figure(labels, series, "gradients_chunks.png", loads, " --chunks")
 
 
 LEARNED = ("magnet", "chain3", "chain5")
@@ -522,6 +571,12 @@ def learned(repeats=15):
         + "\n",
         "gradients_learned.md",
     )
+    series = {
+        "whole step (learn)": [w.median / f.median for *_, f, w, _ in rows],
+        "stage by stage": [st.median / f.median for *_, f, _, st in rows],
+    }
+    labels = [f"{system}\n{dtype}" for system, dtype, *_ in rows]
+    ratio_figure(labels, series, "gradients_learned.png", loads, " --learned")
 
 
 def main():
@@ -593,22 +648,16 @@ def main():
         "(here the n lengths).\n\n" + text + "\n",
         f"gradients{suffix}.md",
     )
-    ratios = [(o.median / f.median, w.median / f.median) for *_, f, o, w in rows]
-    fig, ax = pyplot().subplots(figsize=(9, 3.8))
-    x = np.arange(len(rows))
-    ax.bar(x - 0.2, [old for old, _ in ratios], 0.4, label="old default (checkpointed)")
-    ax.bar(x + 0.2, [new for _, new in ratios], 0.4, label="new default")
-    ax.axhline(4, color="k", ls="--", lw=0.8, label="target: fixed 4x, adaptive 6x")
-    ax.axhline(6, color="k", ls=":", lw=0.8)
     labels = [
         f"n={n} {dt[-2:]}\n{s.split()[0]} {'B' if 'batch' in api else '1'}"
         for n, dt, s, api, *_ in rows
     ]
-    ax.set_xticks(x, labels, fontsize=7)
-    ax.set_yscale("log")
-    ax.set_ylabel("value_and_grad / forward")
-    ax.legend(fontsize=8)
-    save_figure(fig, f"gradients{suffix}.png")
+    series = {
+        "old default (checkpointed)": [o.median / f.median for *_, f, o, _ in rows],
+        "new default": [w.median / f.median for *_, f, _, w in rows],
+    }
+    targets = ((4, "target: fixed 4x, adaptive 6x"), (6, None))
+    ratio_figure(labels, series, f"gradients{suffix}.png", loads, " --quick" * quick, targets, True)
 
 
 if __name__ == "__main__":

@@ -27,8 +27,10 @@ against their 4.45e-4).
 
     python benchmarks/learned_lagrangian.py --system magnet --out DIR [--quick]
 
-writes `DIR/<system>.json` and `DIR/<system>.eqx`; `load(path, system)` reads the model
-back as a library system (state `(q, qdot)`: the links' unit vectors in the task's frame).
+writes `DIR/<system>.json` and `DIR/<system>.eqx`, then prints the table of every task in
+`DIR` and writes it with the training curves (`DIR/learned_lagrangian.{md,png}`, alone:
+`--summary`); `load(path, system)` reads the model back as a library system (state
+`(q, qdot)`: the links' unit vectors in the task's frame).
 
 Model (`MODEL`): `sm.LearnedLagrangian` with its linear term (gravity) and a depth-3 silu
 MLP of width 128 (64 on the magnet, whose inputs are scaled by 8: the dipoles' potential
@@ -524,17 +526,15 @@ def main(argv=None):
         "losses_every_10": [float(x) for x in result.losses[::10]],
     }
     (args.out / f"{args.system}.json").write_text(json.dumps(report, indent=2))
-    print(json.dumps(report, indent=2))
+    summary(args.out)
     return report
 
 
 def summary(out: Path):
-    """`out/learned_lagrangian.md` (table beside CLNN) and `.png` (training curves) from the
-    `<system>.json` files in `out`."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    """`out/learned_lagrangian.md` (table beside CLNN, printed) and `.png` (training
+    curves) from the `<system>.json` files in `out`; a training run ends with it."""
+    # here, not at the top: notebook 09 loads this module without benchmarks/ on the path
+    from _harness import publish, pyplot, save_figure
 
     reports = [
         json.loads((out / f"{s}.json").read_text()) for s in CLNN if (out / f"{s}.json").exists()
@@ -562,16 +562,14 @@ def summary(out: Path):
             f"{r['train_time_s']:.0f} | {r.get('train_cpu_time_s', float('nan')):.0f} | "
             f"{load[0]:.1f} / {load[1]:.1f} | {r.get('model', '')} |"
         )
-    (out / "learned_lagrangian.md").write_text("\n".join(lines) + "\n")
-    fig, ax = plt.subplots(figsize=(6, 4))
+    publish("\n".join(lines) + "\n", "learned_lagrangian.md", out)
+    fig, ax = pyplot().subplots(figsize=(6, 4))
     for r in reports:
         losses = np.asarray(r.get("losses_every_10", []))
         ax.semilogy(10 * np.arange(len(losses)), losses, label=r["system"])
     ax.set(xlabel="step", ylabel="minibatch loss (mean |residual|)", title="sm.learn")
     ax.legend()
-    fig.tight_layout()
-    fig.savefig(out / "learned_lagrangian.png", dpi=120)
-    print("\n".join(lines))
+    save_figure(fig, "learned_lagrangian.png", out)
 
 
 if __name__ == "__main__":

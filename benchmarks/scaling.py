@@ -64,15 +64,14 @@ def worker(opts):
         jax.distributed.initialize(f"localhost:{port}", procs, process_id=rank)
     import diffrax
     import jax.numpy as jnp
-    from _harness import timing
+    from _harness import random_states, timing
     from jax.experimental import multihost_utils
 
     import sphere_mech as sm
 
     dt = 1e-3
     t1 = opts.steps * dt
-    keys = jax.random.split(jax.random.PRNGKey(0), opts.batch)
-    y0 = jax.vmap(lambda k: sm.random_state(k, opts.n, speed=0.5))(keys)
+    y0 = random_states(opts.n, opts.batch, speed=0.5)
     kw = dict(solver=sm.Projected(sm.RK4()), dt0=dt, saveat=diffrax.SaveAt(t1=True))
     kw["stepsize_controller"] = diffrax.ConstantStepSize()
     masses = jnp.ones(opts.n)

@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 
 jax.config.update("jax_enable_x64", True)
-from _harness import load, machine, publish, pyplot, save_figure, table, timed_call  # noqa: E402
+from _harness import bars, load, machine, publish, pyplot, save_figure, table, timed_call  # noqa: E402
 
 import sphere_mech as sm  # noqa: E402
 import sphere_mech._system as system_module  # noqa: E402
@@ -100,13 +100,12 @@ def main(argv=None):
     plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.5), squeeze=False)
     for ax, (example, res) in zip(axes[0], results.items(), strict=True):
-        names = list(res)
-        x = range(len(names))
-        ax.bar([i - 0.2 for i in x], [res[k][0] for k in names], 0.4, label="at every call")
-        ax.bar([i + 0.2 for i in x], [res[k][1] for k in names], 0.4, label="once (cached)")
-        ax.set_xticks(list(x), names, fontsize=8)
+        series = {
+            "at every call": [r[0] for r in res.values()],
+            "once (cached)": [r[1] for r in res.values()],
+        }
+        bars(ax, list(res), series)
         ax.set(ylabel="seconds", title=example)
-        ax.legend(fontsize=8)
     save_figure(fig, "trace_cache.png")
 
 
