@@ -85,8 +85,10 @@ def options(
     event=None,
 ) -> "Options":
     """`simulate`'s options (`simulate_batch`'s if `batched`), checked and completed."""
-    objects = dict(stepsize_controller=stepsize_controller, saveat=saveat, adjoint=adjoint)
-    for name, value in (objects | dict(event=event)).items():
+    given = dict(
+        stepsize_controller=stepsize_controller, saveat=saveat, adjoint=adjoint, event=event
+    )
+    for name, value in given.items():
         kind, expected = OBJECT_OPTIONS[name]
         if value is not None and not isinstance(value, kind):
             raise OptionError(name, f"{name} must be {expected} or None (got {value!r})")
@@ -157,12 +159,12 @@ def _real(x) -> bool:
 
 
 def check_values(t0, t1, dt0, rtol, atol, max_steps, saveat=None, dtype=float) -> None:
-    """The one check of concrete option values (traced ones pass): finite times, a finite
+    """The one check of concrete option values (traced ones pass): times and tolerances
+    real numbers (no strings, bools or complex numbers) and scalars, finite times, a finite
     nonzero `dt0` with the sign of `t1 - t0`, finite `rtol`, `atol` > 0, an integer
     `max_steps` >= 1 or `None`, and `saveat`'s save times in the state's `dtype` finite,
     between `t0` and `t1` and in the direction of integration (diffrax checks the last two
-    only while running, and passes a NaN time, saving `inf`); else an `OptionError`. Each
-    time and tolerance a scalar."""
+    only while running, and passes a NaN time, saving `inf`); else an `OptionError`."""
     named = dict(t0=t0, t1=t1, dt0=dt0, rtol=rtol, atol=atol)
     for name, x in named.items():
         if x is not None and not _real(x):
