@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import jax.random as jr
 
 from ._custom_types import Points, Scalar, Tangents
-from ._misc import check_integer
+from ._misc import check_integer, check_positive
 
 
 def _check_trailing(x, shape: tuple, name: str, fn: str) -> None:
@@ -192,6 +192,7 @@ def random_state(
 
     **Returns:** `(q, v)`, two `(n, 3)` arrays with `|q_i| = 1` and `q_i . v_i = 0`."""
     check_integer(n, "random_state: n")
+    check_positive(speed, "random_state: speed", zero=True)
     kq, kv = jr.split(key)
     q = random_points(kq, n, dtype=dtype)
     return q, project(q, speed * jr.normal(kv, (n, 3), dtype=dtype))

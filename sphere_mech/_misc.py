@@ -22,18 +22,20 @@ def check_integer(value, name: str, least: int = 1) -> None:
         raise ValueError(f"{name} must be {kind}, got {value!r}.")
 
 
-def check_positive(value, name: str) -> None:
-    """`value` one finite number > 0 (a Python or NumPy number or a 0-d array, not a bool;
-    a tracer passes), else a `ValueError` naming it: "`name` must be a finite number > 0"."""
+def check_positive(value, name: str, zero: bool = False) -> None:
+    """`value` one finite number > 0, or >= 0 with `zero` (a Python or NumPy number or a
+    0-d array, not a bool; a tracer passes), else a `ValueError` naming it: "`name` must be
+    a finite number > 0" (">= 0")."""
     if isinstance(value, jax.core.Tracer):
         return
     scalar = np.ndim(value) == 0 and not isinstance(value, bool | str)
+    bound = ">=" if zero else ">"
     try:
-        ok = scalar and 0 < float(value) < np.inf
+        x = float(value) if scalar else np.nan
     except (TypeError, ValueError):
-        ok = False
-    if not ok:
-        raise ValueError(f"{name} must be a finite number > 0, got {value!r}.")
+        x = np.nan
+    if not (x >= 0 if zero else x > 0) or x == np.inf:
+        raise ValueError(f"{name} must be a finite number {bound} 0, got {value!r}.")
 
 
 def tree_add(a, b):

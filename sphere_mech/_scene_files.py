@@ -95,16 +95,14 @@ def _number(x) -> bool:
 
 
 KINDS = {
-    # a float too: the effect refuses it, in its own words ("links must be an integer ...")
-    int: ("an integer", lambda x: x if _integer(x) or isinstance(x, float) else None),
+    # numbers, arrays and indices as Python gives them; anything else (a bool, a string, a
+    # table, a float for an integer) too: the effect refuses it in its own words
+    int: ("an integer", lambda x: x),
     jax.Array: (
         "a number or an array of numbers",
-        lambda x: np.asarray(x, dtype=float) if _numbers(x) else None,
+        lambda x: np.asarray(x, dtype=float) if _numbers(x) else x,
     ),
-    tuple[int, ...]: (
-        "an array of integers",
-        lambda x: tuple(x) if isinstance(x, list) and _numbers(x) and np.ndim(x) == 1 else None,
-    ),
+    tuple[int, ...]: ("an array of integers", lambda x: tuple(x) if isinstance(x, list) else x),
     Callable: (f"an inline table {{ type = ... }} ({', '.join(DRIVES)})", lambda x: None),
     rotorcraft.AbstractCommand: (
         f"an inline table {{ type = ... }} ({', '.join(COMMANDS)})",

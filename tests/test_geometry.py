@@ -82,7 +82,8 @@ def test_random_points_and_states(getkey):
 
 def test_shapes_and_counts_are_checked():
     """A vector or matrix of the wrong size raises (it used to give a 3x3 matrix or a
-    vector from the first entries); so does a count that is not a positive integer."""
+    vector from the first entries); so does a count that is not a positive integer, and a
+    speed that is not a finite number >= 0."""
     with pytest.raises(ValueError, match=r"hat: x must have shape \(\.\.\., 3\), got \(4,\)"):
         sm.hat(jnp.ones(4))
     with pytest.raises(ValueError, match=r"rotation_matrix: w must have shape \(\.\.\., 3\)"):
@@ -95,4 +96,8 @@ def test_shapes_and_counts_are_checked():
         with pytest.raises(ValueError, match="random_points: n must be a positive integer"):
             sm.random_points(jax.random.PRNGKey(0), n)
     assert sm.random_state(jax.random.PRNGKey(0), np.int64(2))[0].shape == (2, 3)
+    for speed in (np.nan, np.inf, -1.0, "1"):  # NaN velocities before
+        with pytest.raises(ValueError, match="random_state: speed must be a finite number >= 0"):
+            sm.random_state(jax.random.PRNGKey(0), 2, speed=speed)
+    assert jnp.all(sm.random_state(jax.random.PRNGKey(0), 2, speed=0.0)[1] == 0)
     assert sm.vee(sm.hat(jnp.ones((4, 3)))).shape == (4, 3)

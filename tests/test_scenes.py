@@ -426,8 +426,16 @@ TAU = jnp.array([0.0, 0.0, 1.0])
             lambda: sm.Spring(1.0, 0, 1.0),
             "a must be an integer sphere index or a (3,) anchor point, got shape ()",
         ),
+        (  # said "expected a number or an array of numbers", without the index
+            lambda: sm.Spring(True, 0, 1.0),
+            "a: expected an integer sphere index or a (3,) anchor point, got True",
+        ),
         (lambda: sm.Chain(1.0, 1.0, links=True), "links must be an integer from 1 to 100000"),
         (lambda: sm.Chain(1.0, 1.0, links=2.0), "links must be an integer from 1 to 100000"),
+        (
+            lambda: sm.PairInteraction(1.0, masses=True),
+            "PairInteraction.masses must be a sequence of integer sphere indices, got True",
+        ),
         (
             lambda: sm.Scene(TWO, sm.PairInteraction(1.0, masses=(0.0, 1.0))),
             "PairInteraction.masses must be an integer sphere index",
@@ -712,6 +720,23 @@ CASES = {  # name: (Python, what the file changes, the field the file error name
         "effects[2]",
     ),
     "no effects": (lambda: sm.Scene(), dict(template="effects = []\n{extra}{simulate}"), "effects"),
+    # the file's own words before: "expected an integer or a number or ...", "an array of
+    # integers", "invalid literal for int()"
+    "a spring end neither an index nor a point": (
+        lambda: sm.Spring(True, 0, 1.0),
+        dict(extra=TAU_TOML.format("spring", "a = true\nb = 0\nstiffness = 1.0")),
+        "effects[2].a",
+    ),
+    "pair interaction masses not a sequence": (
+        lambda: sm.PairInteraction(1.0, masses=True),
+        dict(extra=TAU_TOML.format("pair_interaction", "strength = 1.0\nmasses = true")),
+        "effects[2].masses",
+    ),
+    "pair interaction masses not indices": (
+        lambda: sm.Scene(TWO, sm.PairInteraction(1.0, masses=("a", "b"))),
+        dict(extra=TAU_TOML.format("pair_interaction", 'strength = 1.0\nmasses = ["a", "b"]')),
+        "effects[2].masses",
+    ),
     "negative pd gain": (
         lambda: sm.PDPosition(-1.0),
         dict(

@@ -18,10 +18,10 @@ MAX_COUNT = 100_000
 """The most items (links, particles, beads) one kinetic term may have."""
 
 
-def as_float(x, name: str) -> jax.Array:
+def as_float(x, name: str, what: str = "a number or an array of numbers") -> jax.Array:
     """`x` as a floating array (float64 when x64 is enabled); booleans, strings, `None` and
     ragged lists (anything NumPy does not read as an integer or floating array) are
-    refused with a `ParameterError` naming the field `name`."""
+    refused with a `ParameterError` naming the field `name` and saying it expected `what`."""
     traced = any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(x))
     if not traced:
         try:
@@ -29,8 +29,7 @@ def as_float(x, name: str) -> jax.Array:
         except ValueError:  # ragged: "setting an array element with a sequence"
             kind = "O"
         if kind not in "iuf":
-            expected = f"a number or an array of numbers, got {x!r}"
-            raise ParameterError(name, f"{name}: expected {expected}")
+            raise ParameterError(name, f"{name}: expected {what}, got {x!r}")
     x = jnp.asarray(x)
     return x if jnp.issubdtype(x.dtype, jnp.floating) else x.astype(jnp.result_type(float))
 

@@ -55,13 +55,11 @@ class Spring(AbstractPotential):
         self, a: int | jax.Array, b: int | jax.Array, stiffness: jax.Array, rest_length=0.0
     ):
         self.ends = tuple(int(e) if is_integer(e) else None for e in (a, b))
-        anchors = []
+        anchors, what = [], "an integer sphere index or a (3,) anchor point"
         for name, end, i in zip("ab", (a, b), self.ends, strict=True):
-            anchor = base.as_float(jnp.zeros(3) if i is not None else end, name)
+            anchor = base.as_float(jnp.zeros(3) if i is not None else end, name, what)
             if i is None:  # a float such as 1.0 is neither: say what an end may be
-                base.check_vector(
-                    name, anchor, what="an integer sphere index or a (3,) anchor point"
-                )
+                base.check_vector(name, anchor, what=what)
             anchors.append(anchor)
         self.anchors = jnp.stack(anchors)
         self.stiffness, self.rest_length = stiffness, rest_length
@@ -138,11 +136,20 @@ class PairInteraction(AbstractPotential):
     def __check_init__(self):
         base.check_shape("strength", self.strength, (), "a scalar")
         base.check_sign("exponent", self.exponent, "", scalar=True)
+        try:
+            ragged = self.masses is not None and np.ndim(self.masses) != 1
+        except ValueError:  # NumPy's "inhomogeneous shape"
+            ragged = True
+        if ragged:  # failed with len() of True in the scene's check, before
+            message = "PairInteraction.masses must be a sequence of integer sphere indices"
+            raise ParameterError("masses", f"{message}, got {self.masses!r}")
 
     def _indices(self, n) -> np.ndarray:
         return np.arange(n) if self.masses is None else np.asarray(self.masses, dtype=int)
 
     def check(self, scene):
+        for i in () if self.masses is None else self.masses:
+            base.check_index(self, "masses", i, scene.n)
         idx = self._indices(scene.n)
         if len(idx) < 2:
             message = f"PairInteraction needs at least two masses, got {len(idx)}"
@@ -151,8 +158,6 @@ class PairInteraction(AbstractPotential):
         if pairs > MAX_PAIRS:
             message = f"PairInteraction sums over at most {MAX_PAIRS:.0e} pairs, got {len(idx)}"
             raise ParameterError("masses", f"{message} masses ({pairs:.2e} pairs)")
-        for i in idx if self.masses is None else self.masses:
-            base.check_index(self, "masses", i, scene.n)
         repeated = [int(i) for i in np.unique(idx % scene.n) if np.sum(idx % scene.n == i) > 1]
         if repeated:
             message = f"PairInteraction.masses must name each mass once, got {self.masses}"
