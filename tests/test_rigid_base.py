@@ -166,6 +166,39 @@ def test_rigid_base_against_cartesian_quaternion_reference():
     assert moved > 0.1  # it tumbled
 
 
+def test_the_first_joint_is_on_the_body():
+    """The first link's joint is on the body, which takes the reaction of `JointDamping`
+    and `BaseTorque` there (they acted against the world before: with no gravity the
+    total angular momentum changed by the torque, and a link turning with the body was
+    damped). The part of the body's rotation along the link is free (its spin)."""
+    k = jax.random.split(jax.random.PRNGKey(11), 6)
+    R, Omega = sm.rotation_matrix(jax.random.normal(k[0], (3,))), jax.random.normal(k[1], (3,))
+    s = sm.normalize(jax.random.normal(k[2], (1, 3)))
+    body, link = sm.RigidBase(BODY_MASS, INERTIA, attach=ATTACH), sm.Chain(0.3, 0.5)
+
+    def state(sdot):
+        q = {"base": jax.random.normal(k[3], (3,)), "spheres": s, "attitude": R[None]}
+        v = {"base": jax.random.normal(k[4], (3,)), "spheres": sdot}
+        return q, v | {"attitude": (R @ sm.hat(Omega))[None]}
+
+    damped = sm.Scene(body, link, sm.JointDamping(0.5))
+    turning = damped.forces(0.0, *state(jnp.cross(R @ Omega, s)), None)  # turns with it
+    assert max(float(jnp.max(jnp.abs(f))) for f in jax.tree.leaves(turning)) < 1e-14
+    q, v = state(sm.project(s, jax.random.normal(k[5], (1, 3))))
+    across = sm.project(s, jnp.cross(s, v["spheres"]) - R @ Omega)
+    np.testing.assert_allclose(damped.power(0.0, q, v, None), -0.5 * jnp.sum(across**2), 1e-13)
+
+    scene = sm.Scene(body, link, sm.JointDamping(0.5), sm.BaseTorque([0.3, -0.1, 0.2]))
+
+    def angular_momentum(q, v):
+        x, xdot = jax.jvp(scene.points, (q,), (v,))
+        Rq, Omega_q = q["attitude"][0], sm.vee(q["attitude"][0].T @ v["attitude"][0])
+        return scene.point_masses() @ jnp.cross(x, xdot) + Rq @ body.inertia @ Omega_q
+
+    rate = jax.jvp(angular_momentum, (q, v), scene.rates(0.0, (q, v), None))[1]
+    assert float(jnp.max(jnp.abs(rate))) < 1e-13
+
+
 def test_variational_step_on_rigid_base_fast_path():
     """`Variational` on a rigid body carrying a chain from a body point: the O(n) chord
     iteration (the body's 3x3 block in the multiplier solve) takes the same step as the

@@ -7,17 +7,25 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._misc import tree_dtype
-from .._spaces import chain_parts, chain_state
+from .._geometry import project, vee
+from .._misc import tree_add, tree_dtype
+from .._spaces import chain_attitude, chain_parts, chain_state
 from . import base
 from .base import AbstractDrive, AbstractForce, ParameterError
 
 
 def _relative_omega(q, qdot, scene):
-    """`omega_i - omega_parent(i)` per joint (`omega_i = q_i x qdot_i`), `(n, 3)` arrays."""
-    omega = jnp.cross(q, qdot)
-    padded = jnp.concatenate([jnp.zeros_like(omega[:1]), omega])
-    return omega - padded[scene.parents() + 1]
+    """`omega_i - omega_parent(i)` per joint, `(n, 3)`: `omega_i = q_i x qdot_i`; the
+    support's is zero, or a `RigidBase`'s `vee(Rdot R^T) = R Omega` (world axes) of which a
+    link's joint on it sees the part across the link (the link's spin about itself is
+    free). `q`, `qdot`: the scene's state."""
+    s = scene.spheres(q)
+    omega = jnp.cross(s, scene.spheres(qdot))
+    R, Rdot = chain_attitude(q), chain_attitude(qdot)
+    support = jnp.zeros_like(omega[:1]) if R is None else vee(Rdot @ jnp.swapaxes(R, -1, -2))
+    parents = scene.parents()
+    rel = omega - jnp.concatenate([support.astype(omega.dtype), omega])[parents + 1]
+    return jnp.where(parents[:, None] < 0, project(s, rel), rel)
 
 
 def _drive(name: str, on_base: bool = False):
@@ -68,10 +76,13 @@ def _evaluate(drive, t, q, qdot, args, shape=(3,)):
 
 
 class JointDamping(AbstractForce):
-    """Viscous damping in every joint (between a link and its parent, or the support).
+    """Viscous damping in every joint (between a link and its parent, or the support: a
+    `RigidBase`'s body, which takes the reaction).
 
     Rayleigh function `R = c/2 sum_i |omega_i - omega_parent(i)|^2`, `f = -dR/dqdot`; its
-    power is `-2R <= 0`.
+    power is `-2R <= 0`. On a `RigidBase` the first joint's term is `omega_0 - P_0 R Omega`
+    (`P_0` the projection across the link: its spin about itself is free, so a link
+    turning with the body is not damped).
 
     **Arguments:**
     - `coefficient`: `c` (N m s, `>= 0`), a scalar or one value per sphere.
@@ -89,16 +100,18 @@ class JointDamping(AbstractForce):
 
     def generalized_force(self, t, q, qdot, scene, args):
         def dissipation(v):
-            w = _relative_omega(scene.spheres(q), v, scene)
+            w = _relative_omega(q, v, scene)
             return 0.5 * jnp.sum(self.coefficient * jnp.sum(w * w, axis=-1))
 
-        return scene.on_spheres(-jax.grad(dissipation)(scene.spheres(qdot)))
+        return jax.tree.map(jnp.negative, jax.grad(dissipation)(qdot))
 
 
 class BaseTorque(AbstractForce):
     """A torque in the joint of a link, applied by its parent (or the support).
 
-    `f_link = tau x q_link`, and `-tau x q_parent` on the parent.
+    `f_link = tau x q_link`, and `-tau x q_parent` on the parent (on a `RigidBase`'s body,
+    which carries the first joint: the body torque `-R^T P tau`, `P` the projection across
+    the link, whose spin about itself is free).
 
     **Arguments:**
     - `torque`: `tau` (N m): a constant `(3,)` vector or a function
@@ -120,6 +133,9 @@ class BaseTorque(AbstractForce):
         parent = int(scene.parents()[link])
         if parent >= 0:
             f = f.at[parent].add(-jnp.cross(tau, s[parent]))
+        elif scene.rigid_body is not None:  # the body's reaction, to the part the link takes
+            reaction = -chain_attitude(q)[0].T @ project(s[link], tau)
+            return tree_add(scene.on_spheres(f), scene.on_base(q, jnp.zeros_like(tau), reaction))
         return scene.on_spheres(f)
 
 
