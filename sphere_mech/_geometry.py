@@ -4,6 +4,7 @@
 import jax
 import jax.numpy as jnp
 import jax.random as jr
+import numpy as np
 
 from ._custom_types import Points, Scalar, Tangents
 from ._misc import check_integer, check_positive
@@ -11,9 +12,9 @@ from ._misc import check_integer, check_positive
 
 def _check_trailing(x, shape: tuple, name: str, fn: str) -> None:
     """`x`'s last axes are `shape` (`ValueError` at trace time otherwise)."""
-    if jnp.ndim(x) < len(shape) or jnp.shape(x)[-len(shape) :] != shape:
+    if np.ndim(x) < len(shape) or np.shape(x)[-len(shape) :] != shape:  # lists too
         want = ", ".join(["..."] + [str(d) for d in shape])
-        raise ValueError(f"{fn}: {name} must have shape ({want}), got {jnp.shape(x)}.")
+        raise ValueError(f"{fn}: {name} must have shape ({want}), got {np.shape(x)}.")
 
 
 def hat(x: jax.Array) -> jax.Array:
@@ -222,11 +223,16 @@ def nearest_rotation(R: jax.Array, iterations: int = 8) -> jax.Array:
 
     **Arguments:**
     - `R`: matrices with positive determinant, `(..., 3, 3)`.
-    - `iterations`: Newton steps (8 reach rounding from `|R^T R - I|` up to about 1).
+    - `iterations`: Newton steps, an integer `>= 0` (8 reach rounding from `|R^T R - I|`
+      up to about 1; 0 returns `R`).
 
-    **Returns:** rotation matrices, `(..., 3, 3)`.
+    **Returns:** rotation matrices, `(..., 3, 3)`. Not checked (at run time, traced):
+    a matrix of negative determinant gives its orthogonal factor, a reflection
+    (`det = -1`; `-I` is returned as it is), and a singular one (zero) NaN.
     """
-    X = R
+    _check_trailing(R, (3, 3), "R", "nearest_rotation")
+    check_integer(iterations, "nearest_rotation: iterations", 0)
+    X = jnp.asarray(R)
     for _ in range(iterations):
         x0, x1, x2 = X[..., 0, :], X[..., 1, :], X[..., 2, :]
         cofactors = jnp.stack([jnp.cross(x1, x2), jnp.cross(x2, x0), jnp.cross(x0, x1)], -2)

@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._checks import off_rotation, off_tangent, off_unit
+from ._checks import nonfinite, off_rotation, off_tangent, off_unit
 from ._geometry import hat
 from ._scene import forces, kinetic, potentials, rotorcraft
 from ._scene.base import MAX_MAGNITUDE, ParameterError
@@ -162,10 +162,13 @@ def _module(path, where: str, table, registry: dict, what: str):
         expected, x = " or ".join(KINDS[k][0] for k in kinds), table.get(key)
         if key not in table and default is inspect.Parameter.empty:
             raise SceneFileError(path, f"{where}.{key}", f"missing; expected {expected}")
-        if rotorcraft.AbstractCommand in kinds and isinstance(x, dict):
-            values[key] = _module(path, f"{where}.{key}", x, COMMANDS, "a command type")
-        elif Callable in kinds and isinstance(x, dict):
-            values[key] = _module(path, f"{where}.{key}", x, DRIVES, "a controller type")
+        if isinstance(x, dict) and (rotorcraft.AbstractCommand in kinds or Callable in kinds):
+            wanted, other = (DRIVES, "a controller type"), (COMMANDS, "a command type")
+            if rotorcraft.AbstractCommand in kinds:
+                wanted, other = other, wanted
+            # the other kind (a drive where a command goes): built, the effect refuses it
+            registry, what = other if x.get("type") in other[0] else wanted
+            values[key] = _module(path, f"{where}.{key}", x, registry, what)
         elif key in table:
             values[key] = next((v for k in kinds if (v := KINDS[k][1](x)) is not None), None)
             if values[key] is None:
@@ -252,11 +255,14 @@ def _attitude_initial(path, table, dtype):
     """A rigid base's rotation and body angular velocity from `[initial]`."""
     magnitude = f" (at most {MAX_MAGNITUDE:g} in magnitude)"
     (key, what), (rate, rate_what) = ATTITUDE_INITIAL.items()
-    R = _array(path, f"initial.{key}", table.get(key, np.eye(3).tolist()), [(3, 3)], what)
-    R = jnp.asarray(R, dtype)
-    bad, message = off_rotation(R[None], "the attitude")
-    if bad:
-        raise SceneFileError(path, f"initial.{key}", f"{message} Got {np.asarray(R).tolist()}.")
+    R = table.get(key, np.eye(3).tolist())
+    if not (_numbers(R) and np.shape(R) == (3, 3)):  # not finite or far off: simulate's words
+        raise SceneFileError(path, f"initial.{key}", f"{what}, got {_show(R)}")
+    R = jnp.asarray(np.asarray(R, dtype=float), dtype)
+    for bad, message in (nonfinite(R, "the attitude"), off_rotation(R[None], "the attitude")):
+        if bad:
+            got = f" Got {np.asarray(R).tolist()}."
+            raise SceneFileError(path, f"initial.{key}", message + got)
     Omega = _array(
         path, f"initial.{rate}", table.get(rate, [0.0] * 3), [(3,)], rate_what + magnitude
     )

@@ -11,6 +11,7 @@ from collections.abc import Mapping
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ._checks import (
     check_floating,
@@ -424,6 +425,9 @@ class Rotations(_AbstractBlockFactor):
 
     def check_shapes(self, q, v, v_name="v", q_name="q"):
         k = self.k or (jnp.shape(q)[0] if jnp.ndim(q) == 3 else "k")
+        if k == 0:
+            message = f"{q_name} must hold at least one rotation (k >= 1)"
+            raise ValueError(f"{message}, got shape {jnp.shape(q)}.")
         velocity = (k, 3) if self.body else (k, 3, 3)
         for name, x, shape in ((q_name, q, (k, 3, 3)), (v_name, v, velocity)):
             if jnp.shape(x) != shape:
@@ -654,13 +658,15 @@ def chain_space(base: int | None, n: int | None, attitude: bool = False) -> Abst
     **Returns:** `Spheres(n)`, or the `Product` of the base's `Euclidean(m)`, `Spheres(n)`
     and with `attitude` `Rotations(1)`.
     """
+    if not isinstance(attitude, bool | np.bool_):
+        raise ValueError(f"chain_space: attitude must be True or False, got {attitude!r}.")
+    if attitude and base != 3:  # a fixed support (None) has no attitude either
+        raise ValueError(f"chain_space: a rigid base moves in 3-D space, got base={base}.")
     spheres = Spheres(n)
     if base is None:
         return spheres
     factors = {BASE: Euclidean(base), _SPHERES: spheres}
     if attitude:
-        if base != 3:
-            raise ValueError(f"chain_space: a rigid base moves in 3-D space, got base={base}.")
         factors[ATTITUDE] = Rotations(1)
     return Product(dict(sorted(factors.items())))
 

@@ -222,6 +222,8 @@ def test_bad_arguments_are_rejected():
         sm.LieRK(diffrax.Kvaerno5())
     with pytest.raises(ValueError, match="explicit Runge-Kutta.*got Projected"):
         sm.LieRK(sm.Projected(diffrax.Tsit5()))  # passes isinstance, has no tableau
+    with pytest.raises(ValueError, match=r"\.\.\.\), got the class Dopri5\.$"):
+        sm.LieRK(diffrax.Dopri5)  # a class (it said: got _MetaAbstractSolver)
     with pytest.raises(ValueError, match="action must be one of"):
         sm.LieRK(diffrax.Dopri5(), action="SO3")
     with pytest.raises(ValueError, match="MechanicsTerm"):

@@ -243,6 +243,28 @@ def test_nearest_rotation_is_the_polar_factor():
     A = np.asarray(R0[0]) + 0.05 * np.random.default_rng(0).standard_normal((3, 3))
     U, _, Vt = np.linalg.svd(A)
     assert np.max(np.abs(np.asarray(sm.nearest_rotation(jnp.asarray(A))) - U @ Vt)) < 1e-14
+    # Its input is checked (a (3,) vector gave an IndexError, iterations=-1 returned R).
+    for R in (np.zeros(3), np.zeros((3, 4)), np.zeros((2, 2))):
+        with pytest.raises(ValueError, match=r"nearest_rotation: R must have shape \(\.\.\., 3,"):
+            sm.nearest_rotation(R)
+    for iterations in (-1, 2.5):
+        with pytest.raises(ValueError, match="iterations must be an integer >= 0"):
+            sm.nearest_rotation(A, iterations)
+    assert np.array_equal(sm.nearest_rotation(A.tolist(), 0), A)
+
+
+def test_no_rotations_and_an_attitude_without_a_base_are_refused():
+    """An empty `Rotations()` state is named (NumPy's zero-size reduction error before),
+    as an empty `Spheres()` one is; `chain_space` refuses an attitude without a base (it
+    was dropped) and an attitude that is not a bool."""
+    system = sm.AngularLagrangian(pendulum_L2, space=sm.Rotations())
+    with pytest.raises(ValueError, match=r"q must hold at least one rotation \(k >= 1\), got"):
+        system.angular_acceleration(0.0, jnp.zeros((0, 3, 3)), jnp.ones((0, 3)), None)
+    with pytest.raises(ValueError, match="a rigid base moves in 3-D space, got base=None"):
+        sm.chain_space(None, 3, attitude=True)
+    with pytest.raises(ValueError, match="attitude must be True or False, got 'yes'"):
+        sm.chain_space(3, 3, attitude="yes")
+    assert sm.chain_space(3, 2, attitude=np.True_) == sm.chain_space(3, 2, attitude=True)
 
 
 def test_bad_rotation_input_is_named():

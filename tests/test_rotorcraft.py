@@ -262,3 +262,63 @@ def test_fit_recovers_payload_and_rotor_coefficient_with_standard_errors():
         estimate, stderr = float(result.params[name]), float(result.stderr[name])
         assert abs(estimate - value) < 3 * stderr, name
         assert stderr < 1e-2 * value, name
+
+
+def test_geometric_control_flies_a_float32_state_under_x64():
+    """The command and the gains are float64 under x64; a float32 state flies in float32
+    (it raised jax.jvp's primal/tangent dtype mismatch) and lands within 1e-4 m of the
+    float64 flight after 0.5 s of a step command."""
+    scene, control = quadrotor(sm.Hover(step=[1.0, 0.0, 0.5]))
+    ends = {}
+    for dtype in (jnp.float32, jnp.float64):
+        q0 = {
+            "attitude": jnp.eye(3, dtype=dtype)[None],
+            "base": jnp.zeros(3, dtype),
+            "spheres": jnp.array([[0.0, 0.0, -1.0]], dtype),
+        }
+        v0 = jax.tree.map(jnp.zeros_like, q0)
+        sol = sm.simulate(scene, (q0, v0), 0.5)
+        assert {a.dtype for a in jax.tree.leaves(sol.ys)} == {jnp.dtype(dtype)}
+        ends[dtype] = sol.ys[0]["base"][-1]
+    np.testing.assert_allclose(ends[jnp.float32], ends[jnp.float64], atol=1e-4)
+    assert np.max(np.abs(ends[jnp.float64])) > 0.05  # it moved towards the step
+    R32 = jnp.eye(3, dtype=jnp.float32)
+    z32 = jnp.zeros(3, jnp.float32)
+    assert control.wrench(0.3, z32, z32, R32, z32).dtype == jnp.float32
+
+
+def test_flight_commands_and_drives_are_not_taken_for_one_another():
+    """`Rotors` takes a drive, not a flight command (it failed late with a TypeError);
+    `GeometricControl` takes a flight command, not a drive, and its check evaluates the
+    command's shapes (a function of the wrong shape failed at the first step)."""
+    body, cable = sm.RigidBase(MASS, INERTIA), sm.Chain(0.01, 0.3)
+    with pytest.raises(ValueError, match="not a flight command: fly Hover") as info:
+        sm.Rotors(sm.Hover(), ARM, C_TF)
+    assert info.value.field == "command"
+    with pytest.raises(ValueError, match="torque must be a vector or a drive, not a flight"):
+        sm.BodyTorque(sm.Hover())  # failed at the first step: Hover.__call__() takes 2 ...
+    with pytest.raises(ValueError, match=r"\(x_d, b1_d\), two \(3,\) vectors, not a drive"):
+        sm.GeometricControl(MASS, INERTIA, command=sm.PDTorque(1.0, 1.0, [0, 0, 1]), **GAINS)
+    for command, shapes in (
+        (lambda t: jnp.zeros(3), r"\[\(3,\)\]"),
+        (lambda t: (jnp.zeros(3), jnp.zeros(2)), r"\[\(3,\), \(2,\)\]"),
+    ):
+        control = sm.GeometricControl(MASS, INERTIA, command=command, **GAINS)
+        with pytest.raises(ValueError, match="it returns shapes " + shapes) as info:
+            sm.Scene(body, cable, sm.Rotors(control, ARM, C_TF))
+        assert info.value.field == "command.command"
+
+
+def test_geometric_control_wrench_checks_its_arguments():
+    """`wrench` names a misshapen argument (a batched R gave a raw error); lists and
+    integers are read as floats."""
+    control = sm.GeometricControl(MASS, INERTIA, command=sm.Hover(), g=G, **GAINS)
+    z, R = [0.0, 0.0, 0.0], np.eye(3)
+    with pytest.raises(ValueError, match=r"wrench: R must have shape \(3, 3\), got \(1, 3, 3\)"):
+        control.wrench(0.0, z, z, R[None], z)
+    with pytest.raises(ValueError, match=r"wrench: x must have shape \(3,\), got \(2,\)"):
+        control.wrench(0.0, z[:2], z, R, z)
+    with pytest.raises(ValueError, match=r"wrench: t must have shape \(\), got \(2,\)"):
+        control.wrench(jnp.zeros(2), z, z, R, z)
+    hover = control.wrench(0, [0, 0, 0], z, R.astype(int).tolist(), z)
+    np.testing.assert_allclose(hover, [MASS * G, 0.0, 0.0, 0.0], atol=1e-12)

@@ -732,6 +732,26 @@ CASES = {  # name: (Python, what the file changes, the field the file error name
         dict(extra=TAU_TOML.format("pair_interaction", "strength = 1.0\nmasses = true")),
         "effects[2].masses",
     ),
+    "a flight command as a body torque": (
+        lambda: sm.BodyTorque(sm.Hover()),
+        dict(template=RIGID_SCENE, extra=TORQUE.format('{ type = "hover" }')),
+        "effects[3].torque",
+    ),
+    "a drive as a flight command": (
+        lambda: sm.GeometricControl(
+            0.5, [0.00557, 0.00557, 0.0105], 4.0, 2.8, 0.5, 0.1, command=sm.PDTorque(1.0)
+        ),
+        dict(
+            template=RIGID_SCENE,
+            extra=TAU_TOML.format(
+                "rotors",
+                'arm = 0.17\ntorque_coefficient = 0.01\ncommand = { type = "geometric_control", '
+                "mass = 0.5, inertia = [0.00557, 0.00557, 0.0105], kx = 4.0, kv = 2.8, kR = 0.5, "
+                'kOmega = 0.1, command = { type = "pd_torque", kp = 1.0 } }',
+            ),
+        ),
+        "effects[3].command.command",
+    ),
     "pair interaction masses not indices": (
         lambda: sm.Scene(TWO, sm.PairInteraction(1.0, masses=("a", "b"))),
         dict(extra=TAU_TOML.format("pair_interaction", 'strength = 1.0\nmasses = ["a", "b"]')),
@@ -934,3 +954,21 @@ def test_parameters_out_of_range_are_refused_in_python_as_in_files():
         warnings.simplefilter("error")
         chain = sm.Chain(jnp.full(2, 1e30, jnp.float32), jnp.ones(2, jnp.float32))
     assert chain.masses.dtype == jnp.float32
+
+
+def test_file_attitude_not_finite_or_not_a_rotation_in_simulates_words(tmp_path):
+    """`[initial] attitude`: NaN, inf or 1e200 entries are refused in simulate's words (the
+    file said it expected 3 rows of 3 numbers, which they were); a misshapen one by its
+    shape."""
+    good = "attitude = [[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]"
+    for entry, words in (
+        ("nan", "the attitude contains NaN or infinite values. Got [[nan"),
+        ("inf", "the attitude contains NaN or infinite values. Got [[inf"),
+        ("1e200", "the attitude is not a rotation: some R^T R differs from I"),
+        ("0.0]]  #", "the body's rotation matrix (body to world), 3 rows of 3 numbers, got"),
+    ):
+        bad = good.replace("[[1.0", f"[[{entry}")  # the last: [[0.0]], the rest a comment
+        path = _file(tmp_path, template=RIGID_SCENE, replace={good: bad})
+        with pytest.raises(sm.SceneFileError) as file:
+            sm.load_scene(path)
+        assert str(file.value).startswith(f"{path}: initial.attitude: {words}")

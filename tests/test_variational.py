@@ -297,6 +297,15 @@ def test_refuses_hamiltonian_and_bad_options():
         sm.Variational(4, composition="ruth")
     with pytest.raises(ValueError, match="root_finder must be 'chord' or 'newton', got 'bfgs'"):
         sm.Variational(root_finder="bfgs")
+    # The Newton options (accepted before: a tolerance <= 0 or >= 1, 0 becoming the
+    # default, a float or zero for the iterations, which optimistix refused when run).
+    for tol, bound in ((-1.0, "> 0"), (0.0, "> 0"), (np.nan, "> 0"), (1e3, "< 1")):
+        with pytest.raises(ValueError, match=f"Variational: root_find_tol must be .*{bound}"):
+            sm.Variational(root_find_tol=tol)
+    for steps in (2.5, 0, True):
+        with pytest.raises(ValueError, match="root_find_max_steps must be a positive integer"):
+            sm.Variational(root_find_max_steps=steps)
+    assert sm.Variational(root_find_tol=np.float32(1e-6)).root_find_tol == pytest.approx(1e-6)
 
 
 @pytest.mark.slow

@@ -241,6 +241,17 @@ class AbstractForce(AbstractEffect):
         **Returns:** `f`, `(n, 3)`."""
 
 
+class AbstractCommand(_Checked):
+    """A flight command: `command(t) -> (x_d, b1_d)`, the desired position `(3,)` (m) and
+    heading `(3,)` (the desired body `e1`, not parallel to the thrust) at time `t`. The
+    controller takes its derivatives by autodiff: it must be smooth where it is flown
+    (a step is smooth on either side of its time)."""
+
+    @abc.abstractmethod
+    def __call__(self, t) -> tuple[jax.Array, jax.Array]:
+        """`(x_d, b1_d)` at `t`."""
+
+
 class AbstractDrive(_Checked):
     """A controller for a torque or force: `drive(t, q, qdot, args) -> (3,)` (`(m,)` for a
     `BaseForce`, `(4,)` thrust and moments for `Rotors`; scene files write it as an inline

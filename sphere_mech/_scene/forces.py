@@ -11,7 +11,7 @@ from .._geometry import project, vee
 from .._misc import tree_add, tree_dtype
 from .._spaces import chain_attitude, chain_parts, chain_state
 from . import base
-from .base import AbstractDrive, AbstractForce, ParameterError
+from .base import AbstractCommand, AbstractDrive, AbstractForce, ParameterError
 
 
 def _relative_omega(q, qdot, scene):
@@ -28,10 +28,20 @@ def _relative_omega(q, qdot, scene):
     return jnp.where(parents[:, None] < 0, project(s, rel), rel)
 
 
+def _not_a_command(name: str, x) -> None:
+    """Refuse a flight command where a torque or force is expected: it is what
+    `GeometricControl` flies (called as a drive, it failed with a `TypeError`)."""
+    if isinstance(x, AbstractCommand):
+        message = f"{name} must be a vector or a drive, not a flight command"
+        what = type(x).__name__
+        raise ParameterError(name, f"{message}: fly {what}(...) with GeometricControl(command=...)")
+
+
 def _drive(name: str, on_base: bool = False):
     """A drive field: a constant `(3,)` vector (`(m,)` on the `Base`) or a function."""
 
     def convert(x):
+        _not_a_command(name, x)
         if callable(x):
             return x
         x = base.as_float(x, name)

@@ -1,19 +1,19 @@
 """Rotorcraft: four rotors on a `RigidBase` and the geometric tracking controller on SE(3)
 of Lee, Leok and McClamroch (2010) that drives them, with the commands it tracks."""
 
-import abc
 from collections.abc import Callable
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .._geometry import hat, vee
 from .._linalg import dense_solve
 from .._spaces import chain_attitude, chain_parts
 from . import base
-from .base import AbstractDrive, AbstractForce, ParameterError
-from .forces import _check_drive, _evaluate
+from .base import AbstractCommand, AbstractDrive, AbstractForce, ParameterError
+from .forces import _check_drive, _evaluate, _not_a_command
 from .kinetic import check_rigid_inertia, inertia_matrix
 
 E3 = (0.0, 0.0, 1.0)
@@ -52,7 +52,8 @@ class Rotors(AbstractForce):
     **Arguments:**
     - `command`: `(f, M1, M2, M3)` (N, N m): a constant `(4,)` vector or a function
       `command(t, q, qdot, args) -> (4,)` of the scene's state, such as
-      `GeometricControl`.
+      `GeometricControl` (a flight command, such as `Hover`, is refused: it is what
+      `GeometricControl` flies).
     - `arm`: the distance `d` of each rotor from the centre of mass (m, `> 0`).
     - `torque_coefficient`: `c`, the yaw moment per unit thrust (m, `> 0`).
     - `min_thrust`, `max_thrust`: each rotor's bounds (N; default 0 and no upper bound;
@@ -80,6 +81,7 @@ class Rotors(AbstractForce):
         model_arm=None,
         model_torque_coefficient=None,
     ):
+        _not_a_command("command", command)
         if not callable(command):
             command = base.as_float(command, "command")
             base.check_shape("command", command, (4,), "a (4,) vector (f, M1, M2, M3)")
@@ -131,8 +133,8 @@ class Rotors(AbstractForce):
         c = self.torque_coefficient
         c = c if self.model_torque_coefficient is None else self.model_torque_coefficient
         f = dense_solve(mixing_matrix(arm, c).astype(wrench.dtype), wrench)
-        f = f if self.min_thrust is None else jnp.maximum(f, self.min_thrust)
-        return f if self.max_thrust is None else jnp.minimum(f, self.max_thrust)
+        f = f if self.min_thrust is None else jnp.maximum(f, self.min_thrust.astype(f.dtype))
+        return f if self.max_thrust is None else jnp.minimum(f, self.max_thrust.astype(f.dtype))
 
     def generalized_force(self, t, q, qdot, scene, args):
         wrench = _evaluate(self.command, t, q, qdot, args, (4,))
@@ -149,17 +151,6 @@ def _check_heading(heading) -> None:
     if base._concrete(heading) and abs(float(heading[2])) >= 1 - 1e-6:
         message = "heading must not be vertical (the body e1 wanted, across the thrust)"
         raise ParameterError("heading", f"{message}, got {base._show(heading)}")
-
-
-class AbstractCommand(base._Checked):
-    """A flight command: `command(t) -> (x_d, b1_d)`, the desired position `(3,)` (m) and
-    heading `(3,)` (the desired body `e1`, not parallel to the thrust) at time `t`. The
-    controller takes its derivatives by autodiff: it must be smooth where it is flown
-    (a step is smooth on either side of its time)."""
-
-    @abc.abstractmethod
-    def __call__(self, t) -> tuple[jax.Array, jax.Array]:
-        """`(x_d, b1_d)` at `t`."""
 
 
 class Hover(AbstractCommand):
@@ -253,6 +244,12 @@ def _unit(x):
     return x / jnp.linalg.norm(x)
 
 
+_COMMAND = (
+    "command must be an AbstractCommand (Hover, Line, Circle) or a function"
+    " command(t) -> (x_d, b1_d), two (3,) vectors"
+)
+
+
 class GeometricControl(AbstractDrive):
     """The geometric tracking controller on SE(3) of Lee, Leok and McClamroch (2010), for
     `Rotors` (`(f, M)`), in a frame whose `e3` points up (thrust `f R e3`, gravity `-g e3`):
@@ -289,11 +286,11 @@ class GeometricControl(AbstractDrive):
     def __check_init__(self):
         base.check_sign("mass", self.mass, " (kg)", scalar=True)
         check_rigid_inertia(self.inertia)
+        if isinstance(self.command, AbstractDrive):
+            what = type(self.command).__name__
+            raise ParameterError("command", f"{_COMMAND}, not a drive, got a {what}")
         if not callable(self.command):
-            message = "command must be an AbstractCommand (Hover, Line, Circle) or a function"
-            raise ParameterError(
-                "command", f"{message} command(t) -> (x_d, b1_d), got {self.command!r}"
-            )
+            raise ParameterError("command", f"{_COMMAND}, got {self.command!r}")
         for name in ("kx", "kv", "kR", "kOmega"):
             base.check_sign(name, getattr(self, name), "", scalar=True)
         base.check_sign("g", self.g, " (m/s^2)", strict=False, scalar=True)
@@ -301,17 +298,25 @@ class GeometricControl(AbstractDrive):
     def check(self, scene):
         if scene.rigid_body is None:
             raise ParameterError("", "GeometricControl needs a RigidBase in the scene")
+        out = jax.eval_shape(self.command, jax.ShapeDtypeStruct((), jnp.result_type(float)))
+        shapes = [x.shape for x in jax.tree.leaves(out)]  # ShapeDtypeStructs
+        if not isinstance(out, tuple | list) or shapes != [(3,), (3,)]:
+            raise ParameterError("command", f"{_COMMAND}; it returns shapes {shapes}")
 
     def thrust_vector(self, t, x, v):
-        """The force the thrust should give and the heading the command asks for.
+        """The force the thrust should give and the heading the command asks for (in
+        `x`'s floating type, whatever the command's and the gains' own).
 
         **Arguments:**
         - `t`, `x`, `v`: time, the centre of mass and its velocity `(3,)`.
 
         **Returns:** `(F, b1_d)`, `(3,)` each (world axes)."""
-        (x_d, b1_d), (v_d, _), (a_d, _) = _derivatives(self.command, t, 2)
-        e3 = jnp.asarray(E3, x.dtype)
-        F = -self.kx * (x - x_d) - self.kv * (v - v_d) + self.mass * (self.g * e3 + a_d)
+        dtype = x.dtype
+        command = lambda s: tuple(jnp.asarray(y).astype(dtype) for y in self.command(s))
+        t = jnp.asarray(t).astype(dtype)
+        (x_d, b1_d), (v_d, _), (a_d, _) = _derivatives(command, t, 2)
+        kx, kv, m, g = (a.astype(dtype) for a in (self.kx, self.kv, self.mass, self.g))
+        F = -kx * (x - x_d) - kv * (v - v_d) + m * (g * jnp.asarray(E3, dtype) + a_d)
         return F, b1_d
 
     def command_attitude(self, t, x, v, R):
@@ -344,15 +349,25 @@ class GeometricControl(AbstractDrive):
         - `R`, `Omega`: the attitude `(3, 3)` (body to world) and the body angular
           velocity `(3,)`.
 
-        **Returns:** `(f, M1, M2, M3)`, `(4,)` (N, N m)."""
-        t = jnp.asarray(t, x.dtype)
-        m, J = self.mass.astype(x.dtype), self.inertia.astype(x.dtype)
+        **Returns:** `(f, M1, M2, M3)`, `(4,)` (N, N m), in the floating type of the state."""
+        shapes = dict(t=(), x=(3,), v=(3,), R=(3, 3), Omega=(3,))
+        state = dict(t=t, x=x, v=v, R=R, Omega=Omega)
+        for name, a in state.items():
+            if np.shape(a) != shapes[name]:
+                message = f"GeometricControl.wrench: {name} must have shape {shapes[name]}"
+                raise ValueError(f"{message}, got {np.shape(a)}.")
+        t, x, v, R, Omega = (jnp.asarray(a) for a in state.values())
+        dtype = jnp.result_type(x, v, R, Omega)
+        dtype = dtype if jnp.issubdtype(dtype, jnp.floating) else jnp.result_type(float)
+        t, x, v, R, Omega = (a.astype(dtype) for a in (t, x, v, R, Omega))
+        m, J = self.mass.astype(dtype), self.inertia.astype(dtype)
+        kR, kOmega, g = (a.astype(dtype) for a in (self.kR, self.kOmega, self.g))
 
         def flow(z):  # the controller's model: (t, x, v, R) move as the body alone would
             t_, x_, v_, R_ = z
             F, _ = self.thrust_vector(t_, x_, v_)
             e3 = R_[:, 2]
-            a = (F @ e3) * e3 / m - self.g * jnp.asarray(E3, x.dtype)
+            a = (F @ e3) * e3 / m - g * jnp.asarray(E3, dtype)
             return jnp.ones_like(t_), v_, a, R_ @ hat(Omega)
 
         Rc = lambda z: self.command_attitude(*z)
@@ -364,8 +379,8 @@ class GeometricControl(AbstractDrive):
         e_R = 0.5 * vee(R_c.T @ R - R.T @ R_c)
         e_Omega = Omega - R.T @ R_c @ Omega_c
         M = (
-            -self.kR * e_R
-            - self.kOmega * e_Omega
+            -kR * e_R
+            - kOmega * e_Omega
             + jnp.cross(Omega, J @ Omega)
             - J @ (hat(Omega) @ R.T @ R_c @ Omega_c - R.T @ R_c @ Omegadot_c)
         )

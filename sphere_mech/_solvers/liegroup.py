@@ -21,6 +21,7 @@ from .._lie import AbstractLieAction
 from .._misc import tree_sub
 from .._term import MechanicsTerm, space_of, system_of
 from .rk4 import RK4, stage_coefficients
+from .wrapped import described
 
 ACTIONS = ("SE3", "SO3xR3")
 ERROR_ESTIMATES = ("state", "algebra")
@@ -134,7 +135,7 @@ class LieRK(AbstractAdaptiveSolver):
             raise ValueError(
                 "LieRK needs an explicit Runge-Kutta solver with a Butcher tableau "
                 "(diffrax.Dopri5(), diffrax.Tsit5(), diffrax.Bosh3(), diffrax.Dopri8(), "
-                f"sphere_mech.RK4(), ...), got {type(self.solver).__name__}."
+                f"sphere_mech.RK4(), ...), got {described(self.solver)}."
             )
         if self.action not in ACTIONS:
             raise ValueError(f"LieRK: action must be one of {ACTIONS}, got {self.action!r}.")

@@ -17,7 +17,7 @@ from diffrax import (
 )
 from jax import lax
 
-from .._misc import tree_dtype
+from .._misc import check_integer, check_positive, tree_dtype
 from .._momentum import newton_tolerance
 from .._system import vector_field
 from .._term import MechanicsTerm, physical_time, system_of
@@ -105,9 +105,11 @@ class Variational(AbstractSolver):
     - `order`: 2 (the basic step) or 4 (a symmetric composition of it).
     - `composition` (order 4): `"suzuki"` (default; 5 substeps) or `"yoshida"` (3
       substeps, one backward and 1.7 times the step: Newton needs smaller steps).
-    - `root_find_max_steps`: iterations allowed per substep (default 32).
+    - `root_find_max_steps`: iterations allowed per substep (a positive integer, default
+      32).
     - `root_find_tol`: Newton tolerance on the last correction and the residual, both
-      relative (default `eps ** 0.75` of the state's dtype).
+      relative: a number `> 0` and `< 1` (default `None`: `eps ** 0.75` of the state's
+      dtype).
     - `fast_path`: whether constant-inertia systems use the O(n) iteration (default
       `True`). Its rate is about the angle a link turns per step times the spread of the
       inertia's eigenvalues: on too coarse steps it may run out of iterations where
@@ -146,6 +148,13 @@ class Variational(AbstractSolver):
             raise ValueError(
                 f"Variational: root_finder must be 'chord' or 'newton', got {root_finder!r}."
             )
+        check_integer(root_find_max_steps, "Variational: root_find_max_steps")
+        if root_find_tol is not None:
+            check_positive(root_find_tol, "Variational: root_find_tol")
+            if not root_find_tol < 1:
+                message = "Variational: root_find_tol must be < 1 (a relative tolerance)"
+                raise ValueError(f"{message}, got {root_find_tol!r}.")
+            root_find_tol = float(root_find_tol)
         self.gammas = composition_coefficients(order, composition)
         self.claimed_order = order
         self.root_find_max_steps = root_find_max_steps
@@ -163,7 +172,7 @@ class Variational(AbstractSolver):
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         system = check_lagrangian(system_of(terms))
         dtype = tree_dtype(y0)
-        tol = self.root_find_tol or newton_tolerance(dtype)
+        tol = newton_tolerance(dtype) if self.root_find_tol is None else self.root_find_tol
         start = jnp.asarray(physical_time(terms, t0), dtype=dtype)
         rates0 = solver_state
         if made_jump is not False:

@@ -11,6 +11,12 @@ def _forwarded(name: str) -> property:
     return property(lambda self: getattr(self.solver, name), doc=f"The wrapped solver's `{name}`.")
 
 
+def described(solver) -> str:
+    """How an error names the `solver` it was given: `the class Tsit5` for a class (a
+    missing `()`), else its `repr`."""
+    return f"the class {solver.__name__}" if isinstance(solver, type) else repr(solver)
+
+
 class AbstractTransparentSolver(AbstractWrappedSolver):
     """Wraps `solver` (a field or property of the concrete class) and forwards its order,
     term structure, interpolation, root finder and scan kind, as diffrax's `HalfSolver`
@@ -20,14 +26,9 @@ class AbstractTransparentSolver(AbstractWrappedSolver):
 
     def __check_init__(self):
         if not isinstance(self.solver, AbstractSolver):
-            what = (
-                f"the class {self.solver.__name__}"
-                if isinstance(self.solver, type)
-                else repr(self.solver)
-            )
             raise ValueError(
                 f"{type(self).__name__}(solver): solver must be a diffrax solver "
-                f"instance, e.g. diffrax.Tsit5() (got {what})"
+                f"instance, e.g. diffrax.Tsit5() (got {described(self.solver)})"
             )
 
     # Read from the wrapped solver. `root_finder`, `root_find_max_steps`: diffrax reads
