@@ -92,14 +92,24 @@ def _solve_batch(static, chunk, mesh, shared, batched, y0, valid, size, padded):
     batched, y0 = _pad((batched, y0), padded)
     solve = lambda s, b, y: _local_solve(static, chunk, s, b, y)
     sol = jax.tree.map(lambda x: x[:size], on_devices(solve, mesh, shared, batched, y0))
-    # invalid initial states ran a stand-in: their own code, no steps, nothing saved (inf)
+    # invalid initial states ran a stand-in: their own code, no steps, nothing saved (inf),
+    # no event, a dense output of no step (`inf` at t0, NaN elsewhere)
     invalid = lambda ok, r: RESULTS.where(ok, r, RESULTS.invalid_initial)
     result = jax.vmap(invalid)(valid, sol.result)
     discard = lambda fill: lambda x: jnp.where(rows(valid, x), x, fill)
     ts, ys = jax.tree.map(discard(jnp.inf), (sol.ts, sol.ys))
     stats = jax.tree.map(discard(0), sol.stats)
-    fields = lambda s: (s.result, s.ts, s.ys, s.stats)
-    return eqx.tree_at(fields, sol, (result, ts, ys, stats), is_leaf=lambda x: x is None)
+    event_mask = jax.tree.map(discard(False), sol.event_mask)
+    interpolation = sol.interpolation
+    if interpolation is not None:
+        no_step = (interpolation.ts_size, interpolation.infos, interpolation.y0_if_trivial)
+        no_step = (discard(1)(no_step[0]),) + jax.tree.map(discard(jnp.inf), no_step[1:])
+        interpolation = eqx.tree_at(
+            lambda i: (i.ts_size, i.infos, i.y0_if_trivial), interpolation, no_step
+        )
+    fields = lambda s: (s.result, s.ts, s.ys, s.stats, s.event_mask, s.interpolation)
+    new = (result, ts, ys, stats, event_mask, interpolation)
+    return eqx.tree_at(fields, sol, new, is_leaf=lambda x: x is None)
 
 
 def _on_mesh(tree, mesh):
@@ -121,6 +131,7 @@ def _chunk_size(chunk_size, n, local, platform):
             return local
         chunk_size = 2 ** int(math.log2(max(1, CPU_CHUNK_LINKS // n)))
     check_integer(chunk_size, "chunk_size")
+    chunk_size = int(chunk_size)  # a NumPy integer too: static (the chunks' shapes)
     return -(-local // -(-local // chunk_size))
 
 

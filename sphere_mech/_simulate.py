@@ -70,7 +70,8 @@ def simulate(
     - `event`: a `diffrax.Event` that stops the run, e.g. `diffrax.Event(lambda t, y,
       args, **kw: y[0][0, 1], root_finder=optimistix.Newton(1e-12, 1e-12))` where the
       first point crosses `y = 0`; `sol.result` is then `RESULTS.event_occurred` (nothing
-      raises) and `sol.event_mask` says which event fired. With `SaveAt(ts=...,
+      raises) and `sol.event_mask` says which event fired. The condition gets the
+      physical time, backwards too (diffrax passes `-t`). With `SaveAt(ts=...,
       t1=True)` the state where it stopped follows the last save time reached (diffrax
       writes it into the first unreached slot, its time in `sol.ts`), and the rest are
       `inf`: find it by `sol.ts`, not as `sol.ys[-1]`.

@@ -10,6 +10,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 
 from ._adjoint import default_adjoint_run
 from ._misc import all_finite, as_arrays, is_integer, rows, tree_dtype
@@ -92,6 +93,8 @@ def options(
         kind, expected = OBJECT_OPTIONS[name]
         if value is not None and not isinstance(value, kind):
             raise OptionError(name, f"{name} must be {expected} or None (got {value!r})")
+    if event is not None:
+        check_event(event)
     check_values(t0, t1, dt0, rtol, atol, max_steps, saveat, dtype)
     solver = default_solver() if solver is None else as_solver(solver)
     if stepsize_controller is not None:
@@ -128,6 +131,46 @@ def options(
     return Options(solver, controller, saveat, adjoint, meter, event, max_steps, batched)
 
 
+_EVENT_KWARGS = ("terms", "solver", "t0", "t1", "dt0", "saveat", "stepsize_controller")
+_EVENT_KWARGS += ("max_steps",)
+"""The keywords diffrax passes an event's condition besides `t, y, args`."""
+
+
+def check_event(event: diffrax.Event) -> None:
+    """`event`'s conditions callables taking `(t, y, args, **kwargs)` (diffrax passes
+    `_EVENT_KWARGS`) and its root finder an optimistix root finder or `None`, else an
+    `OptionError`: diffrax checks neither before it runs them."""
+    conditions = jax.tree.leaves(event.cond_fn, is_leaf=callable)
+    if not conditions:
+        raise OptionError("event", "event must have a condition: diffrax.Event(cond_fn)")
+    for fn in conditions:
+        if not callable(fn):
+            raise OptionError(
+                "event",
+                f"event.cond_fn must be a function (or a pytree of functions) "
+                f"cond_fn(t, y, args, **kwargs) (got {fn!r})",
+            )
+        try:
+            signature = inspect.signature(fn)
+        except (TypeError, ValueError):  # a builtin without one: left to diffrax
+            continue
+        try:
+            signature.bind(0.0, None, None, **dict.fromkeys(_EVENT_KWARGS))
+        except TypeError as e:
+            raise OptionError(
+                "event",
+                f"event.cond_fn must take (t, y, args, **kwargs): diffrax also passes "
+                f"{', '.join(_EVENT_KWARGS)} (got {fn!r} with signature {signature}: {e})",
+            ) from None
+    finder = event.root_finder
+    if finder is not None and not isinstance(finder, optx.AbstractRootFinder):
+        raise OptionError(
+            "event",
+            "event.root_finder must be an optimistix root finder or None, e.g. "
+            f"optimistix.Newton(rtol=1e-12, atol=1e-12) (got {finder!r})",
+        )
+
+
 class OptionError(ValueError):
     """A bad value of the option `field` of `simulate`, `simulate_batch`, `fit` or a scene file."""
 
@@ -162,7 +205,7 @@ def check_values(t0, t1, dt0, rtol, atol, max_steps, saveat=None, dtype=float) -
     """The one check of concrete option values (traced ones pass): times and tolerances
     real numbers (no strings, bools or complex numbers) and scalars, finite times, a finite
     nonzero `dt0` with the sign of `t1 - t0`, finite `rtol`, `atol` > 0, an integer
-    `max_steps` >= 1 or `None`, and `saveat`'s save times in the state's `dtype` finite,
+    `max_steps` >= 1 or `None`, and `saveat`'s save times 1-D, in the state's `dtype` finite,
     between `t0` and `t1` and in the direction of integration (diffrax checks the last two
     only while running, and passes a NaN time, saving `inf`); else an `OptionError`."""
     named = dict(t0=t0, t1=t1, dt0=dt0, rtol=rtol, atol=atol)
@@ -191,6 +234,10 @@ def check_values(t0, t1, dt0, rtol, atol, max_steps, saveat=None, dtype=float) -
         expected = f"an integer from 1 to {MAX_STEPS} or None"
         raise OptionError("max_steps", f"max_steps must be {expected} (got {max_steps!r})")
     for ts in [] if saveat is None else _save_times(saveat):
+        if jnp.ndim(ts) != 1:
+            raise OptionError(
+                "saveat", f"saveat.ts must be a 1-D array of times (got shape {jnp.shape(ts)})"
+            )
         if isinstance(ts, jax.core.Tracer):
             continue
         ts = np.asarray(ts, dtype=np.dtype(dtype)).ravel()
@@ -381,6 +428,8 @@ def solve_with(adjoint, system, y0, t0, t1, dt0, args, opts: Options) -> diffrax
         t1 = jnp.where(ok, t1, t0)
     else:  # fixed steps accept a NaN step: the last state, saved beside the caller's, tells
         saveat = eqx.tree_at(lambda s: s.subs, saveat, (saveat.subs, diffrax.SubSaveAt(t1=True)))
+    # diffrax integrates in -t backwards (t0 > t1, and t0 == t1 too): its sign of time
+    direction = jnp.where(t0 < t1, 1, -1).astype(jnp.result_type(t0))
     sol = diffrax.diffeqsolve(
         MechanicsTerm(system),
         opts.solver,
@@ -394,10 +443,9 @@ def solve_with(adjoint, system, y0, t0, t1, dt0, args, opts: Options) -> diffrax
         max_steps=opts.max_steps,
         progress_meter=opts.meter,
         adjoint=adjoint,
-        event=opts.event,
+        event=_physical_event(opts.event, direction),
         throw=False,
     )
-    # Unreached save times are `inf`, never NaN.
     has_nan = functools.reduce(
         jnp.logical_or, [jnp.any(jnp.isnan(y)) for y in jax.tree.leaves(sol.ys)], jnp.array(False)
     )
@@ -411,15 +459,115 @@ def solve_with(adjoint, system, y0, t0, t1, dt0, args, opts: Options) -> diffrax
         root = [RESULTS.nonlinear_max_steps_reached, RESULTS.nonlinear_divergence, RESULTS.singular]
         failed_root = fired & functools.reduce(jnp.logical_or, [result == r for r in root])
         result = RESULTS.where(failed_root, RESULTS.event_root_failed, result)
-    result = RESULTS.where((result == RESULTS.successful) & has_nan, RESULTS.nonfinite, result)
+    # A NaN state (fixed steps accept it) is `nonfinite`, also where it fired the event
+    # (`_PhysicalCondition`'s `inf`) or fed the event's root finder (lineax's code).
+    nan_codes = [RESULTS.successful, RESULTS.event_occurred, RESULTS.nonfinite_input]
+    nan_code = functools.reduce(jnp.logical_or, [result == r for r in nan_codes])
+    result = RESULTS.where(nan_code & has_nan, RESULTS.nonfinite, result)
     result = RESULTS.where(ok, result, RESULTS.nonfinite_initial)
+    # Unreached save times are `inf`, never NaN: so are saves of a NaN state and their times.
+    ts, ys = _unsave_nonfinite(opts.saveat, sol.ts, sol.ys, direction * jnp.inf)
     ts, ys = jax.tree.map(
         lambda x: jnp.where(ok, x, jnp.inf),
-        (sol.ts, _retract_saved(system.state_space, opts.saveat, sol.ys)),
+        (ts, _retract_saved(system.state_space, opts.saveat, ys)),
     )
+    event_mask = sol.event_mask
+    if opts.event is not None:  # a NaN state's "event" is a failure, not an event
+        nan = (result == RESULTS.nonfinite) | (result == RESULTS.nonfinite_initial)
+        event_mask = jax.tree.map(lambda m: m & jnp.logical_not(nan), event_mask)
+    fields = lambda s: (s.result, s.ts, s.ys, s.event_mask)
+    return eqx.tree_at(fields, sol, (result, ts, ys, event_mask), is_leaf=lambda x: x is None)
+
+
+class _PhysicalCondition(eqx.Module):
+    """An event's condition `fn` called with the physical times: diffrax passes its own,
+    `-t` (and `-t0`, `-t1`, `-dt0`) backwards. A float condition is returned in JAX's
+    default float dtype, that of diffrax's `lambda: 0.0` beside it in its root find (float64
+    under x64, for a float32 state too), and `+inf` at a state that is not finite (NaN
+    there is the condition's own: `_FiniteStart` tells them apart)."""
+
+    fn: Any
+    direction: Any
+
+    def __call__(self, t, y, args, **kwargs):
+        for name in ("t0", "t1", "dt0"):
+            if kwargs.get(name) is not None:
+                kwargs[name] = self.direction * kwargs[name]
+        value = self.fn(self.direction * t, y, args, **kwargs)
+        if jnp.issubdtype(jnp.result_type(value), jnp.floating):
+            value = jnp.where(all_finite(y), value, jnp.inf).astype(jnp.result_type(float))
+        return value
+
+
+class _FiniteStart(optx.AbstractRootFinder):
+    """An event's root `finder`, telling a condition not finite at a finite state (NaN:
+    the finder's iterates or the step's end left its domain; `nonlinear_divergence`, so
+    `event_root_failed`) from a state that is not finite where the finder starts, at the
+    end of the step (`+inf` from `_PhysicalCondition`; lineax's `nonfinite_input` kept,
+    then `nonfinite`)."""
+
+    finder: optx.AbstractRootFinder
+    rtol = property(lambda self: self.finder.rtol)
+    atol = property(lambda self: self.finder.atol)
+    norm = property(lambda self: self.finder.norm)
+
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        state = self.finder.init(fn, y, args, options, f_struct, aux_struct, tags)
+        state_finite = jnp.logical_not(_any_inf(fn(y, args)[0]))
+        return state, state_finite
+
+    def step(self, fn, y, args, options, state, tags):
+        y, inner, aux = self.finder.step(fn, y, args, options, state[0], tags)
+        return y, (inner, state[1]), aux
+
+    def terminate(self, fn, y, args, options, state, tags):
+        done, result = self.finder.terminate(fn, y, args, options, state[0], tags)
+        inside = state[1] & (result == optx.RESULTS.nonfinite_input)
+        return done, optx.RESULTS.where(inside, optx.RESULTS.nonlinear_divergence, result)
+
+    def postprocess(self, fn, y, aux, args, options, state, tags, result):
+        return self.finder.postprocess(fn, y, aux, args, options, state[0], tags, result)
+
+
+def _any_inf(tree) -> jax.Array:
+    """Whether a leaf of `tree` has an infinite entry."""
+    leaves = [jnp.any(jnp.isinf(x)) for x in jax.tree.leaves(tree)]
+    return functools.reduce(jnp.logical_or, leaves, jnp.array(False))
+
+
+def _physical_event(event: diffrax.Event | None, direction) -> diffrax.Event | None:
+    """`event` with every condition a `_PhysicalCondition`, its root finder `_FiniteStart`."""
+    if event is None:
+        return None
+    wrap = lambda fn: _PhysicalCondition(fn, direction)
+    finder = None if event.root_finder is None else _FiniteStart(event.root_finder)
     return eqx.tree_at(
-        lambda s: (s.result, s.ts, s.ys), sol, (result, ts, ys), is_leaf=lambda x: x is None
+        lambda e: (e.cond_fn, e.root_finder),
+        event,
+        (jax.tree.map(wrap, event.cond_fn, is_leaf=callable), finder),
+        is_leaf=lambda x: x is None,
     )
+
+
+def _unsave_nonfinite(saveat: diffrax.SaveAt, ts, ys, unreached):
+    """Saved entries with a NaN (or a NaN time) as unreached ones: `inf`, their time
+    `unreached`."""
+    is_sub = lambda x: isinstance(x, diffrax.SubSaveAt)
+
+    def one(_, ts, ys):
+        floats = [y for y in jax.tree.leaves(ys) if jnp.issubdtype(y.dtype, jnp.inexact)]
+        per_time = [jnp.any(jnp.isnan(y).reshape(y.shape[0], -1), axis=1) for y in floats]
+        bad = functools.reduce(jnp.logical_or, per_time, jnp.isnan(ts))
+        fill = lambda y, fill: jnp.where(bad.reshape(bad.shape + (1,) * (y.ndim - 1)), fill, y)
+        ys = jax.tree.map(
+            lambda y: fill(y, jnp.inf) if jnp.issubdtype(y.dtype, jnp.inexact) else y, ys
+        )
+        return fill(ts, unreached.astype(ts.dtype)), ys
+
+    out = jax.tree.map(one, saveat.subs, ts, ys, is_leaf=is_sub)
+    structure = jax.tree.structure(saveat.subs, is_leaf=is_sub)
+    outs = structure.flatten_up_to(out)
+    return structure.unflatten([o[0] for o in outs]), structure.unflatten([o[1] for o in outs])
 
 
 def _save_times(saveat: diffrax.SaveAt) -> list:

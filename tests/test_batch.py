@@ -11,6 +11,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 import pytest
 from helpers import cpu_devices
 
@@ -147,6 +148,32 @@ def test_invalid_initial_state_is_reported_and_isolated(chain, on_error):
     assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-3000:]
 
 
+def test_invalid_member_has_no_event_and_no_dense_output():
+    """An invalid initial state ran its stand-in (member 0): its event mask and dense
+    output were the stand-in's (True; member 0's trajectory). A NumPy `chunk_size` (here
+    two chunks of 2) passed the check, then failed to trace."""
+    pendulum = sm.chain_pendulum([1.0], [0.7])
+    theta = jnp.array([0.3, 0.6, 0.9, 1.2])
+    q = jnp.stack([jnp.sin(theta), 0 * theta, -jnp.cos(theta)], axis=-1)[:, None]
+    cross = lambda t, y, args, **kw: y[0][0, 0]
+    event = diffrax.Event(cross, root_finder=optx.Newton(rtol=1e-12, atol=1e-12))
+    sol = sm.simulate_batch(
+        pendulum,
+        (q.at[2, 0, 0].set(jnp.nan), jnp.zeros_like(q)),
+        1.0,
+        batch_args=False,
+        throw=False,
+        event=event,
+        saveat=diffrax.SaveAt(t1=True, dense=True),
+        chunk_size=np.int64(3),
+    )
+    assert np.asarray(sol.event_mask).tolist() == [True, True, False, True]
+    assert np.asarray(sol.result == sm.RESULTS.invalid_initial).tolist() == [0, 0, 1, 0]
+    dense = np.asarray(jax.vmap(lambda i: i.evaluate(0.1))(sol.interpolation)[0])
+    assert np.all(np.isfinite(dense[[0, 1, 3]])) and not np.any(np.isfinite(dense[2]))
+    assert np.all(np.isinf(np.asarray(sol.ys[0][2])))
+
+
 TRACES = {"count": 0}
 
 
@@ -211,5 +238,9 @@ def test_chunks_are_as_even_as_can_be():
     from sphere_mech._batch import _chunk_size
 
     for local, at_most, expected in [(257, 256, 129), (256, 256, 256), (1000, 256, 250), (5, 2, 2)]:
-        chunk = _chunk_size(at_most, 1, local, "cpu")
-        assert chunk == expected and -(-local // chunk) * chunk - local < -(-local // at_most)
+        chunk = _chunk_size(np.int64(at_most), 1, local, "cpu")
+        assert (
+            type(chunk) is int
+            and chunk == expected
+            and -(-local // chunk) * chunk - local < -(-local // at_most)
+        )

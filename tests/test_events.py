@@ -129,3 +129,56 @@ def test_root_finder_failure_is_named():
         r"converge.* \(with throw=False nothing is raised",
     ):
         sm.simulate(system, (q0, jnp.zeros_like(q0)), 10.0, event=cross)
+
+
+def test_nan_state_is_nonfinite_not_an_event():
+    """Fixed steps accept a NaN step. A NaN state "fired" an event (the sign of NaN differs
+    from any) and fed its root finder (lineax's `nonfinite_input`, at a NaN time): both are
+    `nonfinite`, the event not fired, nothing NaN saved (`inf`)."""
+    height = lambda t, q, qdot, args: 9.81 * jnp.sum(q[:, 2]) - jnp.sqrt(0.5 - q[0, 2])
+    system = sm.Lagrangian(
+        lambda t, q, qdot, args: 0.5 * jnp.sum(qdot**2) - height(t, q, qdot, args)
+    )
+    y0 = (jnp.array([[0.0, 0.0, -1.0]]), jnp.array([[6.0, 0.0, 0.0]]))  # NaN once z > 0.5
+    never = lambda t, y, args, **kw: y[0][0, 1] - 5.0
+    fixed = dict(solver=sm.Projected(sm.RK4()), dt0=0.01, throw=False)
+    for event in (diffrax.Event(never), diffrax.Event(never, root_finder=NEWTON)):
+        sol = sm.simulate(system, y0, 1.0, event=event, **fixed)
+        assert sol.result == sm.RESULTS.nonfinite
+        assert not bool(sol.event_mask)
+        assert np.all(np.isinf(np.asarray(sol.ts))) and np.all(np.isinf(np.asarray(sol.ys[0])))
+
+
+def test_backward_event_sees_the_physical_time():
+    """diffrax integrates in -t backwards and passed that to the condition: an event at
+    t = -0.2 never fired. Events as a pytree of conditions too; the event time reported."""
+    at = lambda time: lambda t, y, args, **kw: t - time
+    sol = sm.simulate(PENDULUM, planar(1.0), -1.0, event=diffrax.Event(at(-0.2), NEWTON))
+    assert sol.result == sm.RESULTS.event_occurred
+    np.testing.assert_allclose(sol.ts, [-0.2], rtol=1e-12)
+    tree = diffrax.Event({"late": at(-0.5), "early": at(-0.3)}, root_finder=NEWTON)
+    sol = sm.simulate(PENDULUM, planar(1.0), -1.0, event=tree)
+    np.testing.assert_allclose(sol.ts, [-0.3], rtol=1e-12)
+    assert bool(sol.event_mask["early"]) and not bool(sol.event_mask["late"])
+
+
+def test_float32_state_with_root_finder_under_x64():
+    """diffrax's root find puts the condition beside a float64 `0.0` under x64: a float32
+    condition raised a TypeError. The state and times stay float32."""
+    q = planar(1.0)[0].astype(jnp.float32)
+    event = diffrax.Event(lambda t, y, args, **kw: y[0][0, 0], optx.Newton(1e-5, 1e-5))
+    sol = sm.simulate(PENDULUM, (q, jnp.zeros_like(q)), 1.0, event=event)
+    assert sol.result == sm.RESULTS.event_occurred
+    assert sol.ys[0].dtype == sol.ts.dtype == jnp.float32
+    np.testing.assert_allclose(sol.ts, [quarter_period(1.0)], rtol=1e-4)
+
+
+def test_condition_nan_at_a_finite_state_is_a_root_failure():
+    """A condition undefined past its root (NaN at a finite state) was lineax's
+    `nonfinite_input` at a NaN time: the root finder's failure, no NaN saved."""
+    root = lambda t, y, args, **kw: jnp.sqrt(y[0][0, 0]) - 0.1
+    event = diffrax.Event(root, root_finder=NEWTON)
+    sol = sm.simulate(PENDULUM, planar(1.0), 1.0, event=event, throw=False)
+    assert sol.result == sm.RESULTS.event_root_failed
+    assert bool(sol.event_mask)  # it fired; its time was not found
+    assert not np.any(np.isnan(np.asarray(sol.ts))) and not np.any(np.isnan(sol.ys[0]))

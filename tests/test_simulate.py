@@ -181,6 +181,9 @@ def _check_partial_trajectory(sol):
     assert reached[0] and not reached[-1]
     assert np.all(reached[: reached.sum()])  # a prefix
     assert float(sm.constraint_error(q[reached])) < 1e-14
+    # not NaN after a NaN state, nor their times (before: NaN states at finite times)
+    assert np.all(np.isinf(q[~reached]))
+    assert np.all(np.isinf(np.asarray(sol.ts)[~reached]))
 
 
 @pytest.mark.parametrize(
@@ -293,6 +296,22 @@ def test_initial_state_checks():
             r"^saveat.ts must lie between t0 = 0 and t1 = 1 \(got 0.5 to 1.5\)$",
         ),
         (dict(saveat=diffrax.SaveAt(ts=jnp.array([0.5, 0.2]))), r"^saveat.ts must be increasing"),
+        # before: raveled by the check, then an error from inside diffrax
+        (
+            dict(saveat=diffrax.SaveAt(ts=jnp.array([[0.1, 0.2]]))),
+            r"^saveat.ts must be a 1-D array of times \(got shape \(1, 2\)\)$",
+        ),
+        # malformed events: before, an AttributeError, a TypeError (unexpected keyword
+        # argument 'terms') and a 'float' object is not callable from inside diffrax
+        (
+            dict(event=diffrax.Event(lambda t, y, args, **kw: t, root_finder="newton")),
+            r"^event.root_finder must be an optimistix root finder or None, .*got 'newton'",
+        ),
+        (
+            dict(event=diffrax.Event(lambda t, y, args: t)),
+            r"^event.cond_fn must take \(t, y, args, \*\*kwargs\): diffrax also passes terms",
+        ),
+        (dict(event=diffrax.Event(3.0)), r"^event.cond_fn must be a function .*\(got 3.0\)$"),
     ],
 )
 def test_option_values_are_checked_before_tracing(options, message):
