@@ -81,20 +81,24 @@ def check_scalar(value, what: str):
     return value
 
 
-def check_function(fn, name: str, spelled: str, arity: int) -> None:
-    """Static check: `fn` is a function taking `arity` positional arguments (where
-    `inspect.signature` reads it), else a `ValueError` naming `name` and `spelled`."""
+def check_function(
+    fn, name: str, spelled: str, arity: int, keywords: tuple[str, ...] = (), error=ValueError
+) -> None:
+    """Static check: `fn` is a function taking `arity` positional arguments and the
+    `keywords` (where `inspect.signature` reads it), else `error(message)` naming `name`
+    and `spelled` (`error`: an exception class or a function of the message)."""
     if not callable(fn):
-        raise ValueError(f"{name} must be a function {spelled}, got {type(fn).__name__}.")
+        raise error(f"{name} must be a function {spelled}, got {type(fn).__name__}.")
     try:
         signature = inspect.signature(fn)
     except (TypeError, ValueError):  # a builtin or C function: nothing to read
         return
     try:
-        signature.bind(*range(arity))
+        signature.bind(*range(arity), **dict.fromkeys(keywords))
     except TypeError:
-        raise ValueError(
-            f"{name} must be a function {spelled} ({arity} arguments), got "
+        also = f" and the keywords {', '.join(keywords)}" if keywords else ""
+        raise error(
+            f"{name} must be a function {spelled} ({arity} arguments{also}), got "
             f"one with signature {signature}."
         ) from None
 

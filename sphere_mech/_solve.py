@@ -13,6 +13,7 @@ import numpy as np
 import optimistix as optx
 
 from ._adjoint import default_adjoint_run
+from ._checks import check_function
 from ._misc import all_finite, as_arrays, is_integer, rows, tree_dtype
 from ._results import RESULTS, describe_failures, gathered
 from ._solvers.names import as_solver, solver_name
@@ -131,8 +132,7 @@ def options(
     return Options(solver, controller, saveat, adjoint, meter, event, max_steps, batched)
 
 
-_EVENT_KWARGS = ("terms", "solver", "t0", "t1", "dt0", "saveat", "stepsize_controller")
-_EVENT_KWARGS += ("max_steps",)
+_EVENT_KWARGS = ("terms", "solver", "t0", "t1", "dt0", "saveat", "stepsize_controller", "max_steps")
 """The keywords diffrax passes an event's condition besides `t, y, args`."""
 
 
@@ -144,24 +144,14 @@ def check_event(event: diffrax.Event) -> None:
     if not conditions:
         raise OptionError("event", "event must have a condition: diffrax.Event(cond_fn)")
     for fn in conditions:
-        if not callable(fn):
-            raise OptionError(
-                "event",
-                f"event.cond_fn must be a function (or a pytree of functions) "
-                f"cond_fn(t, y, args, **kwargs) (got {fn!r})",
-            )
-        try:
-            signature = inspect.signature(fn)
-        except (TypeError, ValueError):  # a builtin without one: left to diffrax
-            continue
-        try:
-            signature.bind(0.0, None, None, **dict.fromkeys(_EVENT_KWARGS))
-        except TypeError as e:
-            raise OptionError(
-                "event",
-                f"event.cond_fn must take (t, y, args, **kwargs): diffrax also passes "
-                f"{', '.join(_EVENT_KWARGS)} (got {fn!r} with signature {signature}: {e})",
-            ) from None
+        check_function(
+            fn,
+            "event.cond_fn",
+            "cond_fn(t, y, args, **kwargs) (or a pytree of them)",
+            3,
+            _EVENT_KWARGS,
+            functools.partial(OptionError, "event"),
+        )
     finder = event.root_finder
     if finder is not None and not isinstance(finder, optx.AbstractRootFinder):
         raise OptionError(
@@ -443,7 +433,23 @@ def solve_with(adjoint, system, y0, t0, t1, dt0, args, opts: Options) -> diffrax
         max_steps=opts.max_steps,
         progress_meter=opts.meter,
         adjoint=adjoint,
-        event=_physical_event(opts.event, direction),
+        event=_physical_event(
+            opts.event,
+            direction,
+            dict(
+                t=t0,
+                y=y0,
+                args=args,
+                terms=MechanicsTerm(system),
+                solver=opts.solver,
+                t0=t0,
+                t1=t1,
+                dt0=dt0,
+                saveat=saveat,
+                stepsize_controller=opts.controller,
+                max_steps=opts.max_steps,
+            ),
+        ),
         throw=False,
     )
     has_nan = functools.reduce(
@@ -535,12 +541,29 @@ def _any_inf(tree) -> jax.Array:
     return functools.reduce(jnp.logical_or, leaves, jnp.array(False))
 
 
-def _physical_event(event: diffrax.Event | None, direction) -> diffrax.Event | None:
-    """`event` with every condition a `_PhysicalCondition`, its root finder `_FiniteStart`."""
+def _physical_event(event: diffrax.Event | None, direction, call: dict) -> diffrax.Event | None:
+    """`event` with every condition a `_PhysicalCondition`, its root finder `_FiniteStart`.
+    Where every condition is boolean the root finder is dropped: diffrax puts a boolean
+    event at the end of its step either way, and its root find would fail on times not in
+    JAX's default float dtype (a float32 state under x64). `call`: the condition's
+    arguments at the start, to read what it returns."""
     if event is None:
         return None
+    conditions = jax.tree.leaves(event.cond_fn, is_leaf=callable)
+    values = [jax.eval_shape(lambda fn=fn: fn(**call)) for fn in conditions]
+    boolean = [jnp.issubdtype(jnp.result_type(v), jnp.bool_) for v in values]
+    finder = event.root_finder
+    if all(boolean):
+        finder = None
+    elif any(boolean) and finder is not None and jnp.result_type(call["t0"]) != jnp.dtype(float):
+        raise OptionError(
+            "event",
+            "event: boolean and float conditions together with a root finder need the state "
+            f"in JAX's default float dtype ({jnp.dtype(float)}), got "
+            f"{jnp.result_type(call['t0'])}: cast the state, or make every condition float",
+        )
     wrap = lambda fn: _PhysicalCondition(fn, direction)
-    finder = None if event.root_finder is None else _FiniteStart(event.root_finder)
+    finder = None if finder is None else _FiniteStart(finder)
     return eqx.tree_at(
         lambda e: (e.cond_fn, e.root_finder),
         event,

@@ -173,6 +173,28 @@ def test_float32_state_with_root_finder_under_x64():
     np.testing.assert_allclose(sol.ts, [quarter_period(1.0)], rtol=1e-4)
 
 
+def test_boolean_condition_float32_with_root_finder_under_x64():
+    """A boolean condition fires at the end of its step, root finder or not: a float32
+    state under x64 raised diffrax's TypeError (its root find mixed float32 times with a
+    float64 `0.0`). With a float condition beside it the error names the problem."""
+    q = planar(1.0)[0].astype(jnp.float32)
+    y0 = (q, jnp.zeros_like(q))
+    below = lambda t, y, args, **kw: y[0][0, 2] < -0.9  # released at z = -cos(1) = -0.54
+    runs = [
+        sm.simulate(PENDULUM, y0, 1.0, event=diffrax.Event(below, finder))
+        for finder in (optx.Newton(1e-5, 1e-5), None)
+    ]
+    assert runs[0].result == sm.RESULTS.event_occurred
+    assert runs[0].ts.dtype == jnp.float32
+    np.testing.assert_array_equal(runs[0].ts, runs[1].ts)
+    # the end of the step that crossed z = -0.9, before the bottom
+    assert float(runs[0].ys[0][0, 0, 2]) < -0.9
+    assert 0 < float(runs[0].ts[0]) < quarter_period(1.0)
+    both = {"bool": below, "float": lambda t, y, args, **kw: y[0][0, 0]}
+    with pytest.raises(ValueError, match=r"^event: boolean and float conditions .* float32"):
+        sm.simulate(PENDULUM, y0, 1.0, event=diffrax.Event(both, optx.Newton(1e-5, 1e-5)))
+
+
 def test_condition_nan_at_a_finite_state_is_a_root_failure():
     """A condition undefined past its root (NaN at a finite state) was lineax's
     `nonfinite_input` at a NaN time: the root finder's failure, no NaN saved."""
