@@ -322,3 +322,12 @@ def test_geometric_control_wrench_checks_its_arguments():
         control.wrench(jnp.zeros(2), z, z, R, z)
     hover = control.wrench(0, [0, 0, 0], z, R.astype(int).tolist(), z)
     np.testing.assert_allclose(hover, [MASS * G, 0.0, 0.0, 0.0], atol=1e-12)
+    # thrust_vector and command_attitude alike (raw broadcasting errors before; a list x an
+    # AttributeError)
+    with pytest.raises(ValueError, match=r"thrust_vector: x must have shape \(3,\), got \(2,\)"):
+        control.thrust_vector(0.0, z[:2], z)
+    with pytest.raises(ValueError, match=r"command_attitude: R must have shape \(3, 3\)"):
+        control.command_attitude(0.0, z, z, R[:2])
+    F, b1 = control.thrust_vector(0, [0, 0, 0], [0, 0, 0])
+    np.testing.assert_allclose(F, [0.0, 0.0, MASS * G], atol=1e-12)
+    np.testing.assert_allclose(control.command_attitude(0, z, z, R), np.eye(3), atol=1e-12)

@@ -250,6 +250,17 @@ _COMMAND = (
 )
 
 
+_STATE_SHAPES = dict(t=(), x=(3,), v=(3,), R=(3, 3), Omega=(3,))
+
+
+def _check_state(method: str, **state) -> None:
+    """Static check of `GeometricControl.<method>`'s state arguments' shapes."""
+    for name, a in state.items():
+        if np.shape(a) != _STATE_SHAPES[name]:
+            message = f"GeometricControl.{method}: {name} must have shape {_STATE_SHAPES[name]}"
+            raise ValueError(f"{message}, got {np.shape(a)}.")
+
+
 class GeometricControl(AbstractDrive):
     """The geometric tracking controller on SE(3) of Lee, Leok and McClamroch (2010), for
     `Rotors` (`(f, M)`), in a frame whose `e3` points up (thrust `f R e3`, gravity `-g e3`):
@@ -311,7 +322,11 @@ class GeometricControl(AbstractDrive):
         - `t`, `x`, `v`: time, the centre of mass and its velocity `(3,)`.
 
         **Returns:** `(F, b1_d)`, `(3,)` each (world axes)."""
-        dtype = x.dtype
+        _check_state("thrust_vector", t=t, x=x, v=v)
+        x, v = jnp.asarray(x), jnp.asarray(v)
+        dtype = jnp.result_type(x, v)
+        dtype = dtype if jnp.issubdtype(dtype, jnp.floating) else jnp.result_type(float)
+        x, v = x.astype(dtype), v.astype(dtype)
         command = lambda s: tuple(jnp.asarray(y).astype(dtype) for y in self.command(s))
         t = jnp.asarray(t).astype(dtype)
         (x_d, b1_d), (v_d, _), (a_d, _) = _derivatives(command, t, 2)
@@ -329,6 +344,7 @@ class GeometricControl(AbstractDrive):
         - `R`: the attitude `(3, 3)` (body to world).
 
         **Returns:** `R_c`, `(3, 3)`."""
+        _check_state("command_attitude", t=t, x=x, v=v, R=R)
         F, b1_d = self.thrust_vector(t, x, v)
         b3 = _unit(jnp.where(jnp.any(F != 0), F, R[:, 2]))
         b2 = _unit(jnp.cross(b3, b1_d))
@@ -350,13 +366,8 @@ class GeometricControl(AbstractDrive):
           velocity `(3,)`.
 
         **Returns:** `(f, M1, M2, M3)`, `(4,)` (N, N m), in the floating type of the state."""
-        shapes = dict(t=(), x=(3,), v=(3,), R=(3, 3), Omega=(3,))
-        state = dict(t=t, x=x, v=v, R=R, Omega=Omega)
-        for name, a in state.items():
-            if np.shape(a) != shapes[name]:
-                message = f"GeometricControl.wrench: {name} must have shape {shapes[name]}"
-                raise ValueError(f"{message}, got {np.shape(a)}.")
-        t, x, v, R, Omega = (jnp.asarray(a) for a in state.values())
+        _check_state("wrench", t=t, x=x, v=v, R=R, Omega=Omega)
+        t, x, v, R, Omega = (jnp.asarray(a) for a in (t, x, v, R, Omega))
         dtype = jnp.result_type(x, v, R, Omega)
         dtype = dtype if jnp.issubdtype(dtype, jnp.floating) else jnp.result_type(float)
         t, x, v, R, Omega = (a.astype(dtype) for a in (t, x, v, R, Omega))
