@@ -208,8 +208,13 @@ ATTITUDE_INITIAL = {
 
 
 def _array(path, field: str, x, shapes, expected: str, bounds=None) -> np.ndarray:
-    """`x` as floats: numbers of one of `shapes` within `bounds` (default: `MAX_MAGNITUDE`)."""
+    """`x` as floats: numbers of one of `shapes` within `bounds` (default: `MAX_MAGNITUDE`);
+    NaN and infinities get simulate's words, naming the key."""
     low, high = bounds or (-MAX_MAGNITUDE, MAX_MAGNITUDE)
+    if _numbers(x) and np.shape(x) in shapes:
+        bad, message = nonfinite(np.asarray(x, dtype=float), field.rsplit(".", 1)[-1])
+        if bad:
+            raise SceneFileError(path, field, f"{message} Got {_show(x)}.")
     if not (_numbers(x) and np.shape(x) in shapes and low <= np.min(x) <= np.max(x) <= high):
         raise SceneFileError(path, field, f"{expected}, got {_show(x)}")
     return np.asarray(x, dtype=float)

@@ -972,3 +972,24 @@ def test_file_attitude_not_finite_or_not_a_rotation_in_simulates_words(tmp_path)
         with pytest.raises(sm.SceneFileError) as file:
             sm.load_scene(path)
         assert str(file.value).startswith(f"{path}: initial.attitude: {words}")
+
+
+def test_file_initial_values_not_finite_in_simulates_words(tmp_path):
+    """`[initial]` NaN or inf entries are refused in simulate's words, naming the key (the
+    file said it expected unit vectors, angles within [0, 180] or at most 1e+06 in
+    magnitude, which they were not asked to be)."""
+    for old, new, key, got in (
+        ("polar_deg = 170.0", "polar_deg = nan", "polar_deg", "nan"),
+        ("polar_deg = 170.0\nazimuth_deg = 0.0", "q = [0.0, 0.0, inf]", "q", "[0.0, 0.0, inf]"),
+        ("angular_velocity = [0.1,", "angular_velocity = [nan,", "angular_velocity", "[nan, 0.2"),
+    ):
+        path = _file(tmp_path, template=RIGID_SCENE, replace={old: new})
+        with pytest.raises(sm.SceneFileError) as file:
+            sm.load_scene(path)
+        message = f"{path}: initial.{key}: {key} contains NaN or infinite values. Got {got}"
+        assert str(file.value).startswith(message)
+    # the same words as simulate's, which names q
+    spec = sm.load_scene(_file(tmp_path))
+    q, qdot = spec.y0
+    with pytest.raises(ValueError, match=r"q contains NaN or infinite values\.$"):
+        sm.simulate(spec.scene, (q.at[0, 0].set(jnp.inf), qdot), 0.1)
