@@ -472,7 +472,7 @@ def solve_with(adjoint, system, y0, t0, t1, dt0, args, opts: Options) -> diffrax
     result = RESULTS.where(nan_code & has_nan, RESULTS.nonfinite, result)
     result = RESULTS.where(ok, result, RESULTS.nonfinite_initial)
     # Unreached save times are `inf`, never NaN: so are saves of a NaN state and their times.
-    ts, ys = _unsave_nonfinite(opts.saveat, sol.ts, sol.ys, direction * jnp.inf)
+    ts, ys = _unsave_nonfinite(opts.saveat, sol.ts, sol.ys)
     ts, ys = jax.tree.map(
         lambda x: jnp.where(ok, x, jnp.inf),
         (ts, _retract_saved(system.state_space, opts.saveat, ys)),
@@ -572,9 +572,9 @@ def _physical_event(event: diffrax.Event | None, direction, call: dict) -> diffr
     )
 
 
-def _unsave_nonfinite(saveat: diffrax.SaveAt, ts, ys, unreached):
-    """Saved entries with a NaN (or a NaN time) as unreached ones: `inf`, their time
-    `unreached`."""
+def _unsave_nonfinite(saveat: diffrax.SaveAt, ts, ys):
+    """Saved entries with a NaN (or a NaN time) as unreached ones: `inf`, their time too
+    (`+inf` backwards as well, as diffrax's unreached times)."""
     is_sub = lambda x: isinstance(x, diffrax.SubSaveAt)
 
     def one(_, ts, ys):
@@ -585,7 +585,7 @@ def _unsave_nonfinite(saveat: diffrax.SaveAt, ts, ys, unreached):
         ys = jax.tree.map(
             lambda y: fill(y, jnp.inf) if jnp.issubdtype(y.dtype, jnp.inexact) else y, ys
         )
-        return fill(ts, unreached.astype(ts.dtype)), ys
+        return fill(ts, jnp.inf), ys
 
     out = jax.tree.map(one, saveat.subs, ts, ys, is_leaf=is_sub)
     structure = jax.tree.structure(saveat.subs, is_leaf=is_sub)

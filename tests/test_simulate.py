@@ -237,6 +237,21 @@ def test_fixed_steps_turning_nan_after_the_last_save_time_are_reported():
         assert np.all(np.isfinite(np.asarray(sol.evaluate(0.4)[0])))
 
 
+def test_unreached_and_nan_save_times_are_inf_backwards_too():
+    """Backwards in time, a NaN state's save times were `-inf` while the unreached ones
+    (diffrax's, after `max_steps`) are `+inf`: both are `+inf`, as documented."""
+    nan_force = lambda t, q, qdot, args: jnp.where(t < -0.25, jnp.nan, 0.0) * qdot
+    system = sm.Lagrangian(double_pendulum, forces=nan_force, quadratic_in_velocity=True)
+    saveat = diffrax.SaveAt(ts=[0.0, -0.1, -0.2, -0.3, -0.4])
+    fixed = dict(dt0=-0.05, stepsize_controller=diffrax.ConstantStepSize(), args=G, throw=False)
+    sol = sm.simulate(system, (Q0, V0), -0.5, solver=sm.Projected(sm.RK4()), saveat=saveat, **fixed)
+    assert sol.result == sm.RESULTS.nonfinite
+    np.testing.assert_array_equal(sol.ts, [0.0, -0.1, -0.2, np.inf, np.inf])
+    short = sm.simulate(SYSTEM, (Q0, V0), -0.5, args=G, saveat=saveat, max_steps=2, throw=False)
+    assert short.result == sm.RESULTS.max_steps_reached
+    assert np.all(np.asarray(short.ts)[2:] == np.inf)
+
+
 def test_failure_inside_jit_raises():
     f = jax.jit(lambda y0: sm.simulate(SYSTEM, y0, 2.0, args=G, max_steps=30).ys)
     with pytest.raises(Exception, match="max_steps=30"):
