@@ -19,7 +19,7 @@ def unit_tolerance(dtype) -> float:
     **Arguments:**
     - `dtype`: the floating dtype of the state.
 
-    **Returns:** `tol`: `1e-6` for float64, `1e-4` for float32 (and other dtypes)."""
+    **Returns:** `tol`: `1e-6` for float64, `1e-4` for float32."""
     return UNIT_TOLERANCE.get(np.dtype(dtype), 1e-4)
 
 
@@ -42,10 +42,14 @@ def check_shapes(q, v, v_name: str = "v", q_name: str = "q") -> None:
 
 
 def check_floating(*named) -> None:
-    """Static check: each `(name, x)` of `named` is a floating-point array."""
+    """Static check: each `(name, x)` of `named` is a float32 or float64 array (half
+    precision ran until `max_steps`: its rounding is above every default tolerance)."""
     for name, x in named:
-        if not jnp.issubdtype(jnp.result_type(x), jnp.floating):
-            raise ValueError(f"{name} must be a floating-point array, got {jnp.result_type(x)}.")
+        if jnp.result_type(x) not in UNIT_TOLERANCE:
+            raise ValueError(
+                f"{name} must be a floating-point array of float32 or float64, got "
+                f"{jnp.result_type(x)}."
+            )
 
 
 def nonfinite(x, name: str) -> tuple[jax.Array, str]:

@@ -57,6 +57,12 @@ def test_bad_shapes(name, state):
         fn(0.0, q, v[:1])
     with pytest.raises(ValueError, match="q must be a floating-point array"):
         fn(0.0, jnp.array([[0, 0, 1]]), jnp.zeros((1, 3)))
+    # half precision ran simulate until max_steps (its rounding is above every tolerance)
+    half = jnp.array([[0.0, 0.0, 1.0]], jnp.float16)
+    with pytest.raises(ValueError, match="^q must be .* of float32 or float64, got float16.$"):
+        fn(0.0, half, jnp.zeros_like(half))
+    with pytest.raises(ValueError, match="^q must be .* of float32 or float64, got float16.$"):
+        sm.simulate(sm.chain_pendulum([1.0], [1.0]), (-half, jnp.zeros_like(half)), 0.1)
 
 
 @pytest.mark.parametrize("name", ["qdot", "omega", "mu", "pi"])
