@@ -42,7 +42,9 @@ def normalize(q: jax.Array) -> jax.Array:
     **Arguments:**
     - `q`: nonzero vectors, shape `(..., 3)`.
 
-    **Returns:** `q_i / |q_i|`, the same shape."""
+    **Returns:** `q_i / |q_i|`, the same shape: NaN for a zero row, which has no direction
+    (unchecked: the solvers' retractions call this in every step; `simulate` refuses a NaN
+    state, naming it)."""
     return q / jnp.linalg.norm(q, axis=-1, keepdims=True)
 
 
