@@ -199,6 +199,45 @@ def test_the_first_joint_is_on_the_body():
     assert float(jnp.max(jnp.abs(rate))) < 1e-13
 
 
+def test_joint_damping_is_internal_along_the_chain():
+    """`JointDamping` in every joint of a chain on a `RigidBase` (no gravity) conserves the
+    total angular momentum: the links' free spins take the axial torques (before, the
+    axial parts of the joints between links were dropped: |dL/dt| was 1.24 here), and a
+    chain turning rigidly with the body is not damped."""
+    body, chain = sm.RigidBase(BODY_MASS, INERTIA, attach=ATTACH), sm.Chain(MASSES, LENGTHS)
+    scene = sm.Scene(body, chain, sm.JointDamping(jnp.array([0.3, 0.5, 0.2])))
+    q, v = random_rigid_state(3)
+
+    def angular_momentum(q, v):
+        x, xdot = jax.jvp(scene.points, (q,), (v,))
+        Rq, Omega_q = q["attitude"][0], sm.vee(q["attitude"][0].T @ v["attitude"][0])
+        return scene.point_masses() @ jnp.cross(x, xdot) + Rq @ body.inertia @ Omega_q
+
+    rate = jax.jvp(angular_momentum, (q, v), scene.rates(0.0, (q, v), None))[1]
+    assert float(jnp.max(jnp.abs(rate))) < 1e-13
+    assert float(scene.power(0.0, q, v, None)) < -1e-3  # it damps
+    R, Omega = q["attitude"][0], sm.vee(q["attitude"][0].T @ v["attitude"][0])
+    rigid = v | {"spheres": jnp.cross(R @ Omega, q["spheres"])}
+    assert (
+        max(float(jnp.max(jnp.abs(f))) for f in jax.tree.leaves(scene.forces(0.0, q, rigid, None)))
+        < 1e-14
+    )
+
+
+def test_chain_offset_on_a_rigid_base_is_refused(tmp_path):
+    """`Chain(base=...)` on a `RigidBase` was a world-axes shift of every position, not a
+    body point (the chain pulled at `attach`, drawn elsewhere): refused in Python and in a
+    scene file with the same words, pointing to `attach`."""
+    words = r"hangs from the body point attach: give the offset as RigidBase\(attach=...\)"
+    with pytest.raises(ValueError, match=words + r".*got \[0.3, 0.0, 0.0\]$"):
+        sm.Scene(sm.RigidBase(1.0, INERTIA), sm.Chain(0.2, 0.5, base=[0.3, 0.0, 0.0], links=1))
+    path = _file(
+        tmp_path, template=RIGID_SCENE, replace={"links = 3": "links = 3\nbase = [0.3, 0, 0]"}
+    )
+    with pytest.raises(sm.SceneFileError, match=words):
+        sm.load_scene(path)
+
+
 def test_variational_step_on_rigid_base_fast_path():
     """`Variational` on a rigid body carrying a chain from a body point: the O(n) chord
     iteration (the body's 3x3 block in the multiplier solve) takes the same step as the

@@ -198,14 +198,36 @@ def test_pair_interaction_beads_settle_to_tetrahedron(getkey):
 # ---- forces ----------------------------------------------------------------------------
 
 
-def test_joint_damping_power_closed_form(getkey):
-    """Power of joint damping = -c sum_i |omega_i - omega_{i-1}|^2 (omega_0 = 0)."""
+def test_joint_damping_power_against_least_squares(getkey):
+    """Power of joint damping = -sum_i c_i |r_i|^2, `r_i = w_i + s_i q_i - w_{i-1} -
+    s_{i-1} q_{i-1}` (`w_i = q_i x qdot_i`, the pivot's zero) with the links' free spins
+    `s` minimizing it: numpy's least squares over `s`. Parallel links with an undamped
+    pivot leave a spin free (a singular solve without regularization); zero damping is
+    zero force (not NaN)."""
+
+    def reference(q, qdot, c):
+        q, qdot, n = np.asarray(q), np.asarray(qdot), len(q)
+        w, A, r = np.cross(q, qdot), np.zeros((3 * n, n)), np.zeros(3 * n)
+        for i in range(n):
+            rows, root = slice(3 * i, 3 * i + 3), np.sqrt(c[i])
+            r[rows], A[rows, i] = root * (w[i] - (w[i - 1] if i else 0.0)), root * q[i]
+            if i:
+                A[rows, i - 1] = -root * q[i - 1]
+        s = np.linalg.lstsq(A, -r, rcond=None)[0]
+        return -np.sum((r + A @ s) ** 2)
+
+    chain = sm.Chain(jnp.ones(3), jnp.ones(3))
     q, qdot = sm.random_state(getkey(), 3)
-    c = 0.37
-    scene = sm.Scene(sm.Chain(jnp.ones(3), jnp.ones(3)), sm.JointDamping(c))
-    w = np.cross(np.asarray(q), np.asarray(qdot))
-    rel = w - np.concatenate([np.zeros((1, 3)), w[:-1]])
-    np.testing.assert_allclose(scene.power(0.0, q, qdot, None), -c * np.sum(rel**2), rtol=1e-13)
+    c = np.array([0.37, 0.2, 0.55])
+    power = sm.Scene(chain, sm.JointDamping(c)).power(0.0, q, qdot, None)
+    np.testing.assert_allclose(power, reference(q, qdot, c), rtol=1e-13)
+    down = jnp.tile(jnp.array([[0.0, 0.0, -1.0]]), (3, 1))
+    qdot = jnp.array([[1.0, 0.0, 0.0], [0.5, 0.2, 0.0], [0.0, 1.0, 0.0]])
+    c = np.array([0.0, 0.3, 0.2])
+    power = sm.Scene(chain, sm.JointDamping(c)).power(0.0, down, qdot, None)
+    np.testing.assert_allclose(power, reference(down, qdot, c), rtol=1e-13)
+    undamped = sm.Scene(chain, sm.JointDamping(0.0)).forces(0.0, q, qdot, None)
+    np.testing.assert_array_equal(undamped, 0.0)
 
 
 def test_base_torque_statics():

@@ -6,26 +6,44 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .._geometry import project, vee
+from .._linalg import tridiagonal_spd_solve
 from .._misc import tree_add, tree_dtype
 from .._spaces import chain_attitude, chain_parts, chain_state
 from . import base
 from .base import AbstractCommand, AbstractDrive, AbstractForce, ParameterError
 
 
-def _relative_omega(q, qdot, scene):
-    """`omega_i - omega_parent(i)` per joint, `(n, 3)`: `omega_i = q_i x qdot_i`; the
-    support's is zero, or a `RigidBase`'s `vee(Rdot R^T) = R Omega` (world axes) of which a
-    link's joint on it sees the part across the link (the link's spin about itself is
-    free). `q`, `qdot`: the scene's state."""
-    s = scene.spheres(q)
-    omega = jnp.cross(s, scene.spheres(qdot))
+def _joint_rates(q, qdot, scene, c):
+    """Each joint's relative angular velocity `(n, 3)`, the links' spins about themselves
+    chosen as the joints' torques set them: a link (a point mass on a massless rod) has no
+    inertia about its own axis, so its spin `s_i` makes the axial torque on it vanish, the
+    minimum over `s` of `R = 1/2 sum_i c_i |r_i|^2`, `r_i = omega_i + s_i q_i - (omega_p +
+    s_p q_p)` (`omega_i = q_i x qdot_i`; the support's `omega_p`: zero, or a `RigidBase`'s
+    `vee(Rdot R^T) = R Omega`, whose spin is its own). A chain turning rigidly with a
+    `RigidBase` has every `r_i = 0`. The `s` solve is tridiagonal (each sphere's parent is
+    the one before it or the support), regularized by `eps max c` where undamped joints
+    leave parallel links' spins free. `q`, `qdot`: the scene's state."""
+    x = scene.spheres(q)
+    omega = jnp.cross(x, scene.spheres(qdot))
     R, Rdot = chain_attitude(q), chain_attitude(qdot)
     support = jnp.zeros_like(omega[:1]) if R is None else vee(Rdot @ jnp.swapaxes(R, -1, -2))
     parents = scene.parents()
     rel = omega - jnp.concatenate([support.astype(omega.dtype), omega])[parents + 1]
-    return jnp.where(parents[:, None] < 0, project(s, rel), rel)
+    c = jnp.broadcast_to(c, parents.shape).astype(omega.dtype)
+    # dR/ds = K s + b: the joint of sphere k (own spin) and that of its child k + 1
+    child = jnp.asarray(np.append(parents[1:] == np.arange(len(parents) - 1), False))
+    c_child = jnp.where(child, jnp.roll(c, -1), 0.0)
+    cos = jnp.sum(x * jnp.roll(x, -1, axis=0), axis=-1)
+    rel_next = jnp.roll(rel, -1, axis=0)
+    b = c * jnp.sum(rel * x, -1) - c_child * jnp.sum(rel_next * x, -1)
+    eps = jnp.finfo(omega.dtype).eps * jnp.max(c) + jnp.finfo(omega.dtype).tiny
+    spin = tridiagonal_spd_solve(c + c_child + eps, (-c_child * cos)[:-1], -b)
+    spin_parent = jnp.concatenate([jnp.zeros_like(spin[:1]), spin])[parents + 1]
+    parent_x = jnp.concatenate([jnp.zeros_like(x[:1]), x])[parents + 1]
+    return rel + spin[:, None] * x - spin_parent[:, None] * parent_x
 
 
 def _not_a_command(name: str, x) -> None:
@@ -89,10 +107,14 @@ class JointDamping(AbstractForce):
     """Viscous damping in every joint (between a link and its parent, or the support: a
     `RigidBase`'s body, which takes the reaction).
 
-    Rayleigh function `R = c/2 sum_i |omega_i - omega_parent(i)|^2`, `f = -dR/dqdot`; its
-    power is `-2R <= 0`. On a `RigidBase` the first joint's term is `omega_0 - P_0 R Omega`
-    (`P_0` the projection across the link: its spin about itself is free, so a link
-    turning with the body is not damped).
+    Rayleigh function `R = 1/2 sum_i c_i |r_i|^2`, `f = -dR/dqdot`, its power `-2R <= 0`.
+    `r_i` is the link's angular velocity relative to its parent's (or the support's: zero,
+    or a `RigidBase`'s body, which takes the reaction), `r_i = omega_i + s_i q_i - (omega_p
+    + s_p q_p)` with `omega_i = q_i x qdot_i`. A link (a point mass on a massless rod) has
+    no inertia about its own axis, so its spin `s_i` is what makes the axial torque on it
+    vanish: `R` is minimized over the spins (a tridiagonal solve, O(n)). The joints'
+    torques are then internal: on a `RigidBase` with no other effect the total angular
+    momentum is conserved, and a chain turning rigidly with the body is not damped.
 
     **Arguments:**
     - `coefficient`: `c` (N m s, `>= 0`), a scalar or one value per sphere.
@@ -110,7 +132,7 @@ class JointDamping(AbstractForce):
 
     def generalized_force(self, t, q, qdot, scene, args):
         def dissipation(v):
-            w = _relative_omega(q, v, scene)
+            w = _joint_rates(q, v, scene, self.coefficient)
             return 0.5 * jnp.sum(self.coefficient * jnp.sum(w * w, axis=-1))
 
         return jax.tree.map(jnp.negative, jax.grad(dissipation)(qdot))
@@ -121,7 +143,11 @@ class BaseTorque(AbstractForce):
 
     `f_link = tau x q_link`, and `-tau x q_parent` on the parent (on a `RigidBase`'s body,
     which carries the first joint: the body torque `-R^T P tau`, `P` the projection across
-    the link, whose spin about itself is free).
+    the link, whose spin about itself is free). A point-mass link takes only the part of
+    `tau` across it (its massless rod spins freely about itself), so between two links the
+    torque is internal only where `tau` is across both (along `q_parent x q_link`, as a
+    joint's motor on two rods); otherwise the total angular momentum changes by `P_link tau
+    - P_parent tau`, as a torque from the support would.
 
     **Arguments:**
     - `torque`: `tau` (N m): a constant `(3,)` vector or a function

@@ -48,7 +48,8 @@ class Chain(AbstractKinetic):
     Mass `m_i` sits at the tip of link `i` (length `l_i`, along `q_i`), at
     `x_i = base + sum_{j<=i} l_j q_j`; `M_ij = l_i l_j sum_{k>=max(i,j)} m_k` (constant:
     Corollary 1 applies). In a scene with a `Base`, the chain hangs from the moving base
-    and `base` is the offset of its first joint from the base's point.
+    and `base` is the offset of its first joint from the base's point; on a `RigidBase`
+    the offset is its `attach` (body axes) and `base` must be zero.
 
     **Arguments:**
     - `masses`, `lengths`: `m_i` (kg) and `l_i` (m), `> 0`: one value per link, or a scalar
@@ -157,7 +158,9 @@ class Base(AbstractBase):
     space becomes `sm.chain_space(m, n)` (a dict of the two: see there; velocities and
     generalized forces alike); its point is `position + x @ axes`, and the chain hangs
     from it. The scene keeps the O(n) fast path (the base is one more point of the
-    chain's inertia).
+    chain's inertia). A point does not rotate: torques in the first joint
+    (`JointDamping`, `BaseTorque` at link 0) react on the support, as on a fixed pivot;
+    a `RigidBase` takes them on its body.
 
     **Arguments:**
     - `mass`: the base's mass (kg, `> 0`).
@@ -267,6 +270,17 @@ class RigidBase(AbstractBase):
 
     def joint(self, x, attitude):
         return x + attitude[0] @ self.attach.astype(x.dtype)
+
+    def check(self, scene):
+        super().check(scene)
+        offset = scene.kinetic[0].base
+        if not isinstance(offset, jax.core.Tracer) and np.any(np.asarray(offset) != 0):
+            got = np.asarray(offset).tolist()
+            message = (
+                "a Chain on a RigidBase hangs from the body point attach: give the offset "
+                f"as RigidBase(attach=...) (body axes), not Chain(base=...), got {got}"
+            )
+            raise ParameterError("base", message)
 
     def arms(self, x, attitude) -> jax.Array:
         """The ends of the arms a picture draws: `x + size R e` for `e` = `e1`, `-e1`, `e2`,
