@@ -166,6 +166,21 @@ def test_rigid_base_against_cartesian_quaternion_reference():
     assert moved > 0.1  # it tumbled
 
 
+def angular_momentum_rate(scene, body, q, v):
+    """`dL/dt` of a scene on the `RigidBase` `body` (about the origin), along its rates."""
+
+    def angular_momentum(q, v):
+        x, xdot = jax.jvp(scene.points, (q,), (v,))
+        R, Omega = q["attitude"][0], sm.vee(q["attitude"][0].T @ v["attitude"][0])
+        return scene.point_masses() @ jnp.cross(x, xdot) + R @ body.inertia @ Omega
+
+    return jax.jvp(angular_momentum, (q, v), scene.rates(0.0, (q, v), None))[1]
+
+
+def largest_force(forces) -> float:
+    return max(float(jnp.max(jnp.abs(f))) for f in jax.tree.leaves(forces))
+
+
 def test_the_first_joint_is_on_the_body():
     """The first link's joint is on the body, which takes the reaction of `JointDamping`
     and `BaseTorque` there (they acted against the world before: with no gravity the
@@ -183,20 +198,14 @@ def test_the_first_joint_is_on_the_body():
 
     damped = sm.Scene(body, link, sm.JointDamping(0.5))
     turning = damped.forces(0.0, *state(jnp.cross(R @ Omega, s)), None)  # turns with it
-    assert max(float(jnp.max(jnp.abs(f))) for f in jax.tree.leaves(turning)) < 1e-14
+    assert largest_force(turning) < 1e-14
     q, v = state(sm.project(s, jax.random.normal(k[5], (1, 3))))
     across = sm.project(s, jnp.cross(s, v["spheres"]) - R @ Omega)
     np.testing.assert_allclose(damped.power(0.0, q, v, None), -0.5 * jnp.sum(across**2), 1e-13)
 
     scene = sm.Scene(body, link, sm.JointDamping(0.5), sm.BaseTorque([0.3, -0.1, 0.2]))
 
-    def angular_momentum(q, v):
-        x, xdot = jax.jvp(scene.points, (q,), (v,))
-        Rq, Omega_q = q["attitude"][0], sm.vee(q["attitude"][0].T @ v["attitude"][0])
-        return scene.point_masses() @ jnp.cross(x, xdot) + Rq @ body.inertia @ Omega_q
-
-    rate = jax.jvp(angular_momentum, (q, v), scene.rates(0.0, (q, v), None))[1]
-    assert float(jnp.max(jnp.abs(rate))) < 1e-13
+    assert float(jnp.max(jnp.abs(angular_momentum_rate(scene, body, q, v)))) < 1e-13
 
 
 def test_joint_damping_is_internal_along_the_chain():
@@ -208,20 +217,11 @@ def test_joint_damping_is_internal_along_the_chain():
     scene = sm.Scene(body, chain, sm.JointDamping(jnp.array([0.3, 0.5, 0.2])))
     q, v = random_rigid_state(3)
 
-    def angular_momentum(q, v):
-        x, xdot = jax.jvp(scene.points, (q,), (v,))
-        Rq, Omega_q = q["attitude"][0], sm.vee(q["attitude"][0].T @ v["attitude"][0])
-        return scene.point_masses() @ jnp.cross(x, xdot) + Rq @ body.inertia @ Omega_q
-
-    rate = jax.jvp(angular_momentum, (q, v), scene.rates(0.0, (q, v), None))[1]
-    assert float(jnp.max(jnp.abs(rate))) < 1e-13
+    assert float(jnp.max(jnp.abs(angular_momentum_rate(scene, body, q, v)))) < 1e-13
     assert float(scene.power(0.0, q, v, None)) < -1e-3  # it damps
     R, Omega = q["attitude"][0], sm.vee(q["attitude"][0].T @ v["attitude"][0])
     rigid = v | {"spheres": jnp.cross(R @ Omega, q["spheres"])}
-    assert (
-        max(float(jnp.max(jnp.abs(f))) for f in jax.tree.leaves(scene.forces(0.0, q, rigid, None)))
-        < 1e-14
-    )
+    assert largest_force(scene.forces(0.0, q, rigid, None)) < 1e-14
 
 
 def test_chain_offset_on_a_rigid_base_is_refused(tmp_path):
