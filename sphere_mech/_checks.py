@@ -77,6 +77,25 @@ def off_tangent(q, v, v_name: str = "v") -> tuple[jax.Array, str]:
     )
 
 
+def is_real(x) -> bool:
+    """A real number or array of them: a Python or NumPy int or float (not a bool), or an
+    array (or tracer) of an integer or floating dtype; not a string or a complex number."""
+    if isinstance(x, bool | str | bytes | complex):
+        return False
+    if isinstance(x, int | float | np.integer | np.floating):
+        return True
+    return isinstance(x, jax.Array | np.ndarray) and (
+        jnp.issubdtype(x.dtype, jnp.integer) or jnp.issubdtype(x.dtype, jnp.floating)
+    )
+
+
+def check_time(t, name: str = "t") -> None:
+    """Static check: `t` a real scalar (a number, a 0-d array or tracer), else a
+    `ValueError` naming it (a string or a bool would be read as a number)."""
+    if not is_real(t) or jnp.ndim(t) != 0:
+        raise ValueError(f"{name} must be a real scalar time, got {t!r}.")
+
+
 def check_scalar(value, what: str):
     """Static check that a user function returned a scalar."""
     shape = jnp.shape(value)

@@ -10,11 +10,13 @@ from ._custom_types import Points, Scalar, Tangents
 from ._misc import check_integer, check_positive
 
 
-def _check_trailing(x, shape: tuple, name: str, fn: str) -> None:
-    """`x`'s last axes are `shape` (`ValueError` at trace time otherwise)."""
+def _check_trailing(x, shape: tuple, name: str, fn: str) -> jax.Array:
+    """`x` (an array or nested lists) as an array whose last axes are `shape`
+    (`ValueError` at trace time otherwise, naming `fn` and `name`)."""
     if np.ndim(x) < len(shape) or np.shape(x)[-len(shape) :] != shape:  # lists too
         want = ", ".join(["..."] + [str(d) for d in shape])
         raise ValueError(f"{fn}: {name} must have shape ({want}), got {np.shape(x)}.")
+    return jnp.asarray(x)
 
 
 def hat(x: jax.Array) -> jax.Array:
@@ -24,7 +26,7 @@ def hat(x: jax.Array) -> jax.Array:
     - `x`: vectors, shape `(..., 3)`.
 
     **Returns:** the skew-symmetric matrices, shape `(..., 3, 3)`."""
-    _check_trailing(x, (3,), "x", "hat")
+    x = _check_trailing(x, (3,), "x", "hat")
     x1, x2, x3 = x[..., 0], x[..., 1], x[..., 2]
     z = jnp.zeros_like(x1)
     rows = [[z, -x3, x2], [x3, z, -x1], [-x2, x1, z]]
@@ -43,8 +45,9 @@ def normalize(q: jax.Array) -> jax.Array:
     - `q`: nonzero vectors, shape `(..., 3)`.
 
     **Returns:** `q_i / |q_i|`, the same shape: NaN for a zero row, which has no direction
-    (unchecked: the solvers' retractions call this in every step; `simulate` refuses a NaN
-    state, naming it)."""
+    (its value unchecked: the solvers' retractions call this in every step; `simulate`
+    refuses a NaN state, naming it)."""
+    q = _check_trailing(q, (3,), "q", "normalize")
     return q / jnp.linalg.norm(q, axis=-1, keepdims=True)
 
 
@@ -55,6 +58,7 @@ def project(q: Points, v: jax.Array) -> Tangents:
     - `q`, `v`: unit vectors, `(n, 3)` (or `(3,)`), and vectors of the same shape.
 
     **Returns:** the tangent parts of `v`, the same shape."""
+    q, v = _check_trailing(q, (3,), "q", "project"), _check_trailing(v, (3,), "v", "project")
     return v - dot(q, v) * q
 
 
@@ -66,6 +70,7 @@ def retract(q: jax.Array, v: jax.Array) -> tuple[Points, Tangents]:
       (a velocity, angular velocity or momentum).
 
     **Returns:** `(q / |q|, v projected on the tangent planes at the normalized q)`."""
+    q, v = _check_trailing(q, (3,), "q", "retract"), _check_trailing(v, (3,), "v", "retract")
     q = normalize(q)
     return q, project(q, v)
 
@@ -78,7 +83,7 @@ def tangent_basis(q: Points) -> jax.Array:
     - `q`: points, `(n, 3)` (or `(3,)`).
 
     **Returns:** the bases, `(n, 3, 2)` (or `(3, 2)`): column `k` of `[i]` is `b_k` at `q_i`."""
-    q = normalize(q)
+    q = normalize(_check_trailing(q, (3,), "q", "tangent_basis"))
     x, y, z = q[..., 0], q[..., 1], q[..., 2]
     s = jnp.where(z >= 0, 1.0, -1.0).astype(q.dtype)
     a = -1.0 / (s + z)
@@ -108,6 +113,7 @@ def rotate(w: jax.Array, x: jax.Array) -> jax.Array:
       rotate, same shape.
 
     **Returns:** the rotated vectors, same shape; smooth (and differentiable) at `w = 0`."""
+    w, x = _check_trailing(w, (3,), "w", "rotate"), _check_trailing(x, (3,), "x", "rotate")
     sinc, cosc, _ = _rodrigues_coefficients(jnp.sum(w * w, axis=-1, keepdims=True))
     wx = jnp.cross(w, x)
     return x + sinc * wx + cosc * jnp.cross(w, wx)
@@ -143,7 +149,7 @@ def rotation_matrix(w: jax.Array) -> jax.Array:
     - `w`: rotation vectors (axis times angle in rad), `(..., 3)`.
 
     **Returns:** the rotation matrices, `(..., 3, 3)`."""
-    _check_trailing(w, (3,), "w", "rotation_matrix")
+    w = _check_trailing(w, (3,), "w", "rotation_matrix")
     sinc, cosc, _ = _rodrigues_coefficients(jnp.sum(w * w, axis=-1))
     W = hat(w)
     return jnp.eye(3, dtype=w.dtype) + sinc[..., None, None] * W + cosc[..., None, None] * (W @ W)
@@ -157,6 +163,7 @@ def sphere_exp(q: Points, v: Tangents) -> Points:
     - `q`, `v`: `(n, 3)` unit vectors and tangent vectors at them.
 
     **Returns:** the end points, `(n, 3)` unit vectors."""
+    q, v = _check_trailing(q, (3,), "q", "sphere_exp"), _check_trailing(v, (3,), "v", "sphere_exp")
     return rotate(jnp.cross(q, v), q)
 
 
@@ -167,6 +174,7 @@ def constraint_error(q: jax.Array) -> Scalar:
     - `q`: vectors, `(n, 3)` (or with leading axes, e.g. a trajectory `(T, n, 3)`).
 
     **Returns:** the scalar `max_i | |q_i| - 1 |` over every point."""
+    q = _check_trailing(q, (3,), "q", "constraint_error")
     return jnp.max(jnp.abs(jnp.linalg.norm(q, axis=-1) - 1.0))
 
 
@@ -209,7 +217,7 @@ def vee(M: jax.Array) -> jax.Array:
 
     **Returns:** vectors, `(..., 3)`.
     """
-    _check_trailing(M, (3, 3), "M", "vee")
+    M = _check_trailing(M, (3, 3), "M", "vee")
     return 0.5 * jnp.stack(
         [M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0], M[..., 1, 0] - M[..., 0, 1]],
         axis=-1,
@@ -218,28 +226,34 @@ def vee(M: jax.Array) -> jax.Array:
 
 def nearest_rotation(R: jax.Array, iterations: int = 8) -> jax.Array:
     """The rotation nearest to each `R_j` in the Frobenius norm (the orthogonal factor of
-    its polar decomposition), by Newton's iteration `X <- (X + X^-T) / 2`: quadratic
-    convergence, differentiable (unlike an SVD at a rotation's repeated singular values).
+    its polar decomposition), by Newton's iteration with Frobenius-norm scaling (Higham,
+    1986) `X <- (g X + X^-T / g) / 2`, `g = (|X^-1|_F / |X|_F)^(1/2)`: quadratic
+    convergence from any scale, differentiable (unlike an SVD at a rotation's repeated
+    singular values; `g = 1` at a rotation, so derivatives are those of the polar factor).
     `X^-T` is the cofactor matrix over the determinant, elementwise (no LAPACK call per
     matrix under `vmap`).
 
     **Arguments:**
     - `R`: matrices with positive determinant, `(..., 3, 3)`.
-    - `iterations`: Newton steps, an integer `>= 0` (8 reach rounding from `|R^T R - I|`
-      up to about 1; 0 returns `R`).
+    - `iterations`: Newton steps, an integer `>= 0` (8 reach rounding: measured in float64,
+      within 1e-14 of the SVD's polar factor for random matrices of condition number up
+      to 1e12 and norm 1e-3 to 1e3, after 5 steps from singular values `(1, 1, 0.01)`,
+      after 1 from `0.01 I` or `100 I`; 0 returns `R`).
 
     **Returns:** rotation matrices, `(..., 3, 3)`. Not checked (at run time, traced):
     a matrix of negative determinant gives its orthogonal factor, a reflection
     (`det = -1`; `-I` is returned as it is), and a singular one (zero) NaN.
     """
-    _check_trailing(R, (3, 3), "R", "nearest_rotation")
+    X = _check_trailing(R, (3, 3), "R", "nearest_rotation")
     check_integer(iterations, "nearest_rotation: iterations", 0)
-    X = jnp.asarray(R)
+    squares = lambda M: jnp.sum(M * M, axis=(-2, -1), keepdims=True)
     for _ in range(iterations):
         x0, x1, x2 = X[..., 0, :], X[..., 1, :], X[..., 2, :]
         cofactors = jnp.stack([jnp.cross(x1, x2), jnp.cross(x2, x0), jnp.cross(x0, x1)], -2)
         det = jnp.sum(x0 * cofactors[..., 0, :], -1)[..., None, None]
-        X = 0.5 * (X + cofactors / det)
+        inverse_t = cofactors / det
+        g = (squares(inverse_t) / squares(X)) ** 0.25
+        X = 0.5 * (g * X + inverse_t / g)
     return X
 
 

@@ -17,13 +17,14 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from diffrax import RESULTS
 
 from ._checks import check_function, check_scalar
 from ._custom_types import Args, ForceFn, Points, Scalar
 from ._geometry import hat, normalize
 from ._linalg import spd_solve, tridiagonal_matvec, tridiagonal_spd_solve
 from ._misc import all_finite
+from ._momentum import check_inverse_options
+from ._results import RESULTS
 from ._spaces import AbstractSpace, Spheres, chain_attitude, chain_parts, chain_state
 from ._system import AbstractLagrangianSystem, as_time
 
@@ -144,8 +145,9 @@ class AbstractFastPath(AbstractLagrangianSystem):
         self, t, q, p, args=None, *, guess=None, quadratic=None, tol=None, max_steps=32
     ):
         """The exact tangent `qdot` with `P M qdot = p` by the multiplier solve (the general
-        method's options do not apply); `(qdot, result)`, `singular` if not finite."""
-        del guess, quadratic, tol, max_steps
+        method's options do not apply, but are checked as there); `(qdot, result)`,
+        `singular` if not finite."""
+        check_inverse_options(p, guess=guess, quadratic=quadratic, tol=tol, max_steps=max_steps)
         v = self.multiplier_solver(q, args)(p)
         return v, RESULTS.where(all_finite(v), RESULTS.successful, RESULTS.singular)
 

@@ -8,11 +8,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._checks import check_function, check_scalar
+from ._checks import check_function, check_scalar, check_time
 from ._custom_types import Args, ForceFn, Points, Tangents
 from ._linalg import dense_solve
-from ._misc import tree_add, tree_dtype, tree_sub, tree_zeros_like
-from ._momentum import invert_momentum, newton_tolerance
+from ._misc import as_python, check_bool, tree_add, tree_dtype, tree_sub, tree_zeros_like
+from ._momentum import check_inverse_options, invert_momentum, newton_tolerance
 from ._spaces import AbstractSpace, Spheres, as_space
 from ._system import SINGULAR_MESSAGE, AbstractLagrangianSystem, as_time, check_rates
 
@@ -61,6 +61,7 @@ class _AbstractAutodiffLagrangian(AbstractLagrangianSystem):
 
     def __check_init__(self):
         check_function(self.L, "L", f"L(t, q, {self.state_name}, args)", 4)
+        check_bool(self.quadratic_in_velocity, "quadratic_in_velocity")
 
     def lagrangian(self, t, q, v, args):
         return self.L(t, q, v, args)
@@ -72,7 +73,9 @@ class _AbstractAutodiffLagrangian(AbstractLagrangianSystem):
         around `guess` (default zero) when `quadratic` (default `quadratic_in_velocity`),
         otherwise refined by Newton's method to `tol` (default `eps ** 0.75`) in at most
         `max_steps` (globalized by a line search when needed). Returns `(v, result)`, the
-        `RESULTS` code never raised here."""
+        `RESULTS` code never raised here. A bad option raises `ValueError`."""
+        options = dict(guess=guess, quadratic=quadratic, tol=tol, max_steps=max_steps)
+        check_inverse_options(p, **options)
         guess = tree_zeros_like(p) if guess is None else guess
         quadratic = self.quadratic_in_velocity if quadratic is None else quadratic
         tol = newton_tolerance(tree_dtype(q)) if tol is None else tol
@@ -102,7 +105,7 @@ class Lagrangian(_AbstractAutodiffLagrangian):
 
     L: Callable
     forces: ForceFn | None = None
-    quadratic_in_velocity: bool = eqx.field(default=False, static=True)
+    quadratic_in_velocity: bool = eqx.field(default=False, static=True, converter=as_python)
     space: AbstractSpace = _space_field()
     state_name: ClassVar[str] = "qdot"
     angular: ClassVar[bool] = False
@@ -134,7 +137,7 @@ class AngularLagrangian(_AbstractAutodiffLagrangian):
 
     L: Callable
     forces: ForceFn | None = None
-    quadratic_in_velocity: bool = eqx.field(default=False, static=True)
+    quadratic_in_velocity: bool = eqx.field(default=False, static=True, converter=as_python)
     space: AbstractSpace = _space_field()
     state_name: ClassVar[str] = "omega"
     angular: ClassVar[bool] = True
@@ -158,5 +161,6 @@ class AngularLagrangian(_AbstractAutodiffLagrangian):
 
         **Returns:** `omegadot`, `(n, 3)`.
         """
+        check_time(t)
         q, omega = self.check_state(q, omega)
         return check_rates(self._vdot(t, q, omega, args), SINGULAR_MESSAGE, self, args)

@@ -6,22 +6,35 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from diffrax import RESULTS
 
+from ._geometry import _check_trailing
 from ._hamiltonian import AngularHamiltonian, Hamiltonian
 from ._lagrangian import AngularLagrangian
-from ._misc import fill_zeros, tree_sub, tree_vdot
+from ._misc import as_python, check_bool, fill_zeros, tree_sub, tree_vdot
+from ._results import RESULTS
 from ._spaces import AbstractSpace, Spheres
 from ._system import AbstractHamiltonianSystem, AbstractLagrangianSystem, AbstractSystem
+
+
+def _vectors_at(q, x, name: str, fn: str) -> tuple[jax.Array, jax.Array]:
+    """`q` and `x` as arrays, `q` of shape `(..., 3)` and `x` of the same shape
+    (`ValueError` at trace time otherwise, naming `fn` and the arguments)."""
+    q, x = _check_trailing(q, (3,), "q", fn), _check_trailing(x, (3,), name, fn)
+    if x.shape != q.shape:
+        raise ValueError(f"{fn}: {name} must have the same shape as q, {q.shape}, got {x.shape}.")
+    return q, x
 
 
 def omega_from_qdot(q, qdot):
     """Angular velocities from velocities: `omega_i = q_i x qdot_i`.
 
     **Arguments:**
-    - `q`, `qdot`: `(n, 3)` unit vectors and velocities tangent at them.
+    - `q`, `qdot`: `(n, 3)` unit vectors and velocities tangent at them (or any
+      `(..., 3)`, the same shape). Spheres only: a rotation's body angular velocity is
+      `vee(R^T Rdot)`.
 
     **Returns:** the angular velocities `omega`, `(n, 3)`, tangent at `q` too."""
+    q, qdot = _vectors_at(q, qdot, "qdot", "omega_from_qdot")
     return Spheres().from_linear(q, qdot)
 
 
@@ -29,9 +42,11 @@ def qdot_from_omega(q, omega):
     """Velocities from angular velocities: `qdot_i = omega_i x q_i`.
 
     **Arguments:**
-    - `q`, `omega`: `(n, 3)` unit vectors and angular velocities tangent at them.
+    - `q`, `omega`: `(n, 3)` unit vectors and angular velocities tangent at them (or any
+      `(..., 3)`, the same shape). Spheres only: a rotation's is `Rdot = R hat(Omega)`.
 
     **Returns:** the velocities `qdot`, `(n, 3)`."""
+    q, omega = _vectors_at(q, omega, "omega", "qdot_from_omega")
     return Spheres().to_linear(q, omega)
 
 
@@ -42,6 +57,7 @@ def pi_from_mu(q, mu):
     - `q`, `mu`: `(n, 3)` unit vectors and momenta tangent at them (form 3).
 
     **Returns:** the angular momenta `pi` (form 4), `(n, 3)`."""
+    q, mu = _vectors_at(q, mu, "mu", "pi_from_mu")
     return Spheres().from_linear(q, mu)
 
 
@@ -52,6 +68,7 @@ def mu_from_pi(q, pi):
     - `q`, `pi`: `(n, 3)` unit vectors and angular momenta tangent at them (form 4).
 
     **Returns:** the momenta `mu` (form 3), `(n, 3)`."""
+    q, pi = _vectors_at(q, pi, "pi", "mu_from_pi")
     return Spheres().to_linear(q, pi)
 
 
@@ -162,6 +179,8 @@ def legendre(system: AbstractSystem, *, quadratic: bool | None = None) -> Abstra
     **Returns:** a `Hamiltonian` or an `AngularHamiltonian`, with the forces carried over."""
     if not isinstance(system, AbstractLagrangianSystem):
         raise TypeError(f"legendre() takes a Lagrangian system, got {type(system)}.")
-    H = _LegendreH(system, quadratic)
+    if quadratic is not None:
+        check_bool(quadratic, "legendre: quadratic")
+    H = _LegendreH(system, as_python(quadratic))
     forces = H.forces if system.has_forces else None
     return (AngularHamiltonian if system.angular else Hamiltonian)(H, forces, system.space)

@@ -22,6 +22,19 @@ def check_integer(value, name: str, least: int = 1) -> None:
         raise ValueError(f"{name} must be {kind}, got {value!r}.")
 
 
+def check_bool(value, name: str, error=ValueError) -> None:
+    """`value` a Python or NumPy bool, else `error(message)` naming it: "`name` must be True
+    or False" (a string such as `"no"` is truthy, so it would silently mean `True`)."""
+    if not isinstance(value, bool | np.bool_):
+        raise error(f"{name} must be True or False, got {value!r}.")
+
+
+def as_python(value):
+    """A NumPy scalar (`np.int64(2)`, `np.True_`) as the Python one, for a static field;
+    anything else unchanged, for the field's check to refuse or keep."""
+    return value.item() if isinstance(value, np.generic) else value
+
+
 def check_positive(value, name: str, zero: bool = False) -> None:
     """`value` one finite number > 0, or >= 0 with `zero` (a Python or NumPy number or a
     0-d array, not a bool; a tracer passes), else a `ValueError` naming it: "`name` must be
@@ -36,6 +49,11 @@ def check_positive(value, name: str, zero: bool = False) -> None:
         x = np.nan
     if not (x >= 0 if zero else x > 0) or x == np.inf:
         raise ValueError(f"{name} must be a finite number {bound} 0, got {value!r}.")
+
+
+def as_array(x):
+    """A state leaf as a JAX array; nested lists as float arrays (JAX's default float)."""
+    return jnp.asarray(x, dtype=float) if isinstance(x, list) else jnp.asarray(x)
 
 
 def tree_add(a, b):

@@ -5,17 +5,37 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import optimistix as optx
-from diffrax import RESULTS
 from jax import lax
 
 from ._checks import check_scalar
 from ._linalg import DenseLU, dense_solve
-from ._misc import tree_max_abs, tree_sub, tree_vdot
+from ._misc import check_bool, check_integer, check_positive, tree_max_abs, tree_sub, tree_vdot
+from ._results import RESULTS
 
 
 def newton_tolerance(dtype) -> float:
     """The default tolerance of every Newton solve: `eps ** 0.75` of the dtype."""
     return float(jnp.finfo(dtype).eps) ** 0.75
+
+
+def check_inverse_options(p, *, guess, quadratic, tol, max_steps) -> None:
+    """Static checks of `velocity_from_momentum`'s options (a `ValueError` naming the first
+    bad one): `guess` `None` or of the momentum `p`'s shape, `quadratic` `None` or a bool,
+    `tol` `None` or a finite number in (0, 1), `max_steps` a positive integer."""
+    if guess is not None:
+        shapes = jax.tree.map(jnp.shape, (guess, p))
+        if shapes[0] != shapes[1]:
+            raise ValueError(
+                f"guess must have the shape of the momentum p (the state's), {shapes[1]}, "
+                f"got {shapes[0]}."
+            )
+    if quadratic is not None:
+        check_bool(quadratic, "quadratic")
+    if tol is not None:
+        check_positive(tol, "tol")
+        if not isinstance(tol, jax.core.Tracer) and not float(tol) < 1:
+            raise ValueError(f"tol must be a finite number in (0, 1) (relative), got {tol!r}.")
+    check_integer(max_steps, "max_steps")
 
 
 def newton(tol, *, chord: bool = False) -> optx.Newton | optx.Chord:

@@ -13,12 +13,12 @@ import numpy as np
 import optimistix as optx
 
 from ._adjoint import default_adjoint_run
-from ._checks import check_function
-from ._misc import all_finite, as_arrays, is_integer, rows, tree_dtype
+from ._checks import check_function, is_real
+from ._misc import all_finite, as_array, as_arrays, check_bool, is_integer, rows, tree_dtype
 from ._results import RESULTS, describe_failures, gathered
 from ._solvers.names import as_solver, solver_name
 from ._solvers.projected import Projected
-from ._system import vector_field
+from ._system import check_system, vector_field
 from ._term import MechanicsTerm
 
 DEFAULT_MAX_STEPS = 100_000
@@ -96,6 +96,7 @@ def options(
             raise OptionError(name, f"{name} must be {expected} or None (got {value!r})")
     if event is not None:
         check_event(event)
+    check_flag(progress, "progress")
     check_values(t0, t1, dt0, rtol, atol, max_steps, saveat, dtype)
     solver = default_solver() if solver is None else as_solver(solver)
     if stepsize_controller is not None:
@@ -161,6 +162,11 @@ def check_event(event: diffrax.Event) -> None:
         )
 
 
+def check_flag(value, name: str) -> None:
+    """The one check of a flag option (`progress`, `throw`): a bool, else an `OptionError`."""
+    check_bool(value, name, functools.partial(OptionError, name))
+
+
 class OptionError(ValueError):
     """A bad value of the option `field` of `simulate`, `simulate_batch`, `fit` or a scene file."""
 
@@ -179,18 +185,6 @@ def _concrete(x) -> float | None:
         return math.inf if x > 0 else -math.inf
 
 
-def _real(x) -> bool:
-    """A real number or array of them: a Python or NumPy int or float (not a bool), or an
-    array (or tracer) of an integer or floating dtype; not a string or a complex number."""
-    if isinstance(x, bool | str | bytes | complex):
-        return False
-    if isinstance(x, int | float | np.integer | np.floating):
-        return True
-    return isinstance(x, jax.Array | np.ndarray) and (
-        jnp.issubdtype(x.dtype, jnp.integer) or jnp.issubdtype(x.dtype, jnp.floating)
-    )
-
-
 def check_values(t0, t1, dt0, rtol, atol, max_steps, saveat=None, dtype=float) -> None:
     """The one check of concrete option values (traced ones pass): times and tolerances
     real numbers (no strings, bools or complex numbers) and scalars, finite times, a finite
@@ -200,7 +194,7 @@ def check_values(t0, t1, dt0, rtol, atol, max_steps, saveat=None, dtype=float) -
     only while running, and passes a NaN time, saving `inf`); else an `OptionError`."""
     named = dict(t0=t0, t1=t1, dt0=dt0, rtol=rtol, atol=atol)
     for name, x in named.items():
-        if x is not None and not _real(x):
+        if x is not None and not is_real(x):
             raise OptionError(name, f"{name} must be a real number (got {x!r})")
         if x is not None and jnp.ndim(x) != 0:
             raise OptionError(name, f"{name} must be a scalar (got shape {jnp.shape(x)})")
@@ -291,6 +285,8 @@ def prepare(
     unknown = sorted(set(options_) - set(OPTION_NAMES))
     if unknown:
         raise TypeError(f"{what}() got unexpected keyword arguments {unknown}")
+    check_system(system, what)
+    check_flag(throw, "throw")
     q0, v0 = state_pair(y0, "(batch, n, 3)" if batched else "(n, 3)")
     if batched:
         leading = {jnp.shape(x)[:1] for x in jax.tree.leaves((q0, v0))}
@@ -357,7 +353,6 @@ def state_pair(y0, shapes: str, name: str = "y0", pair: str = "(q0, v0)"):
         raise ValueError(
             f"{name} must be a pair {pair} of {shapes} arrays (dicts of arrays on a mixed space)."
         )
-    as_array = lambda x: jnp.asarray(x, dtype=float) if isinstance(x, list) else jnp.asarray(x)
     return jax.tree.map(as_array, tuple(y0), is_leaf=lambda x: isinstance(x, list))
 
 
@@ -436,10 +431,8 @@ def solve_with(adjoint, system, y0, t0, t1, dt0, args, opts: Options) -> diffrax
         event=_physical_event(
             opts.event,
             direction,
+            (t0, y0, args),
             dict(
-                t=t0,
-                y=y0,
-                args=args,
                 terms=MechanicsTerm(system),
                 solver=opts.solver,
                 t0=t0,
@@ -541,26 +534,26 @@ def _any_inf(tree) -> jax.Array:
     return functools.reduce(jnp.logical_or, leaves, jnp.array(False))
 
 
-def _physical_event(event: diffrax.Event | None, direction, call: dict) -> diffrax.Event | None:
+def _physical_event(event: diffrax.Event | None, direction, start, kwargs) -> diffrax.Event | None:
     """`event` with every condition a `_PhysicalCondition`, its root finder `_FiniteStart`.
     Where every condition is boolean the root finder is dropped: diffrax puts a boolean
     event at the end of its step either way, and its root find would fail on times not in
-    JAX's default float dtype (a float32 state under x64). `call`: the condition's
-    arguments at the start, to read what it returns."""
+    JAX's default float dtype (a float32 state under x64). `start`, `kwargs`: a
+    condition's arguments `(t0, y0, args)` and keywords, to read what it returns."""
     if event is None:
         return None
     conditions = jax.tree.leaves(event.cond_fn, is_leaf=callable)
-    values = [jax.eval_shape(lambda fn=fn: fn(**call)) for fn in conditions]
+    values = [jax.eval_shape(lambda fn=fn: fn(*start, **kwargs)) for fn in conditions]
     boolean = [jnp.issubdtype(jnp.result_type(v), jnp.bool_) for v in values]
     finder = event.root_finder
     if all(boolean):
         finder = None
-    elif any(boolean) and finder is not None and jnp.result_type(call["t0"]) != jnp.dtype(float):
+    elif any(boolean) and finder is not None and jnp.result_type(start[0]) != jnp.dtype(float):
         raise OptionError(
             "event",
             "event: boolean and float conditions together with a root finder need the state "
             f"in JAX's default float dtype ({jnp.dtype(float)}), got "
-            f"{jnp.result_type(call['t0'])}: cast the state, or make every condition float",
+            f"{jnp.result_type(start[0])}: cast the state, or make every condition float",
         )
     wrap = lambda fn: _PhysicalCondition(fn, direction)
     finder = None if finder is None else _FiniteStart(finder)

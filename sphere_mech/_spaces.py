@@ -41,6 +41,7 @@ from ._lie import (
     SpecialEuclidean,
     Translate,
 )
+from ._misc import as_python, check_bool, is_integer
 
 
 class AbstractSpace(eqx.Module):
@@ -220,10 +221,10 @@ class Spheres(_AbstractBlockFactor):
     - `n`: the number of spheres (a positive int), or `None` (default) for any number.
     """
 
-    n: int | None = eqx.field(default=None, static=True)
+    n: int | None = eqx.field(default=None, static=True, converter=as_python)
 
     def __check_init__(self):
-        if self.n is not None and (type(self.n) is not int or self.n < 1):
+        if self.n is not None and not (is_integer(self.n) and self.n >= 1):
             raise ValueError(f"Spheres(n): n must be a positive int, got {self.n!r}.")
 
     def check_shapes(self, q, v, v_name="v", q_name="q"):
@@ -317,10 +318,10 @@ class Euclidean(AbstractFactor):
     - `m`: the dimension (a positive int).
     """
 
-    m: int = eqx.field(static=True)
+    m: int = eqx.field(static=True, converter=as_python)
 
     def __check_init__(self):
-        if type(self.m) is not int or self.m < 1:
+        if not (is_integer(self.m) and self.m >= 1):
             raise ValueError(f"Euclidean(m): m must be a positive int, got {self.m!r}.")
 
     def check_shapes(self, q, v, v_name="v", q_name="q"):
@@ -416,12 +417,13 @@ class Rotations(_AbstractBlockFactor):
       `Rdot`: the angular forms' `state_space` sets it; leave it `False`.
     """
 
-    k: int | None = eqx.field(default=None, static=True)
-    body: bool = eqx.field(default=False, static=True)
+    k: int | None = eqx.field(default=None, static=True, converter=as_python)
+    body: bool = eqx.field(default=False, static=True, converter=as_python)
 
     def __check_init__(self):
-        if self.k is not None and (type(self.k) is not int or self.k < 1):
+        if self.k is not None and not (is_integer(self.k) and self.k >= 1):
             raise ValueError(f"Rotations(k): k must be a positive int, got {self.k!r}.")
+        check_bool(self.body, "Rotations: body")
 
     def check_shapes(self, q, v, v_name="v", q_name="q"):
         k = self.k or (jnp.shape(q)[0] if jnp.ndim(q) == 3 else "k")

@@ -10,9 +10,9 @@ import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 
-from ._checks import check_function, check_scalar
+from ._checks import check_function, check_scalar, check_time
 from ._custom_types import Args, ForceFn, Points, Scalar, State, Tangents
-from ._misc import all_finite, tree_dtype, tree_sub, tree_vdot
+from ._misc import all_finite, as_array, tree_dtype, tree_sub, tree_vdot
 from ._spaces import AbstractSpace
 
 SINGULAR_MESSAGE = (
@@ -91,6 +91,18 @@ def vector_field(system: "AbstractSystem", t, y, args):
     return _jitted_rates(treedef, static, dynamic)
 
 
+def check_system(system, what: str) -> None:
+    """Static check: `system` a sphere_mech system (an instance of `AbstractSystem`), else a
+    `TypeError` saying what to wrap a bare `L` or `H` in, for `what` (the caller)."""
+    if isinstance(system, AbstractSystem):
+        return
+    got = f"the class {system.__name__}" if isinstance(system, type) else type(system).__name__
+    raise TypeError(
+        f"{what} takes a mechanical system, an instance such as sm.Lagrangian(L), "
+        f"sm.Hamiltonian(H) or a Scene (wrap a bare function L or H in one), got {got}."
+    )
+
+
 class AbstractSystem(eqx.Module):
     """A mechanical system with state `(q, v)`: `q` `(n, 3)` unit vectors, `v` tangent,
     named by `state_name`: `qdot`, `omega` (Lagrangian forms), `mu`, `pi` (Hamiltonian);
@@ -158,8 +170,10 @@ class AbstractSystem(eqx.Module):
         **Returns:** `f`, `(n, 3)`, or `None` without forces (nothing compiled)."""
         if self.forces is None:
             return None
-        f = self.forces(t, q, v, args)
+        f = self.forces(as_time(t, q), q, v, args)
         self.space.check_forces(f, q)
+        # in the state's dtype: a float64 constant in `forces` must not promote a float32 state
+        f = jax.tree.map(lambda f_, q_: jnp.asarray(f_, dtype=q_.dtype), f, q)
         return self.space.force_covector(q, f)
 
     def power(self, t, q: Points, v: Tangents, args: Args = None) -> Scalar:
@@ -179,9 +193,12 @@ class AbstractSystem(eqx.Module):
         tangency within `unit_tolerance`).
 
         **Arguments:**
-        - `q`, `v`: `(n, 3)` unit vectors and the second state variable, tangent at `q`.
+        - `q`, `v`: `(n, 3)` unit vectors and the second state variable, tangent at `q`
+          (nested lists are read as float arrays, as `simulate` reads them).
 
-        **Returns:** the unchanged state `(q, v)`."""
+        **Returns:** the state `(q, v)`, as arrays."""
+        is_list = lambda x: isinstance(x, list)
+        q, v = jax.tree.map(as_array, (q, v), is_leaf=is_list)
         self.state_space.check_shapes(q, v, self.state_name)
         return self.state_space.check_values(q, v, self.state_name)
 
@@ -247,6 +264,7 @@ class AbstractLagrangianSystem(AbstractSystem):
         - `t`, `q`, `v`, `args`: as in `lagrangian`, `v` tangent at `q`.
 
         **Returns:** `qddot`, `(n, 3)`."""
+        check_time(t)
         q, v = self.check_state(q, v)
         qddot = jax.jvp(self.to_linear, (q, v), self.rates(t, (q, v), args))[1]
         return check_rates(qddot, SINGULAR_MESSAGE, self, args)
@@ -345,6 +363,7 @@ class AbstractHamiltonianSystem(AbstractSystem):
         - `t`, `q`, `p`, `args`: as in `energy`; `p` tangent at `q`.
 
         **Returns:** `(qdot, pdot)` (`(qdot, mudot)` in form 3, `(qdot, pidot)` in form 4)."""
+        check_time(t)
         q, p = self.check_state(q, p)
         message = (
             "Hamilton's equations are not finite at this state: H or its gradient is NaN "

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._spaces import AbstractSpace, Spheres
-from ._system import AbstractSystem, vector_field
+from ._system import AbstractSystem, check_system, vector_field
 
 
 class MechanicsTerm(diffrax.AbstractTerm):
@@ -18,6 +18,9 @@ class MechanicsTerm(diffrax.AbstractTerm):
     - `system`: any sphere_mech system (`AbstractSystem`)."""
 
     system: AbstractSystem
+
+    def __check_init__(self):
+        check_system(self.system, "MechanicsTerm")
 
     def vf(self, t, y, args):
         return vector_field(self.system, t, y, args)

@@ -349,3 +349,121 @@ def test_forward_mode_without_forward_adjoint_says_what_to_pass():
         jax.jacfwd(lambda g: final(g, chosen))(jnp.asarray(9.81))
     forward = jax.jacfwd(lambda g: final(g, diffrax.ForwardMode()))(jnp.asarray(9.81))
     assert jnp.isfinite(forward)
+
+
+def test_flags_must_be_bools(state):
+    """A non-bool flag is refused, naming it: a string such as "no" is truthy, so
+    `quadratic_in_velocity="no"` gave a wrong Legendre map, `progress="no"` a progress
+    bar and `throw="no"` raised. simulate and simulate_batch check with the same words."""
+    q, v = state
+    flag = r"^quadratic_in_velocity must be True or False, got "
+    with pytest.raises(ValueError, match=flag + r"'no'\.$"):
+        sm.Lagrangian(L, quadratic_in_velocity="no")
+    with pytest.raises(ValueError, match=flag + r"0\.0\.$"):
+        sm.AngularLagrangian(L, quadratic_in_velocity=0.0)
+    assert sm.Lagrangian(L, quadratic_in_velocity=np.bool_(True)).quadratic_in_velocity is True
+    batch = (q[None], v[None])
+    for name in ("progress", "throw"):
+        message = rf"^{name} must be True or False, got 'no'\.$"
+        with pytest.raises(ValueError, match=message):
+            sm.simulate(SYSTEM, (q, v), 1.0, **{name: "no"})
+        with pytest.raises(ValueError, match=message):
+            sm.simulate_batch(SYSTEM, batch, 1.0, **{name: "no"})
+
+
+def test_velocity_from_momentum_options(state):
+    """The inverse Legendre map's options are checked: a negative `tol` returned a wrong
+    velocity with a success code, a zero `max_steps` NaN, a `guess` of the wrong shape
+    an einsum error."""
+    q, v = state
+    system = sm.Lagrangian(lambda t, q, qdot, a: L(t, q, qdot, a) + 0.1 * jnp.sum(qdot**4))
+    chain = sm.ConstantInertiaLagrangian(jnp.eye(2), lambda t, q, args: jnp.sum(q[:, 2]))
+    mu = system.momentum(0.0, q, v)
+    bad = [
+        (dict(tol=-1.0), r"^tol must be a finite number > 0, got -1\.0\.$"),
+        (dict(tol=0.0), r"^tol must be a finite number > 0, got 0\.0\.$"),
+        (dict(tol=float("nan")), r"^tol must be a finite number > 0, got nan\.$"),
+        (dict(tol=1.0), r"^tol must be a finite number in \(0, 1\) \(relative\), got 1\.0\.$"),
+        (dict(max_steps=0), r"^max_steps must be a positive integer, got 0\.$"),
+        (dict(max_steps=-1), r"^max_steps must be a positive integer, got -1\.$"),
+        (dict(quadratic="no"), r"^quadratic must be True or False, got 'no'\.$"),
+        (
+            dict(guess=jnp.ones(3)),
+            r"^guess must have the shape of the momentum p \(the state's\), \(2, 3\), got \(3,\)",
+        ),
+    ]
+    for s in (system, chain):
+        for options, message in bad:
+            with pytest.raises(ValueError, match=message):
+                s.velocity_from_momentum(0.0, q, mu, **options)
+    back, _ = system.velocity_from_momentum(0.0, q, mu, guess=v, tol=1e-12, max_steps=8)
+    assert float(jnp.max(jnp.abs(back - v))) < 1e-10
+
+
+def test_velocity_from_momentum_returns_our_codes(state):
+    """velocity_from_momentum's code is one of sm.RESULTS, as every other code of the
+    library (it was diffrax's: comparing it with sm.RESULTS raised), on the general
+    path and the constant-inertia fast path alike."""
+    q, v = state
+    chain = sm.ConstantInertiaLagrangian(jnp.eye(2), lambda t, q, args: jnp.sum(q[:, 2]))
+    for system in (SYSTEM, chain):
+        back, result = system.velocity_from_momentum(0.0, q, system.momentum(0.0, q, v))
+        assert bool(result == sm.RESULTS.successful)
+        assert sm.RESULTS[result] == ""
+    degenerate = sm.Lagrangian(L_first_sphere_only, quadratic_in_velocity=True)
+    _, result = degenerate.velocity_from_momentum(0.0, q, v)
+    assert bool(result == sm.RESULTS.singular)
+
+
+def test_float32_state_with_float64_forces():
+    """A float32 state under x64 whose forces return float64 (a float64 constant, or a
+    NumPy float64 time): the forces are called with the time in the state's dtype and
+    cast to it, so simulate runs in float32 (it raised diffrax's dtype error),
+    acceleration works (a jvp TypeError) and legendre's momentum rate stays float32."""
+    U = lambda t, q, args: 9.81 * jnp.sum(q[:, 2])
+    lift = jnp.array([0.0, 0.0, 1.0])  # float64 under x64
+    force = lambda t, q, qdot, args: -0.2 * qdot + jnp.sin(t) * lift
+    system = sm.Lagrangian(lambda t, q, qdot, args: 0.5 * jnp.sum(qdot**2) - U(t, q, args), force)
+    q, v = sm.random_state(jax.random.PRNGKey(2), 1, dtype=jnp.float32)
+    sol = sm.simulate(system, (q, v), 0.05)
+    assert sol.ys[0].dtype == sol.ys[1].dtype == jnp.float32
+    assert bool(jnp.all(jnp.isfinite(sol.ys[1])))
+    for t in (np.float64(0.5), 0.5):
+        assert system.acceleration(t, q, v).dtype == jnp.float32
+    rates = sm.legendre(system).vector_field(np.float64(0.5), q, system.momentum(0.0, q, v))
+    assert rates[0].dtype == rates[1].dtype == jnp.float32
+
+
+def test_function_where_a_system_is_expected(state):
+    """A bare L (or a system's class) passed as the system: a TypeError saying what to wrap
+    it in, from simulate, simulate_batch and MechanicsTerm (an AttributeError from deep
+    inside, or for MechanicsTerm only inside diffeqsolve)."""
+    q, v = state
+    bare = lambda t, q, qdot, args: 0.5 * jnp.sum(qdot**2)
+    wrap = r"takes a mechanical system, an instance such as sm\.Lagrangian\(L\), "
+    wrap += r"sm\.Hamiltonian\(H\) or a Scene \(wrap a bare function L or H in one\), got "
+    with pytest.raises(TypeError, match=rf"^simulate {wrap}function\.$"):
+        sm.simulate(bare, (q, v), 1.0)
+    with pytest.raises(TypeError, match=rf"^simulate {wrap}the class Lagrangian\.$"):
+        sm.simulate(sm.Lagrangian, (q, v), 1.0)
+    with pytest.raises(TypeError, match=rf"^simulate_batch {wrap}function\.$"):
+        sm.simulate_batch(bare, (q[None], v[None]), 1.0)
+    with pytest.raises(TypeError, match=rf"^MechanicsTerm {wrap}function\.$"):
+        sm.MechanicsTerm(bare)
+
+
+def test_time_and_lists_at_the_vector_fields(state):
+    """The vector-field entry points read nested lists as arrays, as simulate does (they
+    raised "Cannot determine dtype"), and refuse a time that is not a real scalar (a
+    string "2" was read as 2.0, True as 1.0)."""
+    q, v = state
+    for name, fn in all_forms(SYSTEM).items():
+        expected = fn(0.0, q, v)
+        got = fn(0.0, q.tolist(), v.tolist())
+        for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(expected), strict=True):
+            assert float(jnp.max(jnp.abs(a - b))) < 1e-12, name
+        for t, shown in (("2", "'2'"), (True, "True"), (None, "None")):
+            with pytest.raises(ValueError, match=rf"^t must be a real scalar time, got {shown}\.$"):
+                fn(t, q, v)
+        with pytest.raises(ValueError, match=r"^t must be a real scalar time, got Array"):
+            fn(jnp.zeros(2), q, v)

@@ -190,6 +190,10 @@ def test_boolean_condition_float32_with_root_finder_under_x64():
     # the end of the step that crossed z = -0.9, before the bottom
     assert float(runs[0].ys[0][0, 0, 2]) < -0.9
     assert 0 < float(runs[0].ts[0]) < quarter_period(1.0)
+    # a condition's parameters may have other names: called positionally, as diffrax's
+    # steps call it (its root find names them t, y, args: `_PhysicalCondition` does not)
+    renamed = diffrax.Event(lambda time, state, params, **kw: state[0][0, 2] < -0.9)
+    np.testing.assert_array_equal(sm.simulate(PENDULUM, y0, 1.0, event=renamed).ts, runs[1].ts)
     both = {"bool": below, "float": lambda t, y, args, **kw: y[0][0, 0]}
     with pytest.raises(ValueError, match=r"^event: boolean and float conditions .* float32"):
         sm.simulate(PENDULUM, y0, 1.0, event=diffrax.Event(both, optx.Newton(1e-5, 1e-5)))

@@ -101,3 +101,88 @@ def test_shapes_and_counts_are_checked():
             sm.random_state(jax.random.PRNGKey(0), 2, speed=speed)
     assert jnp.all(sm.random_state(jax.random.PRNGKey(0), 2, speed=0.0)[1] == 0)
     assert sm.vee(sm.hat(jnp.ones((4, 3)))).shape == (4, 3)
+
+
+def test_wrong_shapes_are_named_and_lists_are_read():
+    """A `(..., 2)` or `(..., 4)` vector gave a garbage tangent basis (`(1, 3, 2)` from a
+    `(1, 2)`), a zero constraint error, a projection, or a raw JAX error; the conversions
+    broadcast `q (2, 3)` against `omega (3,)`; `hat`, `vee`, `rotation_matrix` raised
+    `TypeError` on lists. Every helper now names the argument and the expected shape."""
+    q2 = jnp.array([[0.6, 0.8]])
+    q, v = sm.random_state(jax.random.PRNGKey(0), 2)
+    vectors = {
+        "normalize": lambda x: sm.normalize(x),
+        "constraint_error": lambda x: sm.constraint_error(x),
+        "tangent_basis": lambda x: sm.tangent_basis(x),
+        "project": lambda x: sm.project(x, x),
+        "retract": lambda x: sm.retract(x, x),
+        "sphere_exp": lambda x: sm.sphere_exp(x, x),
+    }
+    for fn, call in vectors.items():
+        for bad in (q2, jnp.ones((1, 4))):
+            with pytest.raises(ValueError, match=rf"^{fn}: q must have shape \(\.\.\., 3\), got"):
+                call(bad)
+    with pytest.raises(ValueError, match=r"^rotate: w must have shape \(\.\.\., 3\), got \(4, 2\)"):
+        sm.rotate(jnp.ones((4, 2)), jnp.ones((4, 2)))
+    with pytest.raises(
+        ValueError, match=r"^project: v must have shape \(\.\.\., 3\), got \(3, 2\)"
+    ):
+        sm.project(q, jnp.ones((3, 2)))
+    conversions = {
+        "omega_from_qdot": (sm.omega_from_qdot, "qdot"),
+        "qdot_from_omega": (sm.qdot_from_omega, "omega"),
+        "pi_from_mu": (sm.pi_from_mu, "mu"),
+        "mu_from_pi": (sm.mu_from_pi, "pi"),
+    }
+    for fn, (convert, name) in conversions.items():
+        same = rf"^{fn}: {name} must have the same shape as q, \(2, 3\), got \(3,\)\.$"
+        with pytest.raises(ValueError, match=same):
+            convert(q, v[0])
+        with pytest.raises(ValueError, match=rf"^{fn}: q must have shape \(\.\.\., 3\), got"):
+            convert(q2, q2)
+        np.testing.assert_array_equal(convert(q.tolist(), v.tolist()), convert(q, v))
+    # lists are read as arrays, as `_check_trailing` says
+    w = [0.1, 0.2, 0.3]
+    np.testing.assert_array_equal(sm.hat(w), sm.hat(jnp.array(w)))
+    np.testing.assert_array_equal(sm.rotation_matrix(w), sm.rotation_matrix(jnp.array(w)))
+    M = [[0.0, 1.0, 2.0], [3.0, 4.0, 5.0], [6.0, 7.0, 8.0]]
+    np.testing.assert_array_equal(sm.vee(M), sm.vee(jnp.array(M)))
+    np.testing.assert_array_equal(
+        sm.rotate(w, [1.0, 0.0, 0.0]), sm.rotate(jnp.array(w), jnp.eye(3)[0])
+    )
+    np.testing.assert_array_equal(sm.tangent_basis(q.tolist()), sm.tangent_basis(q))
+    np.testing.assert_array_equal(sm.sphere_exp(q.tolist(), v.tolist()), sm.sphere_exp(q, v))
+    assert float(sm.constraint_error([[2.0, 0.0, 0.0]])) == 1.0
+    # the checks are static: traced arguments pass through jit and vmap unchanged
+    np.testing.assert_allclose(jax.jit(sm.tangent_basis)(q), sm.tangent_basis(q), atol=1e-15)
+    np.testing.assert_allclose(jax.vmap(sm.omega_from_qdot)(q, v), jnp.cross(q, v), atol=1e-15)
+
+
+def test_nearest_rotation_converges_from_any_scale():
+    """Plain Newton left 8.9e-3 after its 8 steps from singular values (1, 1, 0.01) and gave
+    1.012 I from 0.01 I or 100 I; the scaled iteration reaches the SVD's polar factor."""
+    R0 = np.asarray(sm.rotation_matrix(jnp.array([0.3, -1.2, 0.7])))
+    A = np.stack(
+        [
+            R0 @ np.diag([1.0, 1.0, 0.01]),
+            R0 @ np.diag([1e4, 1.0, 1e-6]),
+            0.01 * np.eye(3),
+            100.0 * np.eye(3),
+            R0 + 0.5 * np.random.default_rng(0).standard_normal((3, 3)) @ R0,
+        ]
+    )
+    A[4] *= np.sign(np.linalg.det(A[4]))
+    U, _, Vt = np.linalg.svd(A)
+    got = sm.nearest_rotation(jnp.asarray(A))
+    assert float(jnp.max(jnp.abs(got - U @ Vt))) < 1e-14
+    assert (
+        float(jnp.max(jnp.abs(sm.nearest_rotation(jnp.asarray(A[:1]), 5) - U[:1] @ Vt[:1]))) < 1e-14
+    )
+    np.testing.assert_array_equal(sm.nearest_rotation(-jnp.eye(3)), -jnp.eye(3))
+    # differentiable: the Jacobian at a far matrix is the polar factor's (central differences)
+    B, h = A[0], 1e-6
+    E = np.eye(9).reshape(9, 3, 3)
+    polar = lambda M: np.linalg.svd(M)[0] @ np.linalg.svd(M)[2]
+    fd = np.stack([(polar(B + h * e) - polar(B - h * e)) / (2 * h) for e in E], -1)
+    jac = jax.jacfwd(sm.nearest_rotation)(jnp.asarray(B)).reshape(3, 3, 9)
+    np.testing.assert_allclose(jac, fd, atol=1e-8)

@@ -450,3 +450,38 @@ def test_bad_mixed_input_raises():
     forced = sm.Lagrangian(model.lagrangian, bad_forces, space=model.space)
     with pytest.raises(ValueError, match=r"forces\(t, q, v, args\) must have the keys"):
         forced.acceleration(0.0, q0, v0)
+
+
+def test_legendre_quadratic_must_be_a_bool():
+    """`legendre(system, quadratic="no")` was accepted, read as true: one linear solve for a
+    quartic `L`, a Hamiltonian off the energy by 6e-3. Now only True, False, None (NumPy
+    bools too) pass; a wrong one is named when the Hamiltonian is built."""
+    L = lambda t, q, v, args: (
+        jnp.sum(v**2) + 0.1 * jnp.sum(jnp.sum(v**2, -1) ** 2) - jnp.sum(q[:, 2])
+    )
+    system = sm.Lagrangian(L)
+    q, v = sm.random_state(jax.random.PRNGKey(5), 2, speed=0.8)
+    mu = system.momentum(0.0, q, v)
+    for flag in ("no", "False", 0, 1.0):
+        with pytest.raises(
+            ValueError, match=rf"^legendre: quadratic must be True or False, got {flag!r}\.$"
+        ):
+            sm.legendre(system, quadratic=flag)
+    for flag in (None, False, np.False_):
+        H = sm.legendre(system, quadratic=flag)
+        assert abs(float(H.energy(0.0, q, mu) - system.energy(0.0, q, v))) < 1e-12
+
+
+def test_factor_counts_may_be_numpy_integers():
+    """`Spheres(np.int64(2))`, `Euclidean`, `Rotations` and `chain_space` refused NumPy
+    integers (which `random_state` takes); they are stored as Python ints."""
+    for factor, field in ((sm.Spheres, "n"), (sm.Euclidean, "m"), (sm.Rotations, "k")):
+        built = factor(np.int64(2))
+        assert type(getattr(built, field)) is int and built == factor(2)
+        for bad in (0, 2.0, np.float64(2.0), "2"):
+            with pytest.raises(
+                ValueError, match=rf"\({field}\): {field} must be a positive int, got"
+            ):
+                factor(bad)
+    assert sm.chain_space(np.int64(3), np.int32(2)) == sm.chain_space(3, 2)
+    assert sm.chain_space(np.int64(3), 2, attitude=np.True_) == sm.chain_space(3, 2, True)

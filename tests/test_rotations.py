@@ -600,3 +600,13 @@ def test_fit_a_3d_pendulum_from_its_attitude(segments):
     for k in truth:
         assert abs(float(result.params[k] / truth[k]) - 1) < 1e-6, result.params
     assert all(bool(jnp.isfinite(result.stderr[k])) for k in truth)
+
+
+def test_rotations_body_must_be_a_bool():
+    """`Rotations(1, body="yes")` was accepted (and read as true)."""
+    for bad in ("yes", 1, None):
+        with pytest.raises(
+            ValueError, match=rf"^Rotations: body must be True or False, got {bad!r}\.$"
+        ):
+            sm.Rotations(1, body=bad)
+    assert sm.Rotations(1, body=np.True_) == sm.Rotations(1).angular()
