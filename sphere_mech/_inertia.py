@@ -17,6 +17,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from diffrax import RESULTS
 
 from ._checks import check_function, check_scalar
 from ._custom_types import Args, ForceFn, Points, Scalar
@@ -24,7 +25,6 @@ from ._geometry import hat, normalize
 from ._linalg import spd_solve, tridiagonal_matvec, tridiagonal_spd_solve
 from ._misc import all_finite
 from ._momentum import check_inverse_options
-from ._results import RESULTS
 from ._spaces import AbstractSpace, Spheres, chain_attitude, chain_parts, chain_state
 from ._system import AbstractLagrangianSystem, as_time
 

@@ -6,12 +6,12 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from diffrax import RESULTS
 
 from ._geometry import _check_trailing
 from ._hamiltonian import AngularHamiltonian, Hamiltonian
 from ._lagrangian import AngularLagrangian
 from ._misc import as_python, check_bool, fill_zeros, tree_sub, tree_vdot
-from ._results import RESULTS
 from ._spaces import AbstractSpace, Spheres
 from ._system import AbstractHamiltonianSystem, AbstractLagrangianSystem, AbstractSystem
 

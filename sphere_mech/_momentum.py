@@ -5,12 +5,12 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import optimistix as optx
+from diffrax import RESULTS
 from jax import lax
 
 from ._checks import check_scalar
 from ._linalg import DenseLU, dense_solve
 from ._misc import check_bool, check_integer, check_positive, tree_max_abs, tree_sub, tree_vdot
-from ._results import RESULTS
 
 
 def newton_tolerance(dtype) -> float:

@@ -311,7 +311,9 @@ class AbstractLagrangianSystem(AbstractSystem):
         - `t`, `q`, `p`, `args`: as in `lagrangian`, with the momentum `p` (`mu` or `pi`).
         - `options`: `guess`, `quadratic`, `tol`, `max_steps` of the general method (Newton).
 
-        **Returns:** `(v, result)`: the velocity and a `RESULTS` code (never raised here)."""
+        **Returns:** `(v, result)`: the velocity and a `diffrax.RESULTS` code, `successful`
+        or `singular` (never raised here; `sm.RESULTS.promote(result)` makes it one of
+        `sm.RESULTS`, which sits in a layer above the systems)."""
 
 
 class AbstractHamiltonianSystem(AbstractSystem):

@@ -275,4 +275,4 @@ def test_chain_fast_path_equals_general_path(n, getkey):
             assert max_rel_error(a, b) < 1e-12
         mu = fast["mu"]
         velocity, result = chain.velocity_from_momentum(t, q, mu)
-        assert max_rel_error(velocity, qdot) < 1e-12 and result == sm.RESULTS.successful
+        assert max_rel_error(velocity, qdot) < 1e-12 and result == diffrax.RESULTS.successful

@@ -23,7 +23,6 @@ import optimistix as optx
 from diffrax import RESULTS
 from jax import lax
 
-from .. import _results as results
 from .._anderson import Anderson
 from .._inertia import AbstractFastPath
 from .._misc import tree_add, tree_dtype, tree_max_abs, tree_scale
@@ -171,11 +170,6 @@ def substep(
         t1, q1, mu1, args, guess=guess1, tol=tol, max_steps=max_steps
     )
     y1 = (q1, v1)
-    # `velocity_from_momentum` returns sphere_mech's codes, `successful` or `singular`;
-    # diffrax's step takes its own.
-    vel_result = RESULTS.where(
-        vel_result == results.RESULTS.successful, RESULTS.successful, RESULTS.singular
-    )
     result = RESULTS.where(
         sol.result == optx.RESULTS.successful, vel_result, RESULTS.promote(sol.result)
     )
