@@ -16,40 +16,35 @@ from . import base
 from .base import AbstractCommand, AbstractDrive, AbstractForce, ParameterError
 
 
-def _joint_rates(q, qdot, scene, spin=None):
-    """Each joint's relative angular velocity `(n, 3)`: `r_i = omega_i + s_i q_i - (omega_p
-    + s_p q_p)` (`omega_i = q_i x qdot_i`; the support's `omega_p`: zero, or a
-    `RigidBase`'s `vee(Rdot R^T) = R Omega`, whose spin is its own) with the links' spins
-    about themselves `spin` (`s`, `(n,)`; default zero). `q`, `qdot`: the scene's state."""
+def _joint_rates(q, qdot, scene):
+    """Each joint's `omega_i - omega_p`, `(n, 3)` (`omega_i = q_i x qdot_i`; the support's
+    `omega_p`: zero, or a `RigidBase`'s `vee(Rdot R^T) = R Omega`, whose spin is its own).
+    `q`, `qdot`: the scene's state."""
     x = scene.spheres(q)
     omega = jnp.cross(x, scene.spheres(qdot))
     R, Rdot = chain_attitude(q), chain_attitude(qdot)
     support = jnp.zeros_like(omega[:1]) if R is None else vee(Rdot @ jnp.swapaxes(R, -1, -2))
-    parents = scene.parents()
-    rel = omega - jnp.concatenate([support.astype(omega.dtype), omega])[parents + 1]
-    if spin is None:
-        return rel
-    spin_parent = jnp.concatenate([jnp.zeros_like(spin[:1]), spin])[parents + 1]
-    parent_x = jnp.concatenate([jnp.zeros_like(x[:1]), x])[parents + 1]
-    return rel + spin[:, None] * x - spin_parent[:, None] * parent_x
+    return omega - jnp.concatenate([support.astype(omega.dtype), omega])[scene.parents() + 1]
 
 
-def _free_spins(q, qdot, scene, c):
-    """The links' spins about themselves as the joints' torques set them: a link (a point
+def _with_free_spins(x, rel, parents, c):
+    """The joints' relative angular velocities `r_i = rel_i + s_i q_i - s_p q_p` with the
+    links' spins about themselves `s` as the joints' torques set them: a link (a point
     mass on a massless rod) has no inertia about its own axis, so its spin makes the axial
-    torque on it vanish, the minimum over `s` of `R = 1/2 sum_i c_i |r_i|^2`
-    (`_joint_rates`). A chain turning rigidly with a `RigidBase` has every `r_i = 0`. The
-    solve is tridiagonal (each sphere's parent is the one before it or the support),
-    regularized by `eps max c` where undamped joints leave parallel links' spins free."""
-    x, rel, parents = scene.spheres(q), _joint_rates(q, qdot, scene), scene.parents()
-    c = jnp.broadcast_to(c, parents.shape).astype(rel.dtype)
+    torque on it vanish, the minimum over `s` of `R = 1/2 sum_i c_i |r_i|^2`. A chain
+    turning rigidly with a `RigidBase` has every `r_i = 0`. The solve is tridiagonal (each
+    sphere's parent is the one before it or the support), regularized by `eps max c` where
+    undamped joints leave parallel links' spins free."""
     # dR/ds = K s + b: the joint of sphere k (own spin) and that of its child k + 1
     child = jnp.asarray(np.append(parents[1:] == np.arange(len(parents) - 1), False))
     c_child = jnp.where(child, jnp.roll(c, -1), 0.0)
     cos = jnp.sum(x * jnp.roll(x, -1, axis=0), axis=-1)
     b = c * jnp.sum(rel * x, -1) - c_child * jnp.sum(jnp.roll(rel, -1, axis=0) * x, -1)
     eps = jnp.finfo(rel.dtype).eps * jnp.max(c) + jnp.finfo(rel.dtype).tiny
-    return tridiagonal_spd_solve(c + c_child + eps, (-c_child * cos)[:-1], -b)
+    spin = tridiagonal_spd_solve(c + c_child + eps, (-c_child * cos)[:-1], -b)
+    spin_parent = jnp.concatenate([jnp.zeros_like(spin[:1]), spin])[parents + 1]
+    parent_x = jnp.concatenate([jnp.zeros_like(x[:1]), x])[parents + 1]
+    return rel + spin[:, None] * x - spin_parent[:, None] * parent_x
 
 
 def _not_a_command(name: str, x) -> None:
@@ -137,15 +132,13 @@ class JointDamping(AbstractForce):
             base.check_shape("coefficient", self.coefficient, (scene.n,), what)
 
     def generalized_force(self, t, q, qdot, scene, args):
-        # the gradient at the minimizing spins (the envelope theorem: dR/ds = 0 there), not
-        # through their solve: a third of the cost on an 8-link chain
-        spin = _free_spins(q, qdot, scene, self.coefficient)
-
-        def dissipation(v):
-            w = _joint_rates(q, v, scene, spin)
-            return 0.5 * jnp.sum(self.coefficient * jnp.sum(w * w, axis=-1))
-
-        return jax.tree.map(jnp.negative, jax.grad(dissipation)(qdot))
+        # f = -dR/dqdot at the minimizing spins (the envelope theorem: dR/ds = 0 there),
+        # not through their solve: the pullback of the relative rates applied to c r
+        rel, pullback = jax.vjp(lambda v: _joint_rates(q, v, scene), qdot)
+        parents = scene.parents()
+        c = jnp.broadcast_to(self.coefficient, parents.shape).astype(rel.dtype)
+        r = _with_free_spins(scene.spheres(q), rel, parents, c)
+        return pullback(-c[:, None] * r)[0]
 
 
 class BaseTorque(AbstractForce):
