@@ -140,13 +140,16 @@ def _rkmk4_step(y, h):
 
 
 def test_lie_rk4_is_rkmk4():
-    """`LieRK4()` (= `LieRK(RK4(), action="SO3xR3")`) equals the RKMK4 above to 1e-14.
-    (The LieRK4 before LieRK truncated dexp^{-1} after ad^2: it differs from both by
-    about 1e-10 over these steps, the size of the dropped ad^4 term.)"""
+    """`LieRK(RK4(), action="SO3xR3")` equals the RKMK4 above to 1e-14. (The LieRK4 before
+    LieRK truncated dexp^{-1} after ad^2: it differs from both by about 1e-10 over these
+    steps, the size of the dropped ad^4 term.) `LieRK4()` is `LieRK(RK4())`, with
+    `LieRK`'s default action (DESIGN.md section 6)."""
+    assert sm.LieRK4() == sm.LieRK(sm.RK4())
+    assert sm.LieRK4().action == "SE3"
     y = Y0
     for _ in range(10):
         y = _rkmk4_step(y, 0.05)
-    ours = fixed_steps(sm.LieRK4(), Y0, 10, 0.5)
+    ours = fixed_steps(sm.LieRK(sm.RK4(), action="SO3xR3"), Y0, 10, 0.5)
     assert _distance(ours, y) < 1e-14 * (1 + _distance(y, (0 * y[0], 0 * y[1])))
 
 

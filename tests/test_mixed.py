@@ -173,10 +173,14 @@ def test_four_forms_agree_on_mixed_space(seed, t):
 
 
 @pytest.mark.parametrize(
-    "make,solver", [(cart_pendulum, sm.LieRK4()), (flying_chain, sm.LieRK(diffrax.Dopri8()))]
+    "make,solver",
+    [
+        (cart_pendulum, sm.LieRK(sm.RK4(), action="SO3xR3")),
+        (flying_chain, sm.LieRK(diffrax.Dopri8())),
+    ],
 )
 def test_lie_group_solvers_against_reference(make, solver):
-    """LieRK4 (SO(3) x R^3 on the spheres) and LieRK(Dopri8) (SE(3)): positions to 1e-8,
+    """LieRK(RK4) with SO(3) x R^3 on the spheres and LieRK(Dopri8) (SE(3)): positions to 1e-8,
     |q_i| = 1 to rounding without any projection of q."""
     model = make()
     q0, v0 = mixed_initial_state(model)

@@ -141,7 +141,7 @@ def test_four_forms_give_the_same_trajectory(eager):
         (sm.legendre(sm.angular(SYSTEM)), pi0),
     ]
     q_ref, qdot_ref = eager.ys
-    # LieRK4 here: its rotations use w_i = q_i x qdot_i from each form's own rates.
+    # LieRK4 here: SE(3) moves each form's own v (as omega_i = q_i x v_i where not angular).
     for system, v0 in forms:
         sol = sm.simulate(
             system, (Q0, v0), T1, args=G, saveat=SAVEAT, solver=sm.LieRK4(), rtol=1e-10, atol=1e-12

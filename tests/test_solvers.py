@@ -26,16 +26,12 @@ SAVEAT = diffrax.SaveAt(
 )
 
 
-def _vf(t, y, args):
-    return CHAIN.rates(t, y, args)
-
-
 @eqx.filter_jit
 def fixed_run(solver, y0, dt, t1):
     """Fixed steps with `diffrax.diffeqsolve` directly (no retraction of the output), one
     compilation per solver: `dt` and `t1` are traced."""
     return diffrax.diffeqsolve(
-        diffrax.ODETerm(_vf),
+        sm.MechanicsTerm(CHAIN),
         solver,
         0.0,
         t1,
@@ -92,12 +88,15 @@ def test_order_of_convergence(reference, solver, order, dts):
     "solver", [sm.Projected(sm.RK4()), sm.LieRK4()], ids=["Projected(RK4)", "LieRK4"]
 )
 def test_unit_length_over_1e5_steps(solver):
+    """`| |q_i| - 1 |` and `q_i . v_i` stay at rounding: `Projected` restores both every
+    step; `LieRK4`'s SE(3) action keeps them in exact arithmetic, so its rounding errors
+    walk (measured over the run: 2.0e-14 and 1.5e-13; plain RK4: 3.8e-9 after 10 s)."""
     sol = fixed_run(solver, (Q0, V0), jnp.asarray(1e-3), jnp.asarray(100.0))
     assert int(sol.stats["num_steps"]) == 100_000
     assert sol.result == diffrax.RESULTS.successful
     assert max_constraint_error(sol) < 1e-13
     q, v = final_state(sol)
-    assert float(jnp.max(jnp.abs(jnp.sum(q * v, axis=-1)))) < 1e-13  # v stays tangent
+    assert float(jnp.max(jnp.abs(jnp.sum(q * v, axis=-1)))) < 1e-12  # v stays tangent
 
 
 def test_plain_rk4_drifts_off_the_spheres():
@@ -134,7 +133,7 @@ def test_adaptive_run_meets_tolerance(tight_reference, solver):
         q, v = sol.ys
         errors.append(_error((q[-1], v[-1]), tight_reference))
         # The global error of this chaotic double pendulum after 1 s is within a small
-        # factor of the tolerance (measured, relative: about 3x for LieRK4, 0.2x for
+        # factor of the tolerance (measured, relative: about 4x for LieRK4, 0.2x for
         # Projected(Dopri8)).
         assert errors[-1] < 10 * tol, (tol, errors)
         # Dense output (cubic Hermite for LieRK4), retracted by simulate.
@@ -165,7 +164,7 @@ def test_lie_rk4_gradient_matches_finite_differences():
     @jax.value_and_grad
     def loss(y0):
         sol = diffrax.diffeqsolve(
-            diffrax.ODETerm(_vf),
+            sm.MechanicsTerm(CHAIN),
             sm.LieRK4(),
             0.0,
             0.5,
@@ -204,7 +203,11 @@ def test_fixed_step_solver_refuses_adaptive_controller():
         sm.simulate(CHAIN, (Q0, V0), T1, solver=sm.Projected(sm.Projected(sm.RK4())))
 
 
-def test_lie_rk4_rejects_other_states():
+def test_lie_rk4_rejects_other_states_and_terms():
+    """`LieRK4()` acts by SE(3), which needs the system (a `MechanicsTerm`); the SO(3) x
+    R^3 action takes any term, but only states `(q, v)`."""
     term = diffrax.ODETerm(lambda t, y, args: -y)
+    with pytest.raises(ValueError, match=r"MechanicsTerm"):
+        diffrax.diffeqsolve(term, sm.LieRK4(), 0.0, 1.0, 0.1, (Q0, V0))
     with pytest.raises(ValueError, match=r"states y = \(q, v\)"):
-        diffrax.diffeqsolve(term, sm.LieRK4(), 0.0, 1.0, 0.1, jnp.ones(3))
+        diffrax.diffeqsolve(term, sm.LieRK(sm.RK4(), action="SO3xR3"), 0.0, 1.0, 0.1, jnp.ones(3))

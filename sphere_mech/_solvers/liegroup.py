@@ -207,7 +207,9 @@ class LieRK(AbstractAdaptiveSolver):
 
 
 def LieRK4() -> LieRK:
-    """`LieRK(RK4(), action="SO3xR3")`: the Runge-Kutta-Munthe-Kaas method of order 4 with
-    an embedded order-3 estimate, for any diffrax term whose state is `(q, v)`, adaptive
-    or with fixed steps; 4 evaluations per step. **Returns:** the `LieRK` solver."""
-    return LieRK(RK4(), action="SO3xR3")
+    """`LieRK(RK4())`: the Runge-Kutta-Munthe-Kaas method of order 4 with an embedded
+    order-3 estimate and `LieRK`'s default action (`"SE3"`, on a `MechanicsTerm` as
+    `simulate` builds), adaptive or with fixed steps; 4 evaluations per step
+    (`LieRK(RK4(), action="SO3xR3")` for any diffrax term whose state is `(q, v)`).
+    **Returns:** the `LieRK` solver."""
+    return LieRK(RK4())
