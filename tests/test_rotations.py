@@ -495,13 +495,15 @@ def test_variational_energy_bounded_on_rotations():
 
 @pytest.mark.parametrize("order", [2, 4])
 def test_variational_time_reversible_on_rotations(order):
-    """Forward over [0, 0.5] then back with -h returns `(R0, Omega0)` to rounding."""
+    """Forward over [0, 0.5] then back with -h returns `(R0, Omega0)` to rounding
+    (measured at order 4: 3.3e-14 and 3.1e-13 as the suite compiles, 1.3e-13 and 1.3e-12
+    with JAX's default optimizations)."""
     solver = sm.Variational(order)
     forward = last(fixed_steps(PENDULUM, solver, 0.02, (R0, W0), t1=0.5).ys)
     back = last(fixed_steps(PENDULUM, solver, -0.02, forward, t0=0.5, t1=0.0).ys)
     assert float(jnp.max(jnp.abs(forward[0] - R0))) > 0.1  # it did move
-    assert float(jnp.max(jnp.abs(back[0] - R0))) < 1e-13
-    assert float(jnp.max(jnp.abs(back[1] - W0))) < 1e-12
+    assert float(jnp.max(jnp.abs(back[0] - R0))) < 1e-12
+    assert float(jnp.max(jnp.abs(back[1] - W0))) < 1e-11
 
 
 @pytest.mark.slow  # 31 s; forced variational steps stay in test_mixed (order 2 against
