@@ -16,7 +16,7 @@ folder (made by the first process, inherited through the environment, removed at
 end): a program another process already compiled (the two workers, the notebooks'
 kernels and the command line's subprocesses compile many of the same ones) is read back
 instead of compiled again. It held 5062 of 9450 compilations in the two workers alone,
-and the suite took 1081 s against 1334 s without it (jaxlib 0.10.2, this 2-core CPU).
+and the suite took 954 to 1159 s against 1334 s without it (jaxlib 0.10.2, 2-core CPU).
 The command line's runs use that folder too (`SPHERE_MECH_CACHE_DIR`), not the user's.
 A `JAX_COMPILATION_CACHE_DIR` already set is used as it is.
 

@@ -401,6 +401,20 @@ def test_velocity_from_momentum_options(state):
     assert sm.RESULTS.promote(result) == sm.RESULTS.successful  # as its docstring says
 
 
+def test_velocity_from_momentum_codes(state):
+    """`successful` on the general path and the constant-inertia fast path, `singular` for
+    a degenerate `L`: diffrax's codes, which `sm.RESULTS.promote` turns into ours."""
+    q, v = state
+    chain = sm.ConstantInertiaLagrangian(jnp.eye(2), lambda t, q, args: jnp.sum(q[:, 2]))
+    for system in (SYSTEM, chain):
+        back, result = system.velocity_from_momentum(0.0, q, system.momentum(0.0, q, v))
+        assert sm.RESULTS.promote(result) == sm.RESULTS.successful
+        assert float(jnp.max(jnp.abs(back - v))) < 1e-10
+    degenerate = sm.Lagrangian(L_first_sphere_only, quadratic_in_velocity=True)
+    _, result = degenerate.velocity_from_momentum(0.0, q, v)
+    assert sm.RESULTS.promote(result) == sm.RESULTS.singular
+
+
 def test_float32_state_with_float64_forces():
     """A float32 state under x64 whose forces return float64 (a float64 constant, or a
     NumPy float64 time): the forces are called with the time in the state's dtype and

@@ -16,6 +16,12 @@ from . import base
 from .base import AbstractCommand, AbstractDrive, AbstractForce, ParameterError
 
 
+def _at_parents(values, parents, support):
+    """Each sphere's parent's row of `values` (`(n, ...)`), `support` (one row) for the
+    spheres hanging from the support."""
+    return jnp.concatenate([support.astype(values.dtype), values])[parents + 1]
+
+
 def _joint_rates(q, qdot, scene):
     """Each joint's `omega_i - omega_p`, `(n, 3)` (`omega_i = q_i x qdot_i`; the support's
     `omega_p`: zero, or a `RigidBase`'s `vee(Rdot R^T) = R Omega`, whose spin is its own).
@@ -24,7 +30,7 @@ def _joint_rates(q, qdot, scene):
     omega = jnp.cross(x, scene.spheres(qdot))
     R, Rdot = chain_attitude(q), chain_attitude(qdot)
     support = jnp.zeros_like(omega[:1]) if R is None else vee(Rdot @ jnp.swapaxes(R, -1, -2))
-    return omega - jnp.concatenate([support.astype(omega.dtype), omega])[scene.parents() + 1]
+    return omega - _at_parents(omega, scene.parents(), support)
 
 
 def _with_free_spins(x, rel, parents, c):
@@ -42,9 +48,8 @@ def _with_free_spins(x, rel, parents, c):
     b = c * jnp.sum(rel * x, -1) - c_child * jnp.sum(jnp.roll(rel, -1, axis=0) * x, -1)
     eps = jnp.finfo(rel.dtype).eps * jnp.max(c) + jnp.finfo(rel.dtype).tiny
     spin = tridiagonal_spd_solve(c + c_child + eps, (-c_child * cos)[:-1], -b)
-    spin_parent = jnp.concatenate([jnp.zeros_like(spin[:1]), spin])[parents + 1]
-    parent_x = jnp.concatenate([jnp.zeros_like(x[:1]), x])[parents + 1]
-    return rel + spin[:, None] * x - spin_parent[:, None] * parent_x
+    spin_x = spin[:, None] * x  # the support's own spin is in `rel` already
+    return rel + spin_x - _at_parents(spin_x, parents, jnp.zeros_like(spin_x[:1]))
 
 
 def _not_a_command(name: str, x) -> None:
