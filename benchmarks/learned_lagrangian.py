@@ -210,7 +210,13 @@ MODEL = {
     "chain3": dict(width=128, depth=3, activation=jax.nn.silu),
     "chain5": dict(width=128, depth=3, activation=jax.nn.silu),
 }
-"""Each task's `LearnedLagrangian` (gravity is its linear term; the MLP learns the rest)."""
+"""Each task's MLP `LearnedLagrangian` (`--model mlp`; gravity is its linear term, the MLP
+learns the rest)."""
+KERNELS = dict(depth=0, features=sm.SphereKernels())
+"""`--model kernels`: the potential a linear combination of `sm.SphereKernels()` (2041
+kernels, fine within 15 to 35 degrees of the bottom, where the pendulum hangs), fitted by
+`sm.fit_accelerations` and then `sm.refine`."""
+DEFAULT_MODEL = {"magnet": "kernels", "chain3": "mlp", "chain5": "mlp"}
 SOLVERS = {"rk4": sm.RK4(), "tsit5": diffrax.Tsit5(), "dopri8": diffrax.Dopri8()}
 """`--solver`: the training solver, at fixed steps."""
 TEST_DT, TEST_POINTS, CHUNK_STARTS = 0.05, 100, 20
@@ -374,9 +380,15 @@ def training_options(tk: Task, solver, substeps: int) -> dict:
     )
 
 
-def new_model(tk: Task, key=None, dtype="float64"):
+def model_options(name: str, kind: str | None = None) -> dict:
+    """`LearnedLagrangian`'s options of task `name` for the model `kind` (`"mlp"` or
+    `"kernels"`; default the task's `DEFAULT_MODEL`)."""
+    return KERNELS if (kind or DEFAULT_MODEL[name]) == "kernels" else MODEL[name]
+
+
+def new_model(tk: Task, key=None, dtype="float64", kind=None):
     key = jax.random.PRNGKey(0) if key is None else key
-    return sm.LearnedLagrangian(tk.n, key=key, dtype=dtype, **MODEL[tk.name])
+    return sm.LearnedLagrangian(tk.n, key=key, dtype=dtype, **model_options(tk.name, kind))
 
 
 def as_float64(model):
@@ -385,11 +397,13 @@ def as_float64(model):
     return jax.tree.map(cast, model)
 
 
-def load(path, system: str, dtype="float64"):
+def load(path, system: str, dtype="float64", kind=None):
     """The model trained on `system`, read from `path`, as a sphere_mech system. The final
     file is float64; the checkpoints written during a run (`--dtype float32`) are in the
-    training dtype: pass it as `dtype`."""
-    return eqx.tree_deserialise_leaves(path, new_model(task(system), dtype=dtype))
+    training dtype: pass it as `dtype`. `kind`: the `--model` it was trained with (default
+    the task's `DEFAULT_MODEL`)."""
+    like = new_model(task(system), dtype=dtype, kind=kind)
+    return eqx.tree_deserialise_leaves(path, like)
 
 
 def main(argv=None):
@@ -399,7 +413,14 @@ def main(argv=None):
     )
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--quick", action="store_true", help="small data, few steps")
-    parser.add_argument("--steps", type=int, default=None)
+    parser.add_argument(
+        "--model",
+        choices=["mlp", "kernels"],
+        default=None,
+        help="the model: an MLP potential trained by sm.learn, or sm.SphereKernels fitted "
+        "by sm.fit_accelerations (default: kernels on the magnet, mlp on the chains)",
+    )
+    parser.add_argument("--steps", type=int, default=None, help="sm.learn's steps (mlp)")
     parser.add_argument("--batch-size", type=int, default=100)
     parser.add_argument("--learning-rate", type=float, default=3e-3)
     parser.add_argument("--warmup", type=int, default=100, help="steps of linear warmup")
@@ -448,31 +469,36 @@ def main(argv=None):
     if args.system is None:
         parser.error("--system is required (unless --summary)")
     tk = task(args.system)
+    kind = args.model or DEFAULT_MODEL[args.system]
     num_train, num_test = (80, 20) if args.quick else (800, 200)
-    steps = args.steps or (50 if args.quick else 5000)
+    steps = 0 if kind == "kernels" else args.steps or (50 if args.quick else 5000)
     ts, chunks = training_chunks(tk, num_train)
     test_ts, truth = test_set(tk, num_test)
     args.out.mkdir(parents=True, exist_ok=True)
     load_before = os.getloadavg()
-    schedule = optax.warmup_cosine_decay_schedule(
-        0.0, args.learning_rate, min(args.warmup, steps // 2), steps
-    )
-    optimizer = optax.chain(optax.clip_by_global_norm(1.0), optax.adam(schedule))
     sim = training_options(tk, SOLVERS[args.solver], args.substeps)
     start, cpu_start = time.perf_counter(), time.process_time()
-    result = sm.learn(
-        new_model(tk, dtype=args.dtype),
-        ts,
-        chunks,
-        steps=steps,
-        batch_size=args.batch_size,
-        optimizer=optimizer,
-        loss=l1,
-        simulate_options=sim,
-        checkpoint=args.out / f"{args.system}.eqx",
-        checkpoint_every=max(steps // 10, 1),
-        print_every=max(steps // 20, 1),
-    )
+    model = new_model(tk, dtype=args.dtype, kind=kind)
+    if kind == "kernels":
+        result = sm.fit_accelerations(model, ts, chunks, print_every=1)
+    else:
+        schedule = optax.warmup_cosine_decay_schedule(
+            0.0, args.learning_rate, min(args.warmup, steps // 2), steps
+        )
+        optimizer = optax.chain(optax.clip_by_global_norm(1.0), optax.adam(schedule))
+        result = sm.learn(
+            model,
+            ts,
+            chunks,
+            steps=steps,
+            batch_size=args.batch_size,
+            optimizer=optimizer,
+            loss=l1,
+            simulate_options=sim,
+            checkpoint=args.out / f"{args.system}.eqx",
+            checkpoint_every=max(steps // 10, 1),
+            print_every=max(steps // 20, 1),
+        )
     learn_time = time.perf_counter() - start
     last = result.losses[-max(steps // 20, 1) :]  # the last twentieth, skipped steps left out
     refined = None
@@ -512,18 +538,23 @@ def main(argv=None):
         "refine_rejected": 0 if refined is None else refined.skipped,
         "train_chunks": num_train,
         "test_trajectories": num_test,
-        "final_loss": float(np.mean(last[np.isfinite(last)])),
+        "final_loss": float(np.mean(last[np.isfinite(last)])) if steps else None,
         "skipped_steps": result.skipped,
         "quick": args.quick,
         "device": str(jax.devices()[0]),
         "load_average_1min_before_after": [load_before[0], os.getloadavg()[0]],
-        "model": {k: getattr(v, "__name__", v) for k, v in MODEL[args.system].items()},
+        "model_kind": kind,
+        "model": {
+            k: getattr(v, "__name__", repr(v) if isinstance(v, eqx.Module) else v)
+            for k, v in model_options(args.system, kind).items()
+        },
         "learning_rate": args.learning_rate,
         "batch_size": args.batch_size,
         "substeps": args.substeps,
         "solver": args.solver,
         "dtype": args.dtype,
-        "losses_every_10": [float(x) for x in result.losses[::10]],
+        "losses_every_10": [] if kind == "kernels" else [float(x) for x in result.losses[::10]],
+        "fit_accelerations_losses": [float(x) for x in result.losses] if kind == "kernels" else [],
     }
     (args.out / f"{args.system}.json").write_text(json.dumps(report, indent=2))
     summary(args.out)
@@ -551,7 +582,8 @@ def summary(out: Path):
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     steps = lambda r: (
-        f"{r['steps']}" + (f" + {r['refine_steps']} refine" if r.get("refine_steps") else "")
+        ("fit_accelerations" if r.get("model_kind") == "kernels" else f"{r['steps']}")
+        + (f" + {r['refine_steps']} refine" if r.get("refine_steps") else "")
     )
     for r in reports:
         load = r.get("load_average_1min_before_after", [float("nan")] * 2)
@@ -563,12 +595,23 @@ def summary(out: Path):
             f"{load[0]:.1f} / {load[1]:.1f} | {r.get('model', '')} |"
         )
     publish("\n".join(lines) + "\n", "learned_lagrangian.md", out)
-    fig, ax = pyplot().subplots(figsize=(6, 4))
+    fig, (ax, ax2) = pyplot().subplots(1, 2, figsize=(10, 4))
     for r in reports:
         losses = np.asarray(r.get("losses_every_10", []))
-        ax.semilogy(10 * np.arange(len(losses)), losses, label=r["system"])
-    ax.set(xlabel="step", ylabel="minibatch loss (mean |residual|)", title="sm.learn")
-    ax.legend()
+        if losses.size:
+            ax.semilogy(10 * np.arange(len(losses)), losses, label=r["system"])
+        if r.get("refine_losses"):
+            ax2.plot(
+                r["refine_losses"],
+                "o-",
+                ms=3,
+                label=f"{r['system']} ({r.get('model_kind', 'mlp')})",
+            )
+    ax.set(xlabel="step", ylabel="minibatch loss (mean |residual|)", title="sm.learn (MLP)")
+    ax2.set(xlabel="Gauss-Newton step", ylabel="mean log(rms^2 + floor^2)", title="sm.refine")
+    for a in (ax, ax2):
+        if a.lines:
+            a.legend()
     save_figure(fig, "learned_lagrangian.png", out)
 
 

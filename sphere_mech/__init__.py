@@ -15,6 +15,9 @@ if TYPE_CHECKING:  # the public names; imported on first use (see `__getattr__`)
     from ._fit.learn import (
         LearnedLagrangian as LearnedLagrangian,
         LearnResult as LearnResult,
+        SphereKernels as SphereKernels,
+        estimate_accelerations as estimate_accelerations,
+        fit_accelerations as fit_accelerations,
         learn as learn,
         refine as refine,
     )

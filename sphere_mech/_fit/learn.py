@@ -56,7 +56,10 @@ class LearnedLagrangian(AbstractConstantInertiaLagrangian):
     **Arguments:**
     - `n`: the number of unit vectors (links).
     - `key`: a `jax.random` key for the MLP's initial weights.
-    - `width`, `depth`: the MLP's hidden width and number of hidden layers.
+    - `width`, `depth`: the MLP's hidden width and number of hidden layers. With
+      `depth=0` the potential is linear in the features (`width` unused) and starts at
+      zero: with `features=SphereKernels(...)` a sum of kernels on the sphere, which
+      `fit_accelerations` fits by one least-squares solve.
     - `inertia`: the initial `(n, n)` SPD inertia (default the identity).
     - `activation`: the MLP's activation, smooth (the equations differentiate `U` and
       training differentiates them again); default `jax.nn.softplus` (`jax.nn.silu`
@@ -113,9 +116,12 @@ class LearnedLagrangian(AbstractConstantInertiaLagrangian):
         size = jax.eval_shape(self.features, jax.ShapeDtypeStruct((n, 3), dtype)).shape
         if len(size) != 1:
             raise ValueError(f"features must return a 1-D array, got shape {size}.")
-        self.potential_net = eqx.nn.MLP(
+        net = eqx.nn.MLP(
             size[0], "scalar", width, depth, activation=activation, dtype=dtype, key=key
         )
+        if depth == 0:  # linear in the features: start at zero (no symmetry to break)
+            net = jtu.tree_map(lambda x: jnp.zeros_like(x) if eqx.is_inexact_array(x) else x, net)
+        self.potential_net = net
         self.forces = None
 
     @property
@@ -137,6 +143,87 @@ class LearnedLagrangian(AbstractConstantInertiaLagrangian):
 def _coordinates(q):
     """The default features: the unit vectors' `3n` coordinates."""
     return jnp.reshape(q, (-1,))
+
+
+def _fibonacci(count: int) -> np.ndarray:
+    """`count` nearly evenly spread unit vectors (the Fibonacci lattice), `(count, 3)`."""
+    i = np.arange(count) + 0.5
+    z = 1 - 2 * i / count
+    r = np.sqrt(1 - z**2)
+    angle = np.pi * (1 + 5**0.5) * i
+    return np.stack([r * np.cos(angle), r * np.sin(angle), z], -1)
+
+
+MAGNET_LEVELS = (
+    (100, 1.3, 180.0),
+    (400, 1.15, 180.0),
+    (1600, 1.075, 70.0),
+    (6400, 1.04, 35.0),
+    (25600, 1.02, 15.0),
+)
+
+
+class SphereKernels(eqx.Module):
+    """Features for `LearnedLagrangian(features=...)`: kernels on the unit sphere, each
+    `((rho - 1) / |x - rho u|)^power` of a link's vector `x`, for centers `u` on the unit
+    sphere and a radius `rho > 1` (a source just outside the sphere: the kernel is 1 at
+    the point of the sphere nearest it and falls off over a distance of about `rho - 1`).
+    With `LearnedLagrangian(n, depth=0, features=SphereKernels(...))` the potential is a
+    linear combination of them (plus the linear term), which `fit_accelerations` fits by
+    one linear least-squares solve; the sum of kernels of each link is the potential of
+    sources near the sphere, so it resolves fields that vary over short distances (a
+    magnet close to the path) where the kernels are fine.
+
+    **Arguments:**
+    - `levels`: `((count, rho, cap), ...)`: for each level the centers are the points of
+      a Fibonacci lattice of `count` points on the whole sphere that lie within `cap`
+      degrees of `axis`, at radius `rho`. Default (`MAGNET_LEVELS`): five levels from
+      100 points at 1.3 (all around) to 25600 at 1.02 within 15 degrees, 2041 kernels:
+      fine near `axis`, coarse elsewhere.
+    - `axis`: the direction around which the fine levels lie (default `(0, 0, -1)`, where
+      a pendulum hangs).
+    - `power`: the kernels' power (default 3, the falloff of a dipole's field).
+
+    `__call__(q)` maps `(n, 3)` vectors to the `n K` kernels (`K` per link, the same
+    centers for every link); `q` need not be of unit length (an integrator's stages are
+    not), the distances being the true ones. All fields are static: the centers are
+    recomputed when traced."""
+
+    levels: tuple = eqx.field(static=True, default=MAGNET_LEVELS)
+    axis: tuple = eqx.field(static=True, default=(0.0, 0.0, -1.0))
+    power: float = eqx.field(static=True, default=3.0)
+
+    def __check_init__(self):
+        for level in self.levels:
+            if len(level) != 3:
+                raise ValueError(f"SphereKernels: each level is (count, rho, cap), got {level}.")
+            count, rho, cap = level
+            check_integer(count, "SphereKernels: a level's count")
+            if not (np.isfinite(rho) and rho > 1):
+                raise ValueError(f"SphereKernels: a level's rho must be > 1, got {rho}.")
+            check_positive(cap, "SphereKernels: a level's cap")
+        if np.shape(self.axis) != (3,) or not np.linalg.norm(self.axis) > 0:
+            raise ValueError(f"SphereKernels: axis must be a nonzero 3-vector, got {self.axis}.")
+        check_positive(self.power, "SphereKernels: power")
+
+    def centers(self) -> tuple[np.ndarray, np.ndarray]:
+        """The kernels' centers `(K, 3)` (unit vectors) and radii `(K,)`."""
+        axis = np.asarray(self.axis, float) / np.linalg.norm(self.axis)
+        units, radii = [], []
+        for count, rho, cap in self.levels:
+            u = _fibonacci(count)
+            u = u[u @ axis >= np.cos(np.radians(cap)) - 1e-12]
+            units.append(u)
+            radii.append(np.full(len(u), float(rho)))
+        return np.concatenate(units), np.concatenate(radii)
+
+    def __call__(self, q):
+        units, radii = self.centers()
+        q = jnp.asarray(q)
+        u, rho = jnp.asarray(units, q.dtype), jnp.asarray(radii, q.dtype)
+        # |x - rho u|^2, exact off the sphere too
+        d2 = jnp.sum(q**2, -1, keepdims=True) + rho**2 - 2 * rho * (q @ u.T)
+        return jnp.reshape(((rho - 1) ** 2 / d2) ** (self.power / 2), (-1,))
 
 
 class LearnResult(eqx.Module):
@@ -230,6 +317,37 @@ def _default_sim(ts, simulate_options, name):
     return sim
 
 
+def _observed_chunks(model, ts, states, name, least):
+    """The checks of `learn`'s, `refine`'s and `fit_accelerations`' data, before any work
+    (`ValueError`): `model` a system, `states` a pair `(q, v)` with leading axes `(B, T)`,
+    `T >= least`, of the model's shapes, `ts` `(T,)` or `(B, T)`, and `check_data`'s.
+    Returns `ts`, the states in the model's floating dtype, the observations raveled
+    `(B, T, d)`, and that dtype."""
+    if not isinstance(model, AbstractSystem):
+        raise ValueError(f"model must be a sphere_mech system, got {type(model).__name__}.")
+    dtype = tree_dtype(eqx.filter(model, eqx.is_inexact_array))
+    states = state_pair(states, "(B, T, n, 3)", "states", "(q, v)")
+    q, v = jtu.tree_map(lambda x: jnp.asarray(x, dtype), states)
+    leading = {x.shape[:2] for x in jtu.tree_leaves((q, v))}
+    if len(leading) != 1 or len(next(iter(leading))) != 2:
+        raise ValueError(
+            "states must be (q, v) with the same leading axes (B, T) on every array, got "
+            f"shapes {jtu.tree_map(jnp.shape, (q, v))}."
+        )
+    model.state_space.check_shapes(*jtu.tree_map(lambda x: x[0, 0], (q, v)), model.state_name)
+    num_chunks, num_times = next(iter(leading))
+    ts = jnp.asarray(ts)
+    if ts.shape not in ((num_times,), (num_chunks, num_times)) or num_times < least:
+        raise ValueError(
+            f"ts must have shape (T,) or (B, T) with T >= {least} matching states' (B, T) = "
+            f"{(num_chunks, num_times)}, got {ts.shape}."
+        )
+    y0 = jtu.tree_map(lambda x: x[:, 0], (q, v))
+    observed = jax.vmap(jax.vmap(lambda q_, v_: _state_vector(None, None, q_, v_)))(q, v)
+    check_data(model, ts, y0, observed, name, "chunk")
+    return ts, (q, v), observed, dtype
+
+
 class _Chunks(eqx.Module):
     """`learn`'s and `refine`'s shooting problem: each observed chunk one record with one
     segment, simulated from its first observed state."""
@@ -245,29 +363,10 @@ class _Chunks(eqx.Module):
 
     @classmethod
     def build(cls, model, ts, states, simulate_options, jac, name):
-        if not isinstance(model, AbstractSystem):
-            raise ValueError(f"model must be a sphere_mech system, got {type(model).__name__}.")
-        dtype = tree_dtype(eqx.filter(model, eqx.is_inexact_array))
-        states = state_pair(states, "(B, T, n, 3)", "states", "(q, v)")
-        q, v = jtu.tree_map(lambda x: jnp.asarray(x, dtype), states)
-        leading = {x.shape[:2] for x in jtu.tree_leaves((q, v))}
-        if len(leading) != 1 or len(next(iter(leading))) != 2:
-            raise ValueError(
-                "states must be (q, v) with the same leading axes (B, T) on every array, got "
-                f"shapes {jtu.tree_map(jnp.shape, (q, v))}."
-            )
-        model.state_space.check_shapes(*jtu.tree_map(lambda x: x[0, 0], (q, v)), model.state_name)
-        num_chunks, num_times = next(iter(leading))
-        ts = jnp.asarray(ts)
-        shared = ts.shape == (num_times,)
-        if not (shared or ts.shape == (num_chunks, num_times)) or num_times < 2:
-            raise ValueError(
-                f"ts must have shape (T,) or (B, T) with T >= 2 matching states' (B, T) = "
-                f"{(num_chunks, num_times)}, got {ts.shape}."
-            )
+        ts, (q, v), observed, dtype = _observed_chunks(model, ts, states, name, 2)
+        num_chunks, num_times = observed.shape[:2]
+        shared = ts.ndim == 1
         y0 = jtu.tree_map(lambda x: x[:, 0], (q, v))
-        observed = jax.vmap(jax.vmap(lambda q_, v_: _state_vector(None, None, q_, v_)))(q, v)
-        check_data(model, ts, y0, observed, name, "chunk")
         ts = jnp.broadcast_to(ts.astype(dtype), (num_chunks, num_times))
         seg_ts, obs, t0, t1, mask = split_segments(ts, observed, 1)
         # one segment per chunk: with `ts` shared, the first chunk's times are every chunk's
@@ -547,19 +646,11 @@ def refine(
         zeros = (jnp.zeros((p.size, p.size), wide), jnp.zeros(p.size, wide))
         return jax.lax.scan(add, zeros, (groups, real))[0]
 
-    @jax.jit
-    def damped_step(p, A, g, lam):
-        d = jnp.diag(A)
-        A = A + jnp.diag(lam * d + 1e-12 * jnp.max(d))
-        dp = jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(A), -g)
-        return p + dp.astype(p.dtype)
-
     def save(p):
         if checkpoint is not None:
             eqx.tree_serialise_leaves(checkpoint, eqx.combine(unravel(p), static))
 
-    p, lam, skipped = p0, damping, 0
-    loss, _, weights, current, ms = evaluate(p, jnp.ones(chunks.num, wide))
+    loss, _, weights, current, ms = evaluate(p0, jnp.ones(chunks.num, wide))
     bad = np.flatnonzero(~np.isfinite(np.asarray(ms)))
     if bad.size:
         where = describe_failures(bad, chunks.num, "chunks have non-finite residuals", "chunk")
@@ -568,12 +659,47 @@ def refine(
             "finite (its solve failed), so its residuals cannot be minimized: drop those "
             "chunks or train the model further with `learn` (which skips such steps)."
         )
+    p, losses, skipped = _marquardt(
+        "refine",
+        p0,
+        (loss, weights, current),
+        normal_equations,
+        evaluate,
+        steps,
+        damping,
+        (start, print_every, progress),
+        save,
+    )
+    result = eqx.combine(unravel(p), static)
+    return LearnResult(result, losses, skipped, time.perf_counter() - start)
+
+
+@jax.jit
+def _damped_step(p, A, g, lam):
+    """`p` plus the solution of `(A + lam diag(A)) dp = -g` (Cholesky; a floor of 1e-12
+    times the largest diagonal keeps it positive definite)."""
+    d = jnp.diag(A)
+    A = A + jnp.diag(lam * d + 1e-12 * jnp.max(d))
+    dp = jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(A), -g)
+    return p + dp.astype(p.dtype)
+
+
+def _marquardt(name, p, first, normal_equations, evaluate, steps, damping, report, save):
+    """`refine`'s and `fit_accelerations`' Levenberg-Marquardt loop from `p`, `first` its
+    `(loss, weights, weighted least squares)`: each step solves the damped normal equations
+    `normal_equations(p, weights) -> (J^T W J, J^T W r)`; a trial that does not lower the
+    weighted least squares (`evaluate(trial, weights)`, as `refine`'s) is retried with
+    10 times the damping, an accepted one divides it by 3; 8 failures in a row stop it.
+    Returns the parameters, the losses (the first and each accepted step's) and the
+    number of rejected trials; `save(p)` after each step and at the end."""
+    start, print_every, progress = report
+    (loss, weights, current), lam, skipped = first, damping, 0
     losses = [float(loss)]
-    with _bar(progress, steps, "refine") as bar:
+    with _bar(progress, steps, name) as bar:
         for k in range(steps):
             A, g = normal_equations(p, weights)
             for _ in range(8):
-                trial = damped_step(p, A, g, lam)
+                trial = _damped_step(p, A, g, lam)
                 out = evaluate(trial, weights)
                 if bool(jnp.isfinite(out[1])) and out[1] < current:
                     p, lam, (loss, _, weights, current, _) = trial, lam / 3, out
@@ -582,13 +708,189 @@ def refine(
             else:  # no damping lowered it: at a minimum, as far as the steps resolve
                 if print_every:
                     print(
-                        f"refine: stopped after step {k}/{steps}: 8 dampings in a row did "
+                        f"{name}: stopped after step {k}/{steps}: 8 dampings in a row did "
                         f"not lower the objective (loss {float(loss):.4e})"
                     )
                 break
             losses.append(float(loss))
-            _report(bar, "refine", k + 1, steps, 1, loss, start, print_every)
+            _report(bar, name, k + 1, steps, 1, loss, start, print_every)
             save(p)
     save(p)
+    return p, np.asarray(losses), skipped
+
+
+def _second_derivatives(t, x, xdot, at):
+    """The second derivatives at times `at` of the polynomial of degree `2T - 1` through
+    the `T` values `x` `(T, d)` and first derivatives `xdot` at times `t` (Hermite
+    interpolation; in time scaled to `[-1, 1]` for conditioning)."""
+    center, half = (t[0] + t[-1]) / 2, (t[-1] - t[0]) / 2
+    tau, s = (t - center) / half, (at - center) / half
+    power = jnp.arange(2 * len(t))
+    values = tau[:, None] ** power
+    slopes = power * tau[:, None] ** jnp.maximum(power - 1, 0)
+    coef = jnp.linalg.solve(jnp.concatenate([values, slopes]), jnp.concatenate([x, half * xdot]))
+    curvature = power * (power - 1) * s[:, None] ** jnp.maximum(power - 2, 0)
+    return curvature @ coef / half**2
+
+
+def estimate_accelerations(ts, states, *, tolerance: float = 2e-5):
+    """Accelerations of observed chunks `(q, qdot)` at their interior observations, from
+    the polynomial of degree `2T - 1` through each chunk's `T` positions and velocities
+    (Hermite interpolation), with weights from an estimate of their error.
+
+    **Arguments:**
+    - `ts`: observation times `(T,)` shared by the chunks, or `(B, T)`; `T >= 3`.
+    - `states`: `(q, qdot)`, each `(B, T, ...)` (positions and their time derivatives).
+    - `tolerance`: the error, relative to the root mean square acceleration over the
+      data, at which an estimate's weight is halved.
+
+    **Returns:** `(accelerations, weights)`: `(B, T - 2, ...)` `qddot` at observations 1 to
+    `T - 2`, and `(B, T - 2)` weights `1 / (1 + (e / (tolerance a_rms))^2)`, `e` the
+    larger change of the estimate when the chunk's first or its last observation is left
+    out (on the magnet task of `benchmarks/learned_lagrangian.py` its log correlates with
+    the log of the true error at 0.97 to 0.99: the fast passes near the magnets have
+    large errors and small weights)."""
+    check_positive(tolerance, "estimate_accelerations: tolerance")
+    q, qdot = (jnp.asarray(x) for x in states)
+    if q.shape != qdot.shape or q.ndim < 2 or q.shape[1] < 3:
+        raise ValueError(
+            "estimate_accelerations: states must be (q, qdot) of the same shape (B, T, ...) "
+            f"with T >= 3 observations, got shapes {q.shape} and {qdot.shape}."
+        )
+    num, T = q.shape[:2]
+    ts = jnp.broadcast_to(jnp.asarray(ts, q.dtype), (num, T))
+    flat = lambda x: x.reshape(num, T, -1)
+
+    def one(t, x, xdot):
+        estimates = [
+            _second_derivatives(t[keep], x[keep], xdot[keep], t[1:-1])
+            for keep in (slice(None), slice(1, None), slice(None, -1))
+        ]
+        change = jnp.maximum(*(jnp.linalg.norm(e - estimates[0], axis=-1) for e in estimates[1:]))
+        return estimates[0], change
+
+    acc, change = jax.vmap(one)(ts, flat(q), flat(qdot))
+    scale = tolerance * jnp.sqrt(jnp.mean(jnp.sum(acc**2, -1)))
+    return acc.reshape((num, T - 2) + q.shape[2:]), 1 / (1 + (change / scale) ** 2)
+
+
+def fit_accelerations(
+    model: AbstractSystem,
+    ts,
+    states,
+    *,
+    steps: int = 1,
+    ridge: float = 1e-10,
+    tolerance: float = 2e-5,
+    group_size: int = 1000,
+    print_every: int | None = None,
+    progress: bool = False,
+) -> LearnResult:
+    """Fit a model's potential to accelerations estimated from observed chunks: minimizes
+    `sum_j w_j |qddot_model(q_j, qdot_j) - a_j|^2` over the chunks' interior observations
+    `j`, with `a_j` and `w_j` from `estimate_accelerations` (no solve of the model), by
+    Levenberg-Marquardt steps whose Marquardt damping starts at `ridge`. For a potential
+    linear in its parameters (`LearnedLagrangian(n, depth=0, features=...)`) the
+    accelerations are linear in them, and one step is the ridge-regularized least-squares
+    solution: a start for `refine`, which then fits the trajectories themselves. On the
+    magnet task of `benchmarks/learned_lagrangian.py` (`SphereKernels()`, 2046 parameters)
+    one step took seconds and scored a rollout error of 1.2e-3, 10 `refine` steps after it
+    7.9e-4.
+
+    **Arguments:**
+    - `model`: a sphere_mech system with state `(q, qdot)` (form 1) that is an equinox
+      Module with its parameters as floating-point leaves; of a `LearnedLagrangian` the
+      inertia is held (it and the potential are learned up to a common factor: holding
+      the inertia fixes it), every other floating leaf is fitted.
+    - `ts`, `states`: the observed chunks, as for `learn` (`T >= 3` observations).
+    - `steps`: Levenberg-Marquardt steps (one suffices for a linear potential).
+    - `ridge`: the initial Marquardt damping `ridge diag(J^T W J)` (a ridge in the scaled
+      parameters, pulling toward the model's parameters: zero for a new linear one).
+    - `tolerance`: `estimate_accelerations`' tolerance.
+    - `group_size`: observations whose Jacobians are held at once.
+    - `print_every`, `progress`: as for `refine`.
+
+    **Returns:** a `LearnResult`, `losses` the weighted mean square acceleration error at
+    the start and after each accepted step, `skipped` the rejected trials."""
+    start = time.perf_counter()
+    _check_options(
+        "fit_accelerations",
+        None,
+        dict(print_every=print_every),
+        dict(steps=steps, group_size=group_size),
+    )
+    check_positive(ridge, "fit_accelerations: ridge")
+    if isinstance(model, AbstractSystem) and model.state_name != "qdot":
+        raise ValueError(
+            "fit_accelerations: model must be a system with state (q, qdot) (form 1), got "
+            f"{type(model).__name__} with state (q, {model.state_name})."
+        )
+    ts, (q, qdot), _, dtype = _observed_chunks(model, ts, states, "fit_accelerations", 3)
+    acc, weights = estimate_accelerations(ts, (q, qdot), tolerance=tolerance)
+    inner = lambda x: x[:, 1:-1].reshape((-1,) + x.shape[2:])
+    ts = jnp.broadcast_to(ts.astype(dtype), q.shape[:2])
+    data = (
+        inner(ts),
+        inner(q),
+        inner(qdot),
+        acc.reshape((-1,) + acc.shape[2:]),
+        weights.reshape(-1),
+    )
+    num = data[0].shape[0]
+    free = jtu.tree_map(eqx.is_inexact_array, model)
+    if isinstance(model, LearnedLagrangian):
+        free = eqx.tree_at(lambda m: m.inertia_factor, free, False)
+    u0, static = eqx.partition(model, free)
+    p0, unravel = ravel_pytree(u0)
+    wide = jnp.promote_types(p0.dtype, jax.dtypes.canonicalize_dtype(jnp.float64))
+    group_size = min(group_size, num)
+    padded = -(-num // group_size) * group_size
+    groups = (np.arange(padded) % num).reshape(-1, group_size)
+    real = (np.arange(padded) < num).reshape(-1, group_size)
+
+    def residual(p, t, q_, qdot_, a, w):
+        system = eqx.combine(unravel(p), static)
+        qddot = system.rates(t, (q_, qdot_), None)[1]
+        return jnp.sqrt(w) * jnp.reshape(qddot - a, (-1,)).astype(p.dtype)
+
+    # the data are arguments, not constants of the programs (XLA would fold them)
+    @jax.jit
+    def evaluate_at(p, data):
+        r = jax.vmap(residual, (None, 0, 0, 0, 0, 0))(p, *data)
+        squares = jnp.sum(r**2).astype(wide)
+        return squares / num, squares
+
+    @jax.jit
+    def normal_equations_at(p, data):
+        def add(sums, group):
+            index, keep = group
+            t, q_, qdot_, a, w = (x[index] for x in data)
+            args = (p, t, q_, qdot_, a, w * keep)
+            J = jax.vmap(jax.jacrev(residual), (None, 0, 0, 0, 0, 0))(*args)
+            r = jax.vmap(residual, (None, 0, 0, 0, 0, 0))(*args)
+            J, r = J.reshape(-1, p.size), r.reshape(-1)
+            sums = jtu.tree_map(jnp.add, sums, ((J.T @ J).astype(wide), (J.T @ r).astype(wide)))
+            return sums, None
+
+        zeros = (jnp.zeros((p.size, p.size), wide), jnp.zeros(p.size, wide))
+        return jax.lax.scan(add, zeros, (groups, real))[0]
+
+    def evaluate(p, weights):  # as `refine`'s, the weights fixed
+        loss, squares = evaluate_at(p, data)
+        return loss, squares, weights, squares, None
+
+    normal_equations = lambda p, weights: normal_equations_at(p, data)
+    loss, squares, *_ = evaluate(p0, None)
+    p, losses, skipped = _marquardt(
+        "fit_accelerations",
+        p0,
+        (loss, None, squares),
+        normal_equations,
+        evaluate,
+        steps,
+        ridge,
+        (start, print_every, progress),
+        lambda p: None,
+    )
     result = eqx.combine(unravel(p), static)
-    return LearnResult(result, np.asarray(losses), skipped, time.perf_counter() - start)
+    return LearnResult(result, losses, skipped, time.perf_counter() - start)
