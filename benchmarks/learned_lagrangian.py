@@ -32,11 +32,34 @@ writes `DIR/<system>.json` and `DIR/<system>.eqx`, then prints the table of ever
 `--summary`); `load(path, system)` reads the model back as a library system (state
 `(q, qdot)`: the links' unit vectors in the task's frame).
 
-Model (`MODEL`): `sm.LearnedLagrangian` with its linear term (gravity) and a depth-3 silu
-MLP of width 128 (64 on the magnet, whose inputs are scaled by 8: the dipoles' potential
-varies over about 0.1 on the sphere). Adam with warmup then cosine decay, gradient
-clipping, L1 loss, minibatches of 100 chunks, `--substeps` fixed steps of `--solver` (RK4,
-Tsit5 or Dopri8; default RK4) per observation in training.
+Models (`--model`, default `DEFAULT_MODEL`): `kernels` (the magnet's default):
+`sm.LearnedLagrangian(1, depth=0, features=sm.SphereKernels())`, its potential the
+linear term (gravity) plus a linear combination of 2041 kernels on the sphere, fitted by
+`sm.fit_accelerations` (one least-squares solve on accelerations estimated from the
+chunks) and then `--refine-steps` steps of `sm.refine`. `mlp` (the chains' default;
+`MODEL`): `sm.LearnedLagrangian` with its linear term and a depth-3 silu MLP of width 128
+(64 on the magnet, whose inputs are scaled by 8: the dipoles' potential varies over about
+0.1 on the sphere), trained by `sm.learn`: Adam with warmup then cosine decay, gradient
+clipping, L1 loss, minibatches of 100 chunks, `--substeps` fixed steps of `--solver`
+(RK4, Tsit5 or Dopri8; default RK4) per observation in training.
+
+The magnet with kernels (`--refine-steps 30 --substeps 4`,
+`benchmarks/results/learned_lagrangian/magnet.json`): 3.22e-4 in 783 s wall (1445 s CPU,
+load 1.5 to 1.7; `fit_accelerations` 14 s and 1.2e-3 alone), 32 times below CLNN and
+below the chaos floor of a 1e-5 perturbation (5.9e-4); the objective -20.21 before
+`refine`, -22.07 after 10 steps, -22.65 after 30. How it was found (scripts outside the
+library, 2026-12-03): an oracle probe, the kernels fitted by least squares to the true
+forces at the 4000 training states, scored 1.6e-4 with the five levels (a relative fit
+residual of 1e-5) but 1.9e-2 without the finest (25600 centers at 1.02 within 15 degrees):
+the levels must resolve the magnets' field. `refine` alone from the zero potential (4 RK4
+steps per observation, damping 1e-2) reached the objective -19.29 in 15 steps (414 s) but
+a rollout error of 4.75e-3: its force error far from the magnets (median 0.4 on test
+states farther than 0.5) is what the acceleration estimates fix (there they are accurate
+to 1e-6). From `fit_accelerations`, 10 `refine` steps (280 s) gave 7.85e-4; at 8 RK4 steps
+per observation the first 3 steps lowered the objective as much as at 4, at twice the
+time. The results of the MLP on the magnet moved to
+`benchmarks/results/learned_lagrangian/mlp/` (and `refine/`, `budget/`); everything below
+up to `--dtype` is about them.
 
 Their chaos floor comes from `test_rollouts` in their trainer: a perturbation
 `pert_eps * randn / |zt|`, `|zt|` the norm of the whole batch of true rollouts, added to
@@ -45,8 +68,9 @@ their batch and horizon; ours is relative to each state and kept on the sphere, 
 scales linearly with its size (1e-4 gives 4.4e-3, 1e-5 5.9e-4, 1e-6 9.5e-5 on the
 magnet): their 4.45e-4 corresponds to about 7.5e-6.
 
-Results (`benchmarks/results/learned_lagrangian/`, `--summary` writes the table and the
-training curves): magnet 2.59e-3 with a width-64 MLP after 28000 steps trained in
+Results of the MLP (`benchmarks/results/learned_lagrangian/`, the magnet's in `mlp/`;
+`--summary` writes the table and the training curves): magnet (`--model mlp`) 2.59e-3
+with a width-64 MLP after 28000 steps trained in
 float32 at learning rate 1e-2 and 4 RK4 steps per observation (`--dtype float32 --steps
 28000 --learning-rate 1e-2 --substeps 4`; CLNN 1.03e-2; 1779 s wall, 2563 s CPU, load
 1.4 to 1.5), not learned to the goal (1e-3). At 2 steps per observation 36000 steps had
