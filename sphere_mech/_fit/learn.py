@@ -207,7 +207,10 @@ class SphereKernels(eqx.Module):
         check_positive(self.power, "SphereKernels: power")
 
     def centers(self) -> tuple[np.ndarray, np.ndarray]:
-        """The kernels' centers `(K, 3)` (unit vectors) and radii `(K,)`."""
+        """The kernels' sources, level by level.
+
+        **Returns:** `(units, radii)`: the centers `(K, 3)` (unit vectors) and their radii
+        `(K,)`."""
         axis = np.asarray(self.axis, float) / np.linalg.norm(self.axis)
         units, radii = [], []
         for count, rho, cap in self.levels:
@@ -231,8 +234,8 @@ class SphereKernels(eqx.Module):
 
 
 class LearnResult(eqx.Module):
-    """What `learn` returns (and `refine`, whose docstring says what its `losses` and
-    `skipped` count).
+    """What `learn` returns (and `refine` and `fit_accelerations`, whose docstrings say
+    what their `losses` and `skipped` count).
 
     **Attributes:**
     - `model`: the trained model (same structure as the model given).
@@ -754,6 +757,11 @@ def estimate_accelerations(ts, states, *, tolerance: float = 2e-5):
     the log of the true error at 0.97 to 0.99: the fast passes near the magnets have
     large errors and small weights)."""
     check_positive(tolerance, "estimate_accelerations: tolerance")
+    if any(isinstance(x, dict) for x in states):
+        raise ValueError(
+            "estimate_accelerations: states must be arrays (q, qdot); a mixed space's "
+            "dicts of arrays are not supported."
+        )
     q, qdot = (jnp.asarray(x) for x in states)
     if q.shape != qdot.shape or q.ndim < 2 or q.shape[1] < 3:
         raise ValueError(
@@ -797,8 +805,8 @@ def fit_accelerations(
     accelerations are linear in them, and one step is the ridge-regularized least-squares
     solution: a start for `refine`, which then fits the trajectories themselves. On the
     magnet task of `benchmarks/learned_lagrangian.py` (`SphereKernels()`, 2046 parameters)
-    one step took seconds and scored a rollout error of 1.2e-3, 10 `refine` steps after it
-    7.9e-4.
+    one step took 14 to 20 s and scored a rollout error of 1.2e-3, 30 `refine` steps after
+    it 3.2e-4 (docs/fitting.md).
 
     **Arguments:**
     - `model`: a sphere_mech system with state `(q, qdot)` (form 1) that is an equinox
@@ -865,9 +873,9 @@ def fit_accelerations(
         def add(sums, group):
             index, keep = group
             t, q_, qdot_, a, w = (x[index] for x in data)
-            args = (p, t, q_, qdot_, a, w * keep)
-            J = jax.vmap(jax.jacrev(residual), (None, 0, 0, 0, 0, 0))(*args)
-            r = jax.vmap(residual, (None, 0, 0, 0, 0, 0))(*args)
+            rows = lambda *args: (residual(*args),) * 2
+            jac = jax.vmap(jax.jacrev(rows, has_aux=True), (None, 0, 0, 0, 0, 0))
+            J, r = jac(p, t, q_, qdot_, a, w * keep)
             J, r = J.reshape(-1, p.size), r.reshape(-1)
             sums = jtu.tree_map(jnp.add, sums, ((J.T @ J).astype(wide), (J.T @ r).astype(wide)))
             return sums, None
