@@ -805,7 +805,7 @@ def fit_accelerations(
     accelerations are linear in them, and one step is the ridge-regularized least-squares
     solution: a start for `refine`, which then fits the trajectories themselves. On the
     magnet task of `benchmarks/learned_lagrangian.py` (`SphereKernels()`, 2046 parameters)
-    one step took 14 to 20 s and scored a rollout error of 1.2e-3, 30 `refine` steps after
+    one step took 12 to 20 s and scored a rollout error of 1.2e-3, 30 `refine` steps after
     it 3.2e-4 (docs/fitting.md).
 
     **Arguments:**
