@@ -804,7 +804,7 @@ def fit_accelerations(
     linear in its parameters (`LearnedLagrangian(n, depth=0, features=...)`) the
     accelerations are linear in them, and one step is the ridge-regularized least-squares
     solution: a start for `refine`, which then fits the trajectories themselves. On the
-    magnet task of `benchmarks/learned_lagrangian.py` (`SphereKernels()`, 2046 parameters)
+    magnet task of `benchmarks/learned_lagrangian.py` (`SphereKernels()`: 2045 fitted)
     one step took 12 to 20 s and scored a rollout error of 1.2e-3, 30 `refine` steps after
     it 3.2e-4 (docs/fitting.md).
 
