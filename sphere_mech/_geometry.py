@@ -7,7 +7,7 @@ import jax.random as jr
 import numpy as np
 
 from ._custom_types import Points, Scalar, Tangents
-from ._misc import check_integer, check_positive
+from ._misc import check_integer, check_positive, float_dtype
 
 
 def _check_trailing(x, shape: tuple, name: str, fn: str) -> jax.Array:
@@ -187,7 +187,7 @@ def random_points(key: jax.Array, n: int, *, dtype=None) -> Points:
 
     **Returns:** an `(n, 3)` array of unit vectors."""
     check_integer(n, "random_points: n")
-    return normalize(jr.normal(key, (n, 3), dtype=dtype))
+    return normalize(jr.normal(key, (n, 3), dtype=float_dtype(dtype, "random_points: dtype")))
 
 
 def random_state(
@@ -204,6 +204,7 @@ def random_state(
     **Returns:** `(q, v)`, two `(n, 3)` arrays with `|q_i| = 1` and `q_i . v_i = 0`."""
     check_integer(n, "random_state: n")
     check_positive(speed, "random_state: speed", zero=True)
+    dtype = float_dtype(dtype, "random_state: dtype")
     kq, kv = jr.split(key)
     q = random_points(kq, n, dtype=dtype)
     return q, project(q, speed * jr.normal(kv, (n, 3), dtype=dtype))

@@ -51,9 +51,24 @@ def check_positive(value, name: str, zero: bool = False) -> None:
         raise ValueError(f"{name} must be a finite number {bound} 0, got {value!r}.")
 
 
+def float_dtype(dtype, name: str = "dtype"):
+    """`dtype` as a floating `numpy.dtype` JAX runs in (`None`: JAX's default float), else a
+    `ValueError` naming it ("`name` must be a floating dtype JAX runs in, got ...")."""
+    dtype = jnp.zeros(()).dtype if dtype is None else jnp.dtype(dtype)
+    if not jnp.issubdtype(dtype, jnp.floating) or dtype != jax.dtypes.canonicalize_dtype(dtype):
+        x64 = " (float64 needs jax_enable_x64)" if dtype == jnp.float64 else ""
+        raise ValueError(f"{name} must be a floating dtype JAX runs in{x64}, got {dtype}.")
+    return dtype
+
+
 def as_array(x):
     """A state leaf as a JAX array; nested lists as float arrays (JAX's default float)."""
     return jnp.asarray(x, dtype=float) if isinstance(x, list) else jnp.asarray(x)
+
+
+def state_arrays(q, v):
+    """The state `(q, v)` with every leaf a JAX array; nested lists as float arrays."""
+    return jax.tree.map(as_array, (q, v), is_leaf=lambda x: isinstance(x, list))
 
 
 def tree_add(a, b):

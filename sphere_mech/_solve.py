@@ -14,7 +14,15 @@ import optimistix as optx
 
 from ._adjoint import default_adjoint_run
 from ._checks import check_function, is_real
-from ._misc import all_finite, as_array, as_arrays, check_bool, is_integer, rows, tree_dtype
+from ._misc import (
+    all_finite,
+    as_arrays,
+    check_bool,
+    is_integer,
+    rows,
+    state_arrays,
+    tree_dtype,
+)
 from ._results import RESULTS, describe_failures, gathered
 from ._solvers.names import as_solver, solver_name
 from ._solvers.projected import Projected
@@ -353,7 +361,7 @@ def state_pair(y0, shapes: str, name: str = "y0", pair: str = "(q0, v0)"):
         raise ValueError(
             f"{name} must be a pair {pair} of {shapes} arrays (dicts of arrays on a mixed space)."
         )
-    return jax.tree.map(as_array, tuple(y0), is_leaf=lambda x: isinstance(x, list))
+    return state_arrays(*y0)
 
 
 def initial_states(space, state_name: str, y0, what: str, check: bool):

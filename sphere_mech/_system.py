@@ -12,7 +12,7 @@ import jax.tree_util as jtu
 
 from ._checks import check_function, check_scalar, check_time
 from ._custom_types import Args, ForceFn, Points, Scalar, State, Tangents
-from ._misc import all_finite, as_array, tree_dtype, tree_sub, tree_vdot
+from ._misc import all_finite, state_arrays, tree_dtype, tree_sub, tree_vdot
 from ._spaces import AbstractSpace
 
 SINGULAR_MESSAGE = (
@@ -197,8 +197,7 @@ class AbstractSystem(eqx.Module):
           (nested lists are read as float arrays, as `simulate` reads them).
 
         **Returns:** the state `(q, v)`, as arrays."""
-        is_list = lambda x: isinstance(x, list)
-        q, v = jax.tree.map(as_array, (q, v), is_leaf=is_list)
+        q, v = state_arrays(q, v)
         self.state_space.check_shapes(q, v, self.state_name)
         return self.state_space.check_values(q, v, self.state_name)
 
@@ -270,7 +269,7 @@ class AbstractLagrangianSystem(AbstractSystem):
         return check_rates(qddot, SINGULAR_MESSAGE, self, args)
 
     def velocity(self, t, q, v, args=None):
-        return self.to_linear(q, v)
+        return self.to_linear(*state_arrays(q, v))
 
     def lagrangian_qdot(self, t, q: Points, qdot: Tangents, args: Args) -> Scalar:
         """The Lagrangian as a function of `qdot`, whatever the form.
@@ -292,6 +291,7 @@ class AbstractLagrangianSystem(AbstractSystem):
         - `t`, `q`, `v`, `args`: as in `lagrangian`.
 
         **Returns:** the momentum, `(n, 3)`, tangent at `q`."""
+        q, v = state_arrays(q, v)
         return self.state_space.project(q, self._dL_dv(t, q, v, args))
 
     def energy(self, t, q, v, args=None):
@@ -301,6 +301,7 @@ class AbstractLagrangianSystem(AbstractSystem):
         - `t`, `q`, `v`, `args`: as in `lagrangian`.
 
         **Returns:** a scalar."""
+        q, v = state_arrays(q, v)
         return tree_vdot(v, self._dL_dv(t, q, v, args)) - self.lagrangian(t, q, v, args)
 
     @abc.abstractmethod
@@ -346,6 +347,7 @@ class AbstractHamiltonianSystem(AbstractSystem):
         - `t`, `q`, `p`, `args`: time, `(n, 3)` unit vectors, `mu` or `pi`, `args`.
 
         **Returns:** a scalar."""
+        q, p = state_arrays(q, p)
         return check_scalar(self.H(t, q, p, args), "H(t, q, p, args)")
 
     def velocity(self, t, q, p, args=None):
@@ -355,6 +357,7 @@ class AbstractHamiltonianSystem(AbstractSystem):
         - `t`, `q`, `p`, `args`: as in `energy`.
 
         **Returns:** `qdot`, `(n, 3)`."""
+        q, p = state_arrays(q, p)
         dH_dp = self._gradients(t, q, p, args)[1]
         return self.to_linear(q, dH_dp) if self.angular else self.space.project(q, dH_dp)
 

@@ -452,6 +452,27 @@ def test_function_where_a_system_is_expected(state):
         sm.MechanicsTerm(bare)
 
 
+def test_lists_at_the_state_functions(state):
+    """`energy`, `momentum` and `velocity` read nested lists as arrays too, in every form
+    (`energy` and `momentum` raised an AttributeError from inside `jax.grad`)."""
+    q, v = state
+    systems = dict(
+        qdot=SYSTEM,
+        omega=sm.angular(SYSTEM),
+        mu=sm.legendre(SYSTEM),
+        pi=sm.legendre(sm.angular(SYSTEM)),
+    )
+    for name, system in systems.items():
+        y = (q, system.from_linear(q, v))
+        methods = [system.energy, system.velocity]
+        methods += [system.momentum] if name in ("qdot", "omega") else []
+        for method in methods:
+            expected = method(0.0, *y)
+            got = method(0.0, *(x.tolist() for x in y))
+            assert isinstance(got, jax.Array), (name, method.__name__)
+            assert float(jnp.max(jnp.abs(got - expected))) < 1e-12, (name, method.__name__)
+
+
 def test_time_and_lists_at_the_vector_fields(state):
     """The vector-field entry points read nested lists as arrays, as simulate does (they
     raised "Cannot determine dtype"), and refuse a time that is not a real scalar (a

@@ -100,6 +100,11 @@ def test_shapes_and_counts_are_checked():
         with pytest.raises(ValueError, match="random_state: speed must be a finite number >= 0"):
             sm.random_state(jax.random.PRNGKey(0), 2, speed=speed)
     assert jnp.all(sm.random_state(jax.random.PRNGKey(0), 2, speed=0.0)[1] == 0)
+    for dtype in (jnp.int32, bool):  # JAX's error named `normal`, not the argument
+        with pytest.raises(ValueError, match="^random_state: dtype must be a floating dtype"):
+            sm.random_state(jax.random.PRNGKey(0), 2, dtype=dtype)
+        with pytest.raises(ValueError, match="^random_points: dtype must be a floating dtype"):
+            sm.random_points(jax.random.PRNGKey(0), 2, dtype=dtype)
     assert sm.vee(sm.hat(jnp.ones((4, 3)))).shape == (4, 3)
 
 

@@ -226,10 +226,11 @@ def test_newton_failure_is_reported():
     sol = fixed_steps(GENERAL, sm.Variational(), 0.9, Y0, t1=9.0, args=G, throw=False)
     assert sol.result != sm.RESULTS.successful
     assert np.all(np.isfinite(np.asarray(sol.ys[0])))
-    # The last good state (here the initial one), labelled by diffrax with the failed
-    # step's end time (documented in `Variational`).
+    # The last good state (here the initial one as the compiled solve retracts it: one
+    # unit in the last place off the eager `normalize` on some CPUs), labelled by diffrax
+    # with the failed step's end time (documented in `Variational`).
     assert float(sol.ts[-1]) == pytest.approx(0.9) and sol.stats["num_steps"] == 1
-    np.testing.assert_array_equal(sol.ys[0][-1], Y0[0])
+    np.testing.assert_allclose(sol.ys[0][-1], Y0[0], rtol=0, atol=2e-16)
     # Saved every 0.1: those inside the failed step are unreached (`inf`), as all after
     # it; before, its dense output made up a curve from the last good state back to it.
     saveat = diffrax.SaveAt(ts=jnp.linspace(0.0, 9.0, 91))

@@ -30,7 +30,7 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, PyTree
 
 from .._inertia import AbstractConstantInertiaLagrangian, check_spd_inertia
-from .._misc import all_finite, check_integer, check_positive, tree_dtype
+from .._misc import all_finite, check_integer, check_positive, float_dtype, tree_dtype
 from .._results import describe_failures
 from .._solve import state_pair
 from .._solvers.projected import Projected
@@ -97,10 +97,7 @@ class LearnedLagrangian(AbstractConstantInertiaLagrangian):
         features: Callable[[Array], Array] | None = None,
         dtype=None,
     ):
-        dtype = jnp.zeros(()).dtype if dtype is None else jnp.dtype(dtype)
-        if not jnp.issubdtype(dtype, jnp.floating) or dtype != jax.dtypes.canonicalize_dtype(dtype):
-            x64 = " (float64 needs jax_enable_x64)" if dtype == jnp.float64 else ""
-            raise ValueError(f"dtype must be a floating dtype JAX runs in{x64}, got {dtype}.")
+        dtype = float_dtype(dtype)
         for name, value, least in (("n", n, 1), ("width", width, 1), ("depth", depth, 0)):
             check_integer(value, name, least)
         M = np.eye(n) if inertia is None else np.asarray(inertia, dtype=float)
