@@ -25,6 +25,17 @@ floor any model meets on a chaotic task (the size of that perturbation is our as
 on the magnet, 200 test trajectories, 1e-4 gives 4.43e-3, 1e-5 5.9e-4 and 1e-6 9.5e-5,
 against their 4.45e-4).
 
+The long horizon (`rollout_rel_err_long`, `chaos_floor_long`): the same metric, time
+averaged over `LONG_POINTS` = 1000 observations every `Task.dt` (50 s on the magnet, 100 s
+on the chains) from the same test starts, as their trainer's `test_rollouts` rolls out far
+beyond the training chunks (its aggregate over trajectories is not in their code: ours is
+the one above). `--evaluate` computes both metrics again for a saved `DIR/<system>.eqx`.
+Measured (2026-12-04, the models in `benchmarks/results/learned_lagrangian/`): magnet
+1.33e-2 (chaos floor 1.85e-2), chain3 1.06e-1 (7.12e-2), chain5 2.18e-1 (2.08e-1): over
+1000 observations a 1e-5 perturbation of the true system grows as large as the models'
+errors, so the long horizon measures chaos, not the model (0.72x, 1.5x and 1.05x the
+floor).
+
     python benchmarks/learned_lagrangian.py --system magnet --out DIR [--quick]
 
 writes `DIR/<system>.json` and `DIR/<system>.eqx`, then prints the table of every task in
@@ -244,6 +255,8 @@ DEFAULT_MODEL = {"magnet": "kernels", "chain3": "mlp", "chain5": "mlp"}
 SOLVERS = {"rk4": sm.RK4(), "tsit5": diffrax.Tsit5(), "dopri8": diffrax.Dopri8()}
 """`--solver`: the training solver, at fixed steps."""
 TEST_DT, TEST_POINTS, CHUNK_STARTS = 0.05, 100, 20
+LONG_POINTS = 1000
+"""The long horizon (`--long`): observations from each test start, every `Task.dt`."""
 
 
 class Task(eqx.Module):
@@ -366,8 +379,17 @@ def cartesian(tk: Task, q, qdot):
     )
 
 
+def long_test_set(tk: Task, truth, points=LONG_POINTS):
+    """The true trajectories of `points` observations (every `tk.dt`) from the test set's
+    starts: the horizon of their trainer's `test_rollouts`."""
+    ts = np.arange(points) * tk.dt
+    return ts, true_trajectories(tk, (truth[0][:, 0], truth[1][:, 0]), ts)
+
+
 def rollout_rel_err(tk: Task, system, ts, truth, perturb=0.0, seed=2):
-    """Their metric of `system` rolled out from the test set's starts (geometric mean)."""
+    """Their metric of `system` rolled out from the starts of `truth` (observed at the
+    evenly spaced `ts`): the geometric mean over trajectories of the time-averaged log
+    relative error, `exp(dt * trapz(log(err + 1e-8)) / (len(ts) dt))` (5 s on the test set)."""
     q, v = truth
     y0 = (q[:, 0], v[:, 0])
     if perturb:
@@ -385,7 +407,8 @@ def rollout_rel_err(tk: Task, system, ts, truth, perturb=0.0, seed=2):
         jnp.linalg.norm(zh, axis=-1) + jnp.linalg.norm(z, axis=-1)
     )
     err = jnp.where(jnp.isfinite(err), err, 1.0)
-    per = jnp.exp(TEST_DT * jnp.trapezoid(jnp.log(err + 1e-8), axis=-1) / 5.0)
+    dt = float(ts[1] - ts[0])
+    per = jnp.exp(dt * jnp.trapezoid(jnp.log(err + 1e-8), axis=-1) / (len(ts) * dt))
     return float(jnp.exp(jnp.mean(jnp.log(per))))
 
 
@@ -428,6 +451,21 @@ def load(path, system: str, dtype="float64", kind=None):
     the task's `DEFAULT_MODEL`)."""
     like = new_model(task(system), dtype=dtype, kind=kind)
     return eqx.tree_deserialise_leaves(path, like)
+
+
+def evaluate(tk: Task, model, test_ts, truth, perturbation: float) -> dict:
+    """`rollout_rel_err` of `model` and the chaos floor on the test set (5 s) and over
+    `LONG_POINTS` observations from the same starts."""
+    long_ts, long_truth = long_test_set(tk, truth)
+    floor = dict(perturb=perturbation)
+    return {
+        "rollout_rel_err": rollout_rel_err(tk, model, test_ts, truth),
+        "chaos_floor": rollout_rel_err(tk, tk.system, test_ts, truth, **floor),
+        "floor_perturbation": perturbation,
+        "long_points": LONG_POINTS,
+        "rollout_rel_err_long": rollout_rel_err(tk, model, long_ts, long_truth),
+        "chaos_floor_long": rollout_rel_err(tk, tk.system, long_ts, long_truth, **floor),
+    }
 
 
 def main(argv=None):
@@ -487,17 +525,31 @@ def main(argv=None):
     parser.add_argument(
         "--summary", action="store_true", help="only write DIR/learned_lagrangian.{md,png}"
     )
+    parser.add_argument(
+        "--evaluate",
+        action="store_true",
+        help="no training: evaluate DIR/<system>.eqx again and update DIR/<system>.json",
+    )
     args = parser.parse_args(argv)
     if args.summary:
         return summary(args.out)
     if args.system is None:
         parser.error("--system is required (unless --summary)")
     tk = task(args.system)
-    kind = args.model or DEFAULT_MODEL[args.system]
     num_train, num_test = (80, 20) if args.quick else (800, 200)
+    test_ts, truth = test_set(tk, num_test)
+    if args.evaluate:
+        path = args.out / f"{args.system}.json"
+        report = json.loads(path.read_text())
+        kind = report.get("model_kind")  # absent from older files: the default model
+        model = load(args.out / f"{args.system}.eqx", args.system, kind=kind)
+        report.update(evaluate(tk, model, test_ts, truth, report["floor_perturbation"]))
+        path.write_text(json.dumps(report, indent=2))
+        summary(args.out)
+        return report
+    kind = args.model or DEFAULT_MODEL[args.system]
     steps = 0 if kind == "kernels" else args.steps or (50 if args.quick else 5000)
     ts, chunks = training_chunks(tk, num_train)
-    test_ts, truth = test_set(tk, num_test)
     args.out.mkdir(parents=True, exist_ok=True)
     load_before = os.getloadavg()
     sim = training_options(tk, SOLVERS[args.solver], args.substeps)
@@ -544,11 +596,7 @@ def main(argv=None):
     eqx.tree_serialise_leaves(args.out / f"{args.system}.eqx", model)
     report = {
         "system": args.system,
-        "rollout_rel_err": rollout_rel_err(tk, model, test_ts, truth),
-        "chaos_floor": rollout_rel_err(
-            tk, tk.system, test_ts, truth, perturb=args.floor_perturbation
-        ),
-        "floor_perturbation": args.floor_perturbation,
+        **evaluate(tk, model, test_ts, truth, args.floor_perturbation),
         "clnn_rollout_rel_err": CLNN[args.system],
         "train_time_s": train_time,
         "train_cpu_time_s": train_cpu,
@@ -601,19 +649,29 @@ def summary(out: Path):
         "Written by `python benchmarks/learned_lagrangian.py --system S --out DIR`, "
         "then `--summary`.",
         "",
-        "| system | rollout_rel_err | CLNN | chaos floor (perturbation) | steps | dtype | "
+        f"The long horizon: the same metric over {LONG_POINTS} observations (every 0.05 s on "
+        "the magnet, 0.1 s on the chains) from the same test starts, as their trainer's "
+        "`test_rollouts` rolls out (`--evaluate`).",
+        "",
+        "| system | rollout_rel_err | CLNN | chaos floor (perturbation) | long horizon: "
+        "model / chaos floor | steps | dtype | "
         "train wall time (s) | train CPU time (s) | load (1 min) before / after | model |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     steps = lambda r: (
         ("fit_accelerations" if r.get("model_kind") == "kernels" else f"{r['steps']}")
         + (f" + {r['refine_steps']} refine" if r.get("refine_steps") else "")
     )
+    long = lambda r: (
+        f"{r['rollout_rel_err_long']:.2e} / {r['chaos_floor_long']:.2e}"
+        if "rollout_rel_err_long" in r
+        else "not measured"
+    )
     for r in reports:
         load = r.get("load_average_1min_before_after", [float("nan")] * 2)
         lines.append(
             f"| {r['system']} | {r['rollout_rel_err']:.2e} | {r['clnn_rollout_rel_err']:.2e} | "
-            f"{r['chaos_floor']:.2e} ({r['floor_perturbation']:g}) | {steps(r)} | "
+            f"{r['chaos_floor']:.2e} ({r['floor_perturbation']:g}) | {long(r)} | {steps(r)} | "
             f"{r.get('dtype', 'float64')} | "
             f"{r['train_time_s']:.0f} | {r.get('train_cpu_time_s', float('nan')):.0f} | "
             f"{load[0]:.1f} / {load[1]:.1f} | {r.get('model', '')} |"
