@@ -47,8 +47,13 @@ Models (`--model`, default `DEFAULT_MODEL`): `kernels` (the magnet's default):
 `sm.LearnedLagrangian(1, depth=0, features=sm.SphereKernels())`, its potential the
 linear term (gravity) plus a linear combination of 2041 kernels on the sphere, fitted by
 `sm.fit_accelerations` (one least-squares solve on accelerations estimated from the
-chunks) and then `--refine-steps` steps of `sm.refine`. `mlp` (the chains' default;
-`MODEL`): `sm.LearnedLagrangian` with its linear term and a depth-3 silu MLP of width 128
+chunks) and then `--refine-steps` steps of `sm.refine`. `linear` (the chains' default;
+`LINEAR`): a constant inertia and a potential linear in the links' unit vectors (a
+uniform field, as gravity is; the model knows no more of the chain), both fitted by
+`sm.fit_accelerations(..., inertia=True)` (`LINEAR_FIT`: 30 Levenberg-Marquardt steps
+from the identity inertia, initial damping 1e-3). `mlp` (`MODEL`; the chains' default
+before `linear`, its results in `benchmarks/results/learned_lagrangian/mlp/`):
+`sm.LearnedLagrangian` with its linear term and a depth-3 silu MLP of width 128
 (64 on the magnet, whose inputs are scaled by 8: the dipoles' potential varies over about
 0.1 on the sphere), trained by `sm.learn`: Adam with warmup then cosine decay, gradient
 clipping, L1 loss, minibatches of 100 chunks, `--substeps` fixed steps of `--solver`
@@ -79,8 +84,14 @@ their batch and horizon; ours is relative to each state and kept on the sphere, 
 scales linearly with its size (1e-4 gives 4.4e-3, 1e-5 5.9e-4, 1e-6 9.5e-5 on the
 magnet): their 4.45e-4 corresponds to about 7.5e-6.
 
-Results of the MLP (`benchmarks/results/learned_lagrangian/`, the magnet's in `mlp/`;
-`--summary` writes the table and the training curves): magnet (`--model mlp`) 2.59e-3
+The chains with `linear` (2026-12-04, AMD EPYC 2-core, load 1.0 to 1.4;
+`benchmarks/results/learned_lagrangian/chain{3,5}.json`): chain3 7.41e-7 in 8 s wall (10
+s CPU), chain5 1.19e-6 in 13 s (18 s CPU), 440 and 780 times below CLNN, `M / M_00`
+recovered to 4 digits; the weighted mean square acceleration error falls from 1.82 to
+1.45e-9 (chain3) and stops there, at the acceleration estimates' own error.
+
+Results of the MLP (`benchmarks/results/learned_lagrangian/mlp/`, `--summary` writes the
+table and the training curves): magnet (`--model mlp`) 2.59e-3
 with a width-64 MLP after 28000 steps trained in
 float32 at learning rate 1e-2 and 4 RK4 steps per observation (`--dtype float32 --steps
 28000 --learning-rate 1e-2 --substeps 4`; CLNN 1.03e-2; 1779 s wall, 2563 s CPU, load
@@ -251,12 +262,24 @@ KERNELS = dict(depth=0, features=sm.SphereKernels())
 """`--model kernels`: the potential a linear combination of `sm.SphereKernels()` (2041
 kernels, fine within 15 to 35 degrees of the bottom, where the pendulum hangs), fitted by
 `sm.fit_accelerations` and then `sm.refine`."""
-DEFAULT_MODEL = {"magnet": "kernels", "chain3": "mlp", "chain5": "mlp"}
+
+
+def no_features(q):
+    """No features: `LearnedLagrangian`'s potential is its linear term (plus a constant)."""
+    return jnp.zeros(1, q.dtype)
+
+
+LINEAR = dict(depth=0, features=no_features)
+"""`--model linear` (the chains' default): a constant inertia and a potential linear in the
+links' unit vectors (a uniform field, such as gravity), both fitted by
+`sm.fit_accelerations` with `LINEAR_FIT` (the inertia up to the common factor)."""
+LINEAR_FIT = dict(steps=30, ridge=1e-3, inertia=True)
+DEFAULT_MODEL = {"magnet": "kernels", "chain3": "linear", "chain5": "linear"}
 SOLVERS = {"rk4": sm.RK4(), "tsit5": diffrax.Tsit5(), "dopri8": diffrax.Dopri8()}
 """`--solver`: the training solver, at fixed steps."""
 TEST_DT, TEST_POINTS, CHUNK_STARTS = 0.05, 100, 20
 LONG_POINTS = 1000
-"""The long horizon (`--long`): observations from each test start, every `Task.dt`."""
+"""The long horizon: observations from each test start, every `Task.dt`."""
 
 
 class Task(eqx.Module):
@@ -428,9 +451,9 @@ def training_options(tk: Task, solver, substeps: int) -> dict:
 
 
 def model_options(name: str, kind: str | None = None) -> dict:
-    """`LearnedLagrangian`'s options of task `name` for the model `kind` (`"mlp"` or
-    `"kernels"`; default the task's `DEFAULT_MODEL`)."""
-    return KERNELS if (kind or DEFAULT_MODEL[name]) == "kernels" else MODEL[name]
+    """`LearnedLagrangian`'s options of task `name` for the model `kind` (`"mlp"`,
+    `"kernels"` or `"linear"`; default the task's `DEFAULT_MODEL`)."""
+    return dict(kernels=KERNELS, linear=LINEAR).get(kind or DEFAULT_MODEL[name], MODEL[name])
 
 
 def new_model(tk: Task, key=None, dtype="float64", kind=None):
@@ -477,10 +500,11 @@ def main(argv=None):
     parser.add_argument("--quick", action="store_true", help="small data, few steps")
     parser.add_argument(
         "--model",
-        choices=["mlp", "kernels"],
+        choices=["mlp", "kernels", "linear"],
         default=None,
-        help="the model: an MLP potential trained by sm.learn, or sm.SphereKernels fitted "
-        "by sm.fit_accelerations (default: kernels on the magnet, mlp on the chains)",
+        help="the model: an MLP potential trained by sm.learn, sm.SphereKernels fitted "
+        "by sm.fit_accelerations, or a linear potential fitted with the inertia by "
+        "sm.fit_accelerations (default: kernels on the magnet, linear on the chains)",
     )
     parser.add_argument("--steps", type=int, default=None, help="sm.learn's steps (mlp)")
     parser.add_argument("--batch-size", type=int, default=100)
@@ -548,15 +572,17 @@ def main(argv=None):
         summary(args.out)
         return report
     kind = args.model or DEFAULT_MODEL[args.system]
-    steps = 0 if kind == "kernels" else args.steps or (50 if args.quick else 5000)
+    fitted = kind in ("kernels", "linear")  # by sm.fit_accelerations, not sm.learn
+    steps = 0 if fitted else args.steps or (50 if args.quick else 5000)
     ts, chunks = training_chunks(tk, num_train)
     args.out.mkdir(parents=True, exist_ok=True)
     load_before = os.getloadavg()
     sim = training_options(tk, SOLVERS[args.solver], args.substeps)
     start, cpu_start = time.perf_counter(), time.process_time()
     model = new_model(tk, dtype=args.dtype, kind=kind)
-    if kind == "kernels":
-        result = sm.fit_accelerations(model, ts, chunks, print_every=1)
+    if fitted:
+        options = LINEAR_FIT if kind == "linear" else {}
+        result = sm.fit_accelerations(model, ts, chunks, print_every=1, **options)
     else:
         schedule = optax.warmup_cosine_decay_schedule(
             0.0, args.learning_rate, min(args.warmup, steps // 2), steps
@@ -625,8 +651,8 @@ def main(argv=None):
         "substeps": args.substeps,
         "solver": args.solver,
         "dtype": args.dtype,
-        "losses_every_10": [] if kind == "kernels" else [float(x) for x in result.losses[::10]],
-        "fit_accelerations_losses": [float(x) for x in result.losses] if kind == "kernels" else [],
+        "losses_every_10": [] if fitted else [float(x) for x in result.losses[::10]],
+        "fit_accelerations_losses": [float(x) for x in result.losses] if fitted else [],
     }
     (args.out / f"{args.system}.json").write_text(json.dumps(report, indent=2))
     summary(args.out)
@@ -659,7 +685,7 @@ def summary(out: Path):
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     steps = lambda r: (
-        ("fit_accelerations" if r.get("model_kind") == "kernels" else f"{r['steps']}")
+        ("fit_accelerations" if r.get("model_kind") in ("kernels", "linear") else f"{r['steps']}")
         + (f" + {r['refine_steps']} refine" if r.get("refine_steps") else "")
     )
     long = lambda r: (

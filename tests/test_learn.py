@@ -499,3 +499,38 @@ def test_fit_accelerations_rejects_bad_input():
     hamiltonian = sm.Hamiltonian(lambda t, q, p, a: 0.5 * jnp.sum(p**2) + q[0, 2])
     with pytest.raises(ValueError, match=r"state \(q, qdot\) \(form 1\).*Hamiltonian"):
         sm.fit_accelerations(hamiltonian, ts, states)
+    with pytest.raises(ValueError, match="fit_accelerations: inertia must be True or False, got 1"):
+        sm.fit_accelerations(model, ts, states, inertia=1)
+    chain = sm.chain_pendulum(jnp.ones(1), jnp.ones(1))
+    with pytest.raises(
+        ValueError, match="inertia=True fits a LearnedLagrangian's inertia, got Scene"
+    ):
+        sm.fit_accelerations(chain, ts, states, inertia=True)
+
+
+def test_fit_accelerations_recovers_an_unknown_inertia():
+    """A 2-link chain (unequal masses and lengths) observed in 48 chunks of 5 states: with
+    `inertia=True` Levenberg-Marquardt steps from the identity inertia and zero potential
+    recover the chain's inertia up to the common factor (`M / M_00`) and the gravity term
+    of its potential in the same units, to 1e-4."""
+    masses, lengths = jnp.array([1.3, 0.7]), jnp.array([0.8, 1.2])
+    chain = sm.chain_pendulum(masses, lengths, 1.0)
+    k1, k2 = jax.random.split(jax.random.PRNGKey(4))
+    q0 = sm.normalize(jnp.array([0.0, 0.0, -1.0]) + 0.6 * jax.random.normal(k1, (48, 2, 3)))
+    v0 = sm.project(q0, jax.random.normal(k2, (48, 2, 3)))
+    ts = jnp.arange(5) * 0.05
+    opts = dict(rtol=1e-11, atol=1e-12, saveat=diffrax.SaveAt(ts=ts))
+    states = sm.simulate_batch(chain, (q0, v0), ts[-1], **opts).ys
+    no_features = lambda q: jnp.zeros(1, q.dtype)  # the potential: the linear term alone
+    model = sm.LearnedLagrangian(2, key=jax.random.PRNGKey(5), depth=0, features=no_features)
+    result = sm.fit_accelerations(model, ts, states, steps=20, ridge=1e-3, inertia=True)
+    assert result.losses[-1] < 1e-6 * result.losses[0]
+    M, fitted = chain.inertia(None), result.model.inertia(None)
+    np.testing.assert_allclose(fitted / fitted[0, 0], M / M[0, 0], rtol=1e-4)
+    # gravity (g = 1): U = sum_i l_i (m_i + ... + m_n) q_i . e3, in units of M_00
+    weights = lengths * jnp.cumsum(masses[::-1])[::-1] / M[0, 0]
+    linear = result.model.potential_linear / fitted[0, 0]
+    np.testing.assert_allclose(linear[:, 2], weights, rtol=1e-4)
+    assert float(jnp.max(jnp.abs(linear[:, :2]))) < 1e-4 * float(weights[0])
+    held = result.model.inertia_factor[0, 0]  # the common factor, held
+    assert float(held) == float(model.inertia_factor[0, 0])

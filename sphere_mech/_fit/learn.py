@@ -30,7 +30,14 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, PyTree
 
 from .._inertia import AbstractConstantInertiaLagrangian, check_spd_inertia
-from .._misc import all_finite, check_integer, check_positive, float_dtype, tree_dtype
+from .._misc import (
+    all_finite,
+    check_bool,
+    check_integer,
+    check_positive,
+    float_dtype,
+    tree_dtype,
+)
 from .._results import describe_failures
 from .._solve import state_pair
 from .._solvers.projected import Projected
@@ -790,6 +797,7 @@ def fit_accelerations(
     steps: int = 1,
     ridge: float = 1e-10,
     tolerance: float = 2e-5,
+    inertia: bool = False,
     group_size: int = 1000,
     print_every: int | None = None,
     progress: bool = False,
@@ -815,6 +823,9 @@ def fit_accelerations(
     - `ridge`: the initial Marquardt damping `ridge diag(J^T W J)` (a ridge in the scaled
       parameters, pulling toward the model's parameters: zero for a new linear one).
     - `tolerance`: `estimate_accelerations`' tolerance.
+    - `inertia`: also fit a `LearnedLagrangian`'s inertia, all of it but the first
+      diagonal entry of its Cholesky factor (the common factor). The accelerations are
+      then nonlinear in the parameters: take several `steps`.
     - `group_size`: observations whose Jacobians are held at once.
     - `print_every`, `progress`: as for `refine`.
 
@@ -828,6 +839,12 @@ def fit_accelerations(
         dict(steps=steps, group_size=group_size),
     )
     check_positive(ridge, "fit_accelerations: ridge")
+    check_bool(inertia, "fit_accelerations: inertia")
+    if inertia and not isinstance(model, LearnedLagrangian):
+        raise ValueError(
+            "fit_accelerations: inertia=True fits a LearnedLagrangian's inertia, got "
+            f"{type(model).__name__} (all of its floating leaves are fitted anyway)."
+        )
     if isinstance(model, AbstractSystem) and model.state_name != "qdot":
         raise ValueError(
             "fit_accelerations: model must be a system with state (q, qdot) (form 1), got "
@@ -846,10 +863,15 @@ def fit_accelerations(
     )
     num = data[0].shape[0]
     free = jtu.tree_map(eqx.is_inexact_array, model)
-    if isinstance(model, LearnedLagrangian):
+    if isinstance(model, LearnedLagrangian) and not inertia:
         free = eqx.tree_at(lambda m: m.inertia_factor, free, False)
     u0, static = eqx.partition(model, free)
     p0, unravel = ravel_pytree(u0)
+    keep = jnp.ones_like(p0)  # 0 where a parameter is held within a fitted leaf
+    if inertia:
+        ones = jtu.tree_map(jnp.ones_like, u0)
+        ones = eqx.tree_at(lambda m: m.inertia_factor, ones, replace_fn=lambda F: F.at[0, 0].set(0))
+        keep = ravel_pytree(ones)[0]
     wide = jnp.promote_types(p0.dtype, jax.dtypes.canonicalize_dtype(jnp.float64))
     groups, real = _groups(num, group_size)
 
@@ -878,7 +900,9 @@ def fit_accelerations(
             return sums, None
 
         zeros = (jnp.zeros((p.size, p.size), wide), jnp.zeros(p.size, wide))
-        return jax.lax.scan(add, zeros, (groups, real))[0]
+        A, g = jax.lax.scan(add, zeros, (groups, real))[0]
+        held = (1 - keep).astype(wide)  # the held parameters' steps are zero
+        return A * jnp.outer(1 - held, 1 - held) + jnp.diag(held), g * (1 - held)
 
     def evaluate(p, weights):  # as `refine`'s, the weights fixed
         loss, squares = evaluate_at(p, data)
