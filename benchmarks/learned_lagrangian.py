@@ -273,7 +273,7 @@ LINEAR = dict(depth=0, features=no_features)
 """`--model linear` (the chains' default): a constant inertia and a potential linear in the
 links' unit vectors (a uniform field, such as gravity), both fitted by
 `sm.fit_accelerations` with `LINEAR_FIT` (the inertia up to the common factor)."""
-LINEAR_FIT = dict(steps=30, ridge=1e-3, inertia=True)
+LINEAR_FIT = dict(steps=30, inertia=True)  # initial damping: the default with it, 1e-3
 DEFAULT_MODEL = {"magnet": "kernels", "chain3": "linear", "chain5": "linear"}
 SOLVERS = {"rk4": sm.RK4(), "tsit5": diffrax.Tsit5(), "dopri8": diffrax.Dopri8()}
 """`--solver`: the training solver, at fixed steps."""

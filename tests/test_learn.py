@@ -510,7 +510,8 @@ def test_fit_accelerations_rejects_bad_input():
 
 def test_fit_accelerations_recovers_an_unknown_inertia():
     """A 2-link chain (unequal masses and lengths) observed in 48 chunks of 5 states: with
-    `inertia=True` Levenberg-Marquardt steps from the identity inertia and zero potential
+    `inertia=True` Levenberg-Marquardt steps (at the default initial damping for it,
+    1e-3) from the identity inertia and zero potential
     recover the chain's inertia up to the common factor (`M / M_00`) and the gravity term
     of its potential in the same units, to 1e-4."""
     masses, lengths = jnp.array([1.3, 0.7]), jnp.array([0.8, 1.2])
@@ -523,7 +524,7 @@ def test_fit_accelerations_recovers_an_unknown_inertia():
     states = sm.simulate_batch(chain, (q0, v0), ts[-1], **opts).ys
     no_features = lambda q: jnp.zeros(1, q.dtype)  # the potential: the linear term alone
     model = sm.LearnedLagrangian(2, key=jax.random.PRNGKey(5), depth=0, features=no_features)
-    result = sm.fit_accelerations(model, ts, states, steps=20, ridge=1e-3, inertia=True)
+    result = sm.fit_accelerations(model, ts, states, steps=20, inertia=True)
     assert result.losses[-1] < 1e-6 * result.losses[0]
     M, fitted = chain.inertia(None), result.model.inertia(None)
     np.testing.assert_allclose(fitted / fitted[0, 0], M / M[0, 0], rtol=1e-4)

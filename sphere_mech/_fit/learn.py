@@ -795,7 +795,7 @@ def fit_accelerations(
     states,
     *,
     steps: int = 1,
-    ridge: float = 1e-10,
+    ridge: float | None = None,
     tolerance: float = 2e-5,
     inertia: bool = False,
     group_size: int = 1000,
@@ -822,10 +822,14 @@ def fit_accelerations(
     - `steps`: Levenberg-Marquardt steps (one suffices for a linear potential).
     - `ridge`: the initial Marquardt damping `ridge diag(J^T W J)` (a ridge in the scaled
       parameters, pulling toward the model's parameters: zero for a new linear one).
+      Default 1e-10, and 1e-3 with `inertia`: from 1e-10 the first, nearly undamped step
+      of the nonlinear fit overshot, and 8 larger dampings in a row then failed to
+      lower the error (a 3-link chain stopped after one step at a quarter of its start).
     - `tolerance`: `estimate_accelerations`' tolerance.
     - `inertia`: also fit a `LearnedLagrangian`'s inertia, all of it but the first
       diagonal entry of its Cholesky factor (the common factor). The accelerations are
-      then nonlinear in the parameters: take several `steps`.
+      then nonlinear in the parameters: take several `steps` (the chains of
+      `benchmarks/learned_lagrangian.py` converged in 12 and 13 of 30).
     - `group_size`: observations whose Jacobians are held at once.
     - `print_every`, `progress`: as for `refine`.
 
@@ -838,8 +842,9 @@ def fit_accelerations(
         dict(print_every=print_every),
         dict(steps=steps, group_size=group_size),
     )
-    check_positive(ridge, "fit_accelerations: ridge")
     check_bool(inertia, "fit_accelerations: inertia")
+    ridge = (1e-3 if inertia else 1e-10) if ridge is None else ridge
+    check_positive(ridge, "fit_accelerations: ridge")
     if inertia and not isinstance(model, LearnedLagrangian):
         raise ValueError(
             "fit_accelerations: inertia=True fits a LearnedLagrangian's inertia, got "
