@@ -30,11 +30,11 @@ averaged over `LONG_POINTS` = 1000 observations every `Task.dt` (50 s on the mag
 on the chains) from the same test starts, as their trainer's `test_rollouts` rolls out far
 beyond the training chunks (its aggregate over trajectories is not in their code: ours is
 the one above). `--evaluate` computes both metrics again for a saved `DIR/<system>.eqx`.
-Measured (2026-12-04, the models in `benchmarks/results/learned_lagrangian/`): magnet
-1.33e-2 (chaos floor 1.85e-2), chain3 1.06e-1 (7.12e-2), chain5 2.18e-1 (2.08e-1): over
-1000 observations a 1e-5 perturbation of the true system grows as large as the models'
-errors, so the long horizon measures chaos, not the model (0.72x, 1.5x and 1.05x the
-floor).
+Measured (2026-12-04): the magnet's kernels 1.33e-2 (chaos floor 1.85e-2), the chains'
+MLPs (`mlp/`) 1.06e-1 (7.12e-2, chain3) and 2.18e-1 (2.08e-1, chain5): over 1000
+observations a 1e-5 perturbation of the true system grows as large as these models'
+errors, so the long horizon measures chaos more than the model (0.72x, 1.5x and 1.05x
+the floor). The chains' `linear` models stay below the floor: 3.86e-3 and 4.73e-2.
 
     python benchmarks/learned_lagrangian.py --system magnet --out DIR [--quick]
 
