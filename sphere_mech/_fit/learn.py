@@ -875,11 +875,11 @@ def fit_accelerations(
         free = eqx.tree_at(lambda m: m.inertia_factor, free, False)
     u0, static = eqx.partition(model, free)
     p0, unravel = ravel_pytree(u0)
-    keep = jnp.ones_like(p0)  # 0 where a parameter is held within a fitted leaf
+    held = None  # the index in p of a parameter held within a fitted leaf
     if inertia:
         ones = jtu.tree_map(jnp.ones_like, u0)
         ones = eqx.tree_at(lambda m: m.inertia_factor, ones, replace_fn=lambda F: F.at[0, 0].set(0))
-        keep = ravel_pytree(ones)[0]
+        held = int(np.argmin(ravel_pytree(ones)[0]))
     wide = jnp.promote_types(p0.dtype, jax.dtypes.canonicalize_dtype(jnp.float64))
     groups, real = _groups(num, group_size)
 
@@ -909,8 +909,10 @@ def fit_accelerations(
 
         zeros = (jnp.zeros((p.size, p.size), wide), jnp.zeros(p.size, wide))
         A, g = jax.lax.scan(add, zeros, (groups, real))[0]
-        held = (1 - keep).astype(wide)  # the held parameters' steps are zero
-        return A * jnp.outer(1 - held, 1 - held) + jnp.diag(held), g * (1 - held)
+        if held is None:
+            return A, g
+        A = A.at[held].set(0).at[:, held].set(0).at[held, held].set(1)
+        return A, g.at[held].set(0)  # the held parameter's step is zero
 
     def evaluate(p, weights):  # as `refine`'s, the weights fixed
         loss, squares = evaluate_at(p, data)
