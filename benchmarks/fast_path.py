@@ -267,7 +267,7 @@ def main():
         ax.legend(fontsize=8)
         save_figure(fig, f"{stem}.png")
         return
-    rows = []
+    rows, loads = [], [load()]
     for n in ns:
         chain, general = make_systems(n)
         q, qdot = random_states(n, opts.batch, seed=n)
@@ -292,9 +292,15 @@ def main():
             flush=True,
         )
 
+    var_repeats = 3 if opts.quick else 5
+    var_rows = variational_rows(ns[1:], opts.dt, opts.steps, var_repeats)
+    var_table = variational_table(var_rows, opts.dt, opts.steps, var_repeats)
+    loads.append(load())
     header = (
         f"Acceleration evaluations, float64, jit(vmap) over a batch of {opts.batch} states, "
         f"median of {repeats} repeats, {jax.device_count()} device(s).\n\n"
+        f"Machine: {machine(loads)}, JAX on {jax.devices()[0].platform}; "
+        f"`python benchmarks/fast_path.py{' --quick' if opts.quick else ''}`.\n\n"
     )
     columns = ["n", "fast path (us/eval)", "general path (us/eval)", "speed-up"]
     columns += ["compile fast (s)", "compile general (s)", "max rel. difference"]
@@ -304,9 +310,6 @@ def main():
         + (f"{e:.1e}", f"{h * 1e6:.3f}", f"{hr:.2f}")
         for n, f, s, r, cf, cs, e, h, hr in rows
     ]
-    var_repeats = 3 if opts.quick else 5
-    var_rows = variational_rows(ns[1:], opts.dt, opts.steps, var_repeats)
-    var_table = variational_table(var_rows, opts.dt, opts.steps, var_repeats)
     print()
     publish(header + table(columns, cells, "r" * len(columns)) + "\n\n" + var_table, f"{stem}.md")
 
