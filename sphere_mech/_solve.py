@@ -573,10 +573,23 @@ def _physical_event(event: diffrax.Event | None, direction, start, kwargs) -> di
     )
 
 
+_is_sub = lambda x: isinstance(x, diffrax.SubSaveAt)
+
+
+def _per_sub(fn, saveat: diffrax.SaveAt, *outputs) -> tuple:
+    """`fn(sub, *parts)` for each `SubSaveAt` in `saveat.subs` (any PyTree of them, as
+    diffrax allows: one, a list, a dict, nested) and its parts of `outputs` (PyTrees that
+    follow `saveat.subs`: `sol.ts`, `sol.ys`). `fn` returns a tuple; the result has, for
+    each of its entries, one PyTree of `saveat.subs`' structure."""
+    structure = jax.tree.structure(saveat.subs, is_leaf=_is_sub)
+    parts = [structure.flatten_up_to(tree) for tree in (saveat.subs, *outputs)]
+    results = [fn(*row) for row in zip(*parts, strict=True)]
+    return tuple(structure.unflatten(list(r)) for r in zip(*results, strict=True))
+
+
 def _unsave_nonfinite(saveat: diffrax.SaveAt, ts, ys):
     """Saved entries with a NaN (or a NaN time) as unreached ones: `inf`, their time too
     (`+inf` backwards as well, as diffrax's unreached times)."""
-    is_sub = lambda x: isinstance(x, diffrax.SubSaveAt)
 
     def one(_, ts, ys):
         floats = [y for y in jax.tree.leaves(ys) if jnp.issubdtype(y.dtype, jnp.inexact)]
@@ -588,33 +601,25 @@ def _unsave_nonfinite(saveat: diffrax.SaveAt, ts, ys):
         )
         return fill(ts, jnp.inf), ys
 
-    out = jax.tree.map(one, saveat.subs, ts, ys, is_leaf=is_sub)
-    structure = jax.tree.structure(saveat.subs, is_leaf=is_sub)
-    outs = structure.flatten_up_to(out)
-    return structure.unflatten([o[0] for o in outs]), structure.unflatten([o[1] for o in outs])
+    return _per_sub(one, saveat, ts, ys)
 
 
 def _save_times(saveat: diffrax.SaveAt) -> list:
-    is_sub = lambda x: isinstance(x, diffrax.SubSaveAt)
-    subs = jax.tree.leaves(saveat.subs, is_leaf=is_sub)
-    return [sub.ts for sub in subs if is_sub(sub) and sub.ts is not None]
+    subs = jax.tree.leaves(saveat.subs, is_leaf=_is_sub)
+    return [sub.ts for sub in subs if _is_sub(sub) and sub.ts is not None]
 
 
 _DEFAULT_SAVE_FN = diffrax.SubSaveAt(t1=True).fn
 
 
 def _retract_saved(space, saveat: diffrax.SaveAt, ys):
-    """Saved states (diffrax's default `fn`, finite entries) put back on the tangent bundle."""
-    subs = saveat.subs
-    if isinstance(subs, diffrax.SubSaveAt):
-        return _retract_if_state(space, subs, ys)
-    if isinstance(subs, list | tuple) and isinstance(ys, list | tuple):
-        return type(ys)(_retract_if_state(space, s, y) for s, y in zip(subs, ys, strict=True))
-    return ys
+    """Saved states (diffrax's default `fn`, finite entries) put back on the tangent bundle,
+    in every `SubSaveAt` of `saveat.subs`, whatever PyTree holds them."""
+    return _per_sub(lambda sub, ys: (_retract_if_state(space, sub, ys),), saveat, ys)[0]
 
 
 def _retract_if_state(space, sub, ys):
-    if not (isinstance(sub, diffrax.SubSaveAt) and sub.fn is _DEFAULT_SAVE_FN):
+    if sub.fn is not _DEFAULT_SAVE_FN:
         return ys
     q, v = ys
     q_r, v_r = space.retract(q, v)

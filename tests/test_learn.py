@@ -305,6 +305,10 @@ def test_learn_rejects_bad_input(tmp_path):
     model = sm.LearnedLagrangian(1, key=jax.random.PRNGKey(1), width=4, depth=1)
     with pytest.raises(ValueError, match="ts must have shape"):
         sm.learn(model, ts[:2], states, steps=1)
+    one = r"states must have two leading axes \(B, T\).*\(3, 1, 3\) have 1 \(\(3,\)\)"
+    for fit in (sm.learn, sm.refine, sm.fit_accelerations):  # one chunk, its axis left off
+        with pytest.raises(ValueError, match=one):
+            fit(model, ts, jax.tree.map(lambda x: x[0], states))
     with pytest.raises(ValueError, match="may not set 'adjoint'"):
         sm.learn(model, ts, states, steps=1, simulate_options={"adjoint": None})
     with pytest.raises(ValueError, match=r"^dt0 must have the sign of t1 - t0"):  # untraced

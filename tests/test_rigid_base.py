@@ -288,6 +288,12 @@ def test_variational_step_on_rigid_base_fast_path():
             lambda: sm.Scene(sm.Chain(1.0, 1.0, links=2), sm.BodyTorque([0.0, 0.0, 1.0])),
             "BodyTorque needs a RigidBase",
         ),
+        (
+            lambda: sm.Scene(
+                sm.RigidBase(1.0, [1.0] * 3), sm.Chain(1.0, 1.0, links=1), sm.BaseForce([1.0] * 2)
+            ),
+            r"force must have 3 components, one per axis of the RigidBase, got shape \(2,\)",
+        ),
     ],
 )
 def test_rigid_base_rejects_bad_input(make, match):

@@ -345,6 +345,12 @@ def _observed_chunks(model, ts, states, name, least):
             "states must be (q, v) with the same leading axes (B, T) on every array, got "
             f"shapes {jtu.tree_map(jnp.shape, (q, v))}."
         )
+    if len(axes := model.state_space.batch_shape(q)) != 2:
+        raise ValueError(
+            "states must have two leading axes (B, T), B chunks of T observations, before "
+            f"the shape of one state; q's shapes {jtu.tree_map(jnp.shape, q)} have "
+            f"{len(axes)} ({axes}); for one chunk, add a leading axis of 1."
+        )
     model.state_space.check_shapes(*jtu.tree_map(lambda x: x[0, 0], (q, v)), model.state_name)
     num_chunks, num_times = next(iter(leading))
     ts = jnp.asarray(ts)

@@ -284,7 +284,8 @@ class VibratingSupport(AbstractForce):
 def _base_vector(owner, name: str, x, scene) -> None:
     """`x` is a scalar or one value per axis of the scene's `Base`."""
     if jnp.ndim(x) and jnp.shape(x) != (m := scene.base.m,):
-        what, got = f"a scalar or {m} values, one per axis of the Base", jnp.shape(x)
+        axes = f"one per axis of the {type(scene.base).__name__}"
+        what, got = f"a scalar or {m} values, {axes}", jnp.shape(x)
         raise ParameterError(name, f"{type(owner).__name__}.{name} must be {what}, got shape {got}")
 
 
@@ -306,7 +307,7 @@ class BaseForce(AbstractForce):
         if scene.base is None:
             raise ParameterError("", "BaseForce needs a Base in the scene")
         if not callable(self.force) and jnp.shape(self.force) != (scene.base.m,):
-            what = f"{scene.base.m} components, one per axis of the Base"
+            what = f"{scene.base.m} components, one per axis of the {type(scene.base).__name__}"
             raise ParameterError(
                 "force", f"force must have {what}, got shape {jnp.shape(self.force)}"
             )
