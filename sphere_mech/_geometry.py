@@ -114,9 +114,15 @@ def rotate(w: jax.Array, x: jax.Array) -> jax.Array:
 
     **Returns:** the rotated vectors, same shape; smooth (and differentiable) at `w = 0`."""
     w, x = _check_trailing(w, (3,), "w", "rotate"), _check_trailing(x, (3,), "x", "rotate")
+    return x + rotation_increment(w, x)
+
+
+def rotation_increment(w: jax.Array, x: jax.Array) -> jax.Array:
+    """`exp(hat(w_i)) x_i - x_i` row-wise, without the rounding of that difference (about
+    `eps |x|`, which a division by a small step would amplify): Rodrigues' terms alone."""
     sinc, cosc, _ = _rodrigues_coefficients(jnp.sum(w * w, axis=-1, keepdims=True))
     wx = jnp.cross(w, x)
-    return x + sinc * wx + cosc * jnp.cross(w, wx)
+    return sinc * wx + cosc * jnp.cross(w, wx)
 
 
 def left_jacobian(w: jax.Array, b: jax.Array) -> jax.Array:
@@ -150,9 +156,14 @@ def rotation_matrix(w: jax.Array) -> jax.Array:
 
     **Returns:** the rotation matrices, `(..., 3, 3)`."""
     w = _check_trailing(w, (3,), "w", "rotation_matrix")
+    return jnp.eye(3, dtype=w.dtype) + rotation_matrix_increment(w)
+
+
+def rotation_matrix_increment(w: jax.Array) -> jax.Array:
+    """`exp(hat(w)) - I` without the rounding of that difference: Rodrigues' terms alone."""
     sinc, cosc, _ = _rodrigues_coefficients(jnp.sum(w * w, axis=-1))
     W = hat(w)
-    return jnp.eye(3, dtype=w.dtype) + sinc[..., None, None] * W + cosc[..., None, None] * (W @ W)
+    return sinc[..., None, None] * W + cosc[..., None, None] * (W @ W)
 
 
 def sphere_exp(q: Points, v: Tangents) -> Points:

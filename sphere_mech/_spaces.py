@@ -28,7 +28,9 @@ from ._geometry import (
     nearest_rotation,
     normalize,
     project,
+    rotation_increment,
     rotation_matrix,
+    rotation_matrix_increment,
     sphere_exp,
     tangent_basis,
     vee,
@@ -135,6 +137,11 @@ class AbstractSpace(eqx.Module):
     @abc.abstractmethod
     def exp(self, q, v):
         """The exponential map: the geodesic from `q` with velocity `v` at unit time."""
+
+    @abc.abstractmethod
+    def exp_step(self, q, v):
+        """`exp(q, v) - q`, computed without the rounding of that difference (about `eps
+        |q|`, which the chord `(q1 - q0) / h` of a small step `h` would amplify)."""
 
     @abc.abstractmethod
     def tangent_basis(self, q):
@@ -293,6 +300,9 @@ class Spheres(_AbstractBlockFactor):
     def exp(self, q, v):
         return sphere_exp(q, v)
 
+    def exp_step(self, q, v):
+        return rotation_increment(jnp.cross(q, v), q)
+
     def tangent_basis(self, q):
         return tangent_basis(q)
 
@@ -372,6 +382,9 @@ class Euclidean(AbstractFactor):
 
     def exp(self, q, v):
         return q + v
+
+    def exp_step(self, q, v):
+        return v
 
     def tangent_basis(self, q):
         return jnp.eye(self.m, dtype=jnp.result_type(q))
@@ -497,6 +510,9 @@ class Rotations(_AbstractBlockFactor):
     def exp(self, q, v):
         return q @ rotation_matrix(vee(_transpose(q) @ v))
 
+    def exp_step(self, q, v):
+        return q @ rotation_matrix_increment(vee(_transpose(q) @ v))
+
     def tangent_basis(self, q):
         if self.body:
             return jnp.broadcast_to(jnp.eye(3, dtype=q.dtype), q.shape)
@@ -551,7 +567,7 @@ def _factorwise(*methods: str):
 @_factorwise(
     *"normalize project to_linear from_linear from_covector to_covector force_covector "
     "bracket angular_terms momentum_transport normal_acceleration tangency_covector exp "
-    "tangent_basis".split()
+    "exp_step tangent_basis".split()
 )
 class Product(AbstractSpace):
     """The product of the factors of a dict: states are dicts with the same keys, one
