@@ -579,9 +579,11 @@ _is_sub = lambda x: isinstance(x, diffrax.SubSaveAt)
 def _per_sub(fn, saveat: diffrax.SaveAt, *outputs) -> tuple:
     """`fn(sub, *parts)` for each `SubSaveAt` in `saveat.subs` (any PyTree of them, as
     diffrax allows: one, a list, a dict, nested) and its parts of `outputs` (PyTrees that
-    follow `saveat.subs`: `sol.ts`, `sol.ys`). `fn` returns a tuple; the result has, for
-    each of its entries, one PyTree of `saveat.subs`' structure."""
+    follow `saveat.subs`: `sol.ts`, `sol.ys`). `fn` returns the new parts, one per output;
+    the result is the new outputs (as they are if nothing is saved: dense output only)."""
     structure = jax.tree.structure(saveat.subs, is_leaf=_is_sub)
+    if not structure.num_leaves:
+        return outputs
     parts = [structure.flatten_up_to(tree) for tree in (saveat.subs, *outputs)]
     results = [fn(*row) for row in zip(*parts, strict=True)]
     return tuple(structure.unflatten(list(r)) for r in zip(*results, strict=True))
