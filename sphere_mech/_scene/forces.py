@@ -281,11 +281,15 @@ class VibratingSupport(AbstractForce):
         return jax.grad(lambda q_: -jnp.sum(m * (scene.points(q_) @ a)))(q)
 
 
+def _per_axis(scene) -> str:
+    """The words for "one value per axis of the scene's base", naming its class."""
+    return f"one per axis of the {type(scene.base).__name__}"
+
+
 def _base_vector(owner, name: str, x, scene) -> None:
     """`x` is a scalar or one value per axis of the scene's `Base`."""
     if jnp.ndim(x) and jnp.shape(x) != (m := scene.base.m,):
-        axes = f"one per axis of the {type(scene.base).__name__}"
-        what, got = f"a scalar or {m} values, {axes}", jnp.shape(x)
+        what, got = f"a scalar or {m} values, {_per_axis(scene)}", jnp.shape(x)
         raise ParameterError(name, f"{type(owner).__name__}.{name} must be {what}, got shape {got}")
 
 
@@ -307,7 +311,7 @@ class BaseForce(AbstractForce):
         if scene.base is None:
             raise ParameterError("", "BaseForce needs a Base in the scene")
         if not callable(self.force) and jnp.shape(self.force) != (scene.base.m,):
-            what = f"{scene.base.m} components, one per axis of the {type(scene.base).__name__}"
+            what = f"{scene.base.m} components, {_per_axis(scene)}"
             raise ParameterError(
                 "force", f"force must have {what}, got shape {jnp.shape(self.force)}"
             )
