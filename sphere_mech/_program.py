@@ -1,7 +1,7 @@
 """The program of `sphere-mech run`: `_solve.solve` over at most `SEGMENTS` segments of whole
 save intervals (the progress bar's steps), compiled once (keyed by the traced program: a file's
 comments or `name` do not recompile). Adaptive solvers choose each segment's first step afresh;
-fixed steps: as many equal ones as `dt0` fits (`simulate`'s when `dt0` divides `save_dt`)."""
+fixed steps: segments of whole steps of `dt0` (`simulate`'s) where save times allow it."""
 
 import dataclasses
 import math
@@ -90,17 +90,35 @@ def _take(tree, index):
     return jax.tree.map(lambda x: x[index], tree)
 
 
-def segment_times(t0: float, t1: float, save_dt: float) -> tuple[np.ndarray, np.ndarray]:
+def segment_times(
+    t0: float, t1: float, save_dt: float, dt0: float | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """`linspace(t0, t1, T)` (steps of about `save_dt`) in at most `SEGMENTS` rows of `m + 1`
-    (each starts where the last ended; the last padded with `t1`), and each row's count."""
+    (each starts where the last ended; the last padded with `t1`), and each row's count.
+    With fixed steps of `dt0`, `m` is the fewest save intervals (at least the bar's) that
+    hold a whole number of steps (`simulate`'s steps), else that hold at least one."""
     import jax.numpy as jnp
 
     n_out = max(2, int(round((t1 - t0) / save_dt)) + 1)
     ts = np.asarray(jnp.linspace(t0, t1, n_out))
     m = math.ceil((n_out - 1) / SEGMENTS)
+    if dt0 is not None:
+        m = _whole_steps(m, n_out - 1, (t1 - t0) / (n_out - 1) / dt0)
     starts = range(0, n_out - 1, m)
     rows = [np.pad(ts[s : s + m + 1], (0, max(0, s + m + 1 - n_out)), mode="edge") for s in starts]
     return np.stack(rows), np.array([min(m + 1, n_out - s) for s in starts])
+
+
+def _whole_steps(m: int, intervals: int, ratio: float, search: int = 10_000) -> int:
+    """The fewest save intervals `k >= m` (at most `intervals`) whose span `k ratio` (in
+    steps) is a whole number of steps to rounding (searched up to `m + search`), else the
+    fewest that span at least one step. Before, a segment shorter than `dt0` took shorter
+    steps, so a run's steps depended on its end time (`--t1`)."""
+    for k in range(m, min(intervals, m + search) + 1):
+        steps = k * ratio
+        if steps >= 1 - 1e-9 and abs(steps - round(steps)) <= 1e-9 * steps:
+            return k
+    return min(intervals, max(m, math.ceil(1 / ratio - 1e-9)))
 
 
 def fixed_step_count(span, dt0):
@@ -108,6 +126,16 @@ def fixed_step_count(span, dt0):
     (to rounding). Operators only: NumPy floats where a scene file is checked, traced
     arrays in the run."""
     return -(-(span / dt0 * (1 - 1e-12)) // 1)  # the ceiling
+
+
+def fixed_steps_taken(t0: float, t1: float, save_dt: float, dt0: float) -> tuple[int, float, int]:
+    """How many fixed steps a run from `t0` to `t1` takes (each segment as many equal ones
+    as `dt0` fits), the longest (`dt0` where the segments hold whole steps), and in how
+    many segments."""
+    rows = segment_times(t0, t1, save_dt, dt0)[0]
+    spans = rows[:, -1] - rows[:, 0]
+    counts = fixed_step_count(spans, dt0)
+    return int(np.sum(counts)), float(np.max(spans / counts)), len(rows)
 
 
 def build(spec, t1=None) -> tuple[Program, jax.stages.Compiled]:
@@ -120,7 +148,8 @@ def build(spec, t1=None) -> tuple[Program, jax.stages.Compiled]:
     from ._solve import prepare, solve, times
     from ._solvers.work import WithWork, work_done
 
-    ts, count = segment_times(spec.t0, float(spec.t1 if t1 is None else t1), spec.save_dt)
+    end = float(spec.t1 if t1 is None else t1)
+    ts, count = segment_times(spec.t0, end, spec.save_dt, spec.dt0 if spec.fixed_steps else None)
     options = dict(solver=spec.solver, dt0=spec.dt0, rtol=spec.rtol, atol=spec.atol)
     options |= dict(t0=spec.t0, t1=ts[-1, -1], max_steps=spec.max_steps)
     run = prepare(spec.scene, spec.y0, **options)

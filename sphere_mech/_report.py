@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._geometry import constraint_error
-from ._program import build
+from ._program import build, fixed_steps_taken
 from ._scene_files import check_extent, checked_end
 from ._solve import tolerances
 from ._solvers.work import power_and_rate, work_step
@@ -167,15 +167,17 @@ def scene_result(spec, run, t1=None) -> SceneResult:
     adaptive = isinstance(spec.solver, diffrax.AbstractAdaptiveSolver)
     # the tolerances the run used (simulate's defaults for the state's dtype if unset)
     rtol, atol = tolerances(spec.rtol, spec.atol, constraint.dtype)
+    end = float(spec.t1 if t1 is None else t1)
+    step = None if adaptive else fixed_steps_taken(spec.t0, end, spec.save_dt, spec.dt0)[1]
     summary = {
         "scene": spec.name,
         "file": str(spec.path),
         "solver": spec.solver_name,
-        **({"rtol": rtol, "atol": atol} if adaptive else {"dt0": spec.dt0}),
+        **({"rtol": rtol, "atol": atol} if adaptive else {"dt0": spec.dt0, "max_step": step}),
         "n_spheres": scene.n,
         "effects": [type(e).__name__ for e in scene.effects],
         "t0": spec.t0,
-        "t1": float(spec.t1 if t1 is None else t1),
+        "t1": end,
         "steps": run.steps,
         "rejected_steps": run.rejected_steps,
         "wall_time_s": run.wall_time_s,

@@ -431,7 +431,7 @@ def check_extent(spec, t1: float):
     """A run of `spec` to `t1` saves at most `MAX_SAVED` numbers and, with fixed steps, takes
     at most `max_steps` steps, counted as the run takes them (each segment between saves as
     many equal steps as `dt0` fits)."""
-    from ._program import fixed_step_count, segment_times
+    from ._program import fixed_steps_taken
 
     path, t0, save_dt = spec.path, spec.t0, spec.save_dt
     intervals = (t1 - t0) / save_dt
@@ -441,11 +441,10 @@ def check_extent(spec, t1: float):
         expected += f" = {intervals:.3g} intervals, {numbers} numbers a state) (got {save_dt:g})"
         raise SceneFileError(path, "output.save_dt", f"save_dt must give {expected}")
     if spec.fixed_steps:
-        rows = segment_times(t0, t1, save_dt)[0]
-        steps = sum(int(fixed_step_count(row[-1] - row[0], spec.dt0)) for row in rows)
+        steps, _, segments = fixed_steps_taken(t0, t1, save_dt, spec.dt0)
         if steps > spec.max_steps:
             expected = f"at most max_steps = {spec.max_steps} fixed steps from t0 to t1"
-            got = f"{spec.dt0:g}: {steps} steps in {len(rows)} segments"
+            got = f"{spec.dt0:g}: {steps} steps in {segments} segments"
             raise SceneFileError(path, "simulate.dt0", f"dt0 must give {expected} (got {got})")
 
 

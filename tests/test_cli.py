@@ -19,7 +19,7 @@ from helpers import CART_SCENE
 import sphere_mech as sm
 from sphere_mech._cli import CACHE_ENV, cache_dir, main
 from sphere_mech._cli.figures import figure
-from sphere_mech._program import SEGMENTS, build, segment_times
+from sphere_mech._program import SEGMENTS, build, fixed_steps_taken, segment_times
 from sphere_mech._report import run_scene
 from sphere_mech._scene_files import SceneFileError, load_scene
 
@@ -217,12 +217,12 @@ EDITS = {  # case: (text of GOOD, what replaces it, field, what the error says)
         "simulate.dt0",
         "dt0 must give at most max_steps = 100000 fixed steps",
     ),
-    "fixed steps in segments": (  # 100 segments of 0.005 s, each at least one step
+    "fixed steps in segments": (  # 5 segments of 0.1 s (200 save intervals), one step each
         '"Projected(Tsit5)"',
-        '"Projected(RK4)"\ndt0 = 0.1\nmax_steps = 99',
+        '"Projected(RK4)"\ndt0 = 0.1\nmax_steps = 4',
         "simulate.dt0",
-        "dt0 must give at most max_steps = 99 fixed steps from t0 to t1 (got 0.1: 100 steps in "
-        "100 segments)",
+        "dt0 must give at most max_steps = 4 fixed steps from t0 to t1 (got 0.1: 5 steps in "
+        "5 segments)",
     ),
     "huge max_steps": (
         "t1 = 0.5",
@@ -599,26 +599,26 @@ def test_segmented_run_matches_one_simulate_call(pendulum_result, tmp_path):
     )
     np.testing.assert_allclose(result.q, sol.ys[0], atol=1e-7)  # measured 2e-9
     np.testing.assert_allclose(result.v, sol.ys[1], atol=1e-6)  # measured 8e-8
-    fixed = load_scene(
-        _bad(
-            tmp_path,
-            GOOD.replace('"Projected(Tsit5)"', '"Projected(RK4)"\ndt0 = 0.005')
-            + "[output]\nsave_dt = 0.01",
+    # Steps shorter and longer than the save interval: before, a segment (here 0.005 s)
+    # shorter than dt0 = 0.02 took steps of its own length (100 of 0.005 s, off by 2e-4).
+    for dt0, save_dt, steps, saves in ((0.005, 0.01, 100, 51), (0.02, 0.005, 25, 101)):
+        text = GOOD.replace('"Projected(Tsit5)"', f'"Projected(RK4)"\ndt0 = {dt0}')
+        fixed = load_scene(_bad(tmp_path, text + f"[output]\nsave_dt = {save_dt}"))
+        run = run_scene(fixed)
+        sol = sm.simulate(
+            scene,
+            fixed.y0,
+            fixed.t1,
+            solver=fixed.solver,
+            dt0=fixed.dt0,
+            saveat=diffrax.SaveAt(ts=run.t),
         )
-    )
-    program, compiled = build(fixed)
-    run = program.integrate()
-    sol = sm.simulate(
-        scene,
-        fixed.y0,
-        fixed.t1,
-        solver=fixed.solver,
-        dt0=fixed.dt0,
-        saveat=diffrax.SaveAt(ts=run.t),
-    )
-    assert run.steps == sol.stats["num_steps"] == 100 and len(run.t) == 51
-    np.testing.assert_allclose(run.q, sol.ys[0], atol=1e-13)
-    np.testing.assert_allclose(run.v, sol.ys[1], atol=1e-12)
+        assert run.summary["steps"] == sol.stats["num_steps"] == steps and len(run.t) == saves
+        assert run.summary["max_step"] == pytest.approx(dt0, rel=1e-12)
+        np.testing.assert_allclose(run.q, sol.ys[0], atol=1e-13)
+        np.testing.assert_allclose(run.v, sol.ys[1], atol=1e-12)
+    # No common multiple of dt0 and save_dt within the run: as many equal steps as fit.
+    assert fixed_steps_taken(0.0, 1.0, 0.3, 0.07) == (15, pytest.approx(1 / 15), 3)
 
 
 def test_end_time_must_follow_t0(tmp_path, capsys):
