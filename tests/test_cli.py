@@ -499,18 +499,23 @@ def test_a_signal_waits_for_the_files_moving_into_place(tmp_path, monkeypatch, c
 
 def test_stale_temporary_folders_are_removed(tmp_path, capsys):
     """A folder left by a killed run (its pid gone) is removed by the next run; one of a
-    live process stays."""
+    live process stays, and so do a user's folders that merely share the prefix (before,
+    `.sphere-mech-notes` and `.sphere-mech-1-` were removed)."""
     out = tmp_path / "out"
     gone = subprocess.run(
         [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True
     ).stdout.strip()
     stale, live = out / f".sphere-mech-{gone}-abc", out / f".sphere-mech-{os.getppid()}-x"
-    for folder in (stale, live):
+    users = [
+        out / name for name in (".sphere-mech-notes", f".sphere-mech-{gone}-", ".sphere-mech-")
+    ]
+    for folder in (stale, live, *users):
         folder.mkdir(parents=True)
         (folder / "trajectory.npz").write_bytes(b"partial")
     assert run_cli(_bad(tmp_path, GOOD), out, "--no-progress", "--no-animation") == 0
     assert not stale.exists() and live.exists()
-    assert sorted(p.name for p in out.glob(".sphere-mech-*")) == [live.name]
+    kept = sorted(p.name for p in out.glob(".sphere-mech-*"))
+    assert kept == sorted([live.name, *(p.name for p in users)])
 
 
 def test_no_cache_writes_nothing(tmp_path, monkeypatch, capsys):

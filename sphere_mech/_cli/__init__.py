@@ -9,6 +9,7 @@ import argparse
 import json
 import math
 import os
+import re
 import shutil
 import signal
 import sys
@@ -25,6 +26,7 @@ DEFAULT_SCENE = Path(__file__).resolve().parents[1] / "scenes" / "default.toml"
 
 CACHE_ENV = "SPHERE_MECH_CACHE_DIR"
 TEMP_PREFIX = ".sphere-mech-"  # a run completes its files in `.sphere-mech-<pid>-<random>`
+_TEMP_NAME = re.compile(re.escape(TEMP_PREFIX) + r"(\d+)-[A-Za-z0-9_]+")  # mkdtemp's names
 STALE_AFTER_S = 24 * 3600  # such a folder, its process gone or older than this: removed
 _WRITING: set[Path] = set()  # this process's temporary folders, removed on a signal
 _REPLACING = threading.Lock()  # held while a run's files move into place: a signal waits
@@ -76,15 +78,17 @@ def check_out(out: Path) -> None:
 
 
 def remove_stale(out: Path) -> None:
-    """Remove the temporary folders of killed runs in `out` (process gone, or stale)."""
+    """Remove the temporary folders of killed runs in `out` (process gone, or stale): only
+    names `mkdtemp` gives them (`.sphere-mech-<pid>-<random>`), not a user's folder that
+    happens to start with the prefix (before: any, e.g. `.sphere-mech-notes`, was removed)."""
     now = time.time()
     for folder in out.glob(f"{TEMP_PREFIX}*"):
-        pid = folder.name.removeprefix(TEMP_PREFIX).split("-")[0]
+        match = _TEMP_NAME.fullmatch(folder.name)
         try:
             old = now - folder.stat().st_mtime > STALE_AFTER_S
         except OSError:  # removed meanwhile
             continue
-        if folder.is_dir() and (old or not (pid.isdigit() and _alive(int(pid)))):
+        if match and folder.is_dir() and (old or not _alive(int(match[1]))):
             shutil.rmtree(folder, ignore_errors=True)
 
 
