@@ -25,7 +25,7 @@ import time
 from _harness import load, machine, publish, pyplot, save_figure, table
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-COMMAND = "import sys; from sphere_mech._cli import main; sys.exit(main())"
+COMMAND = "import sys; from sphere_mech._cli import console_main; sys.exit(console_main())"
 
 
 def timed_run(cache: pathlib.Path, out: pathlib.Path) -> tuple[float, float]:

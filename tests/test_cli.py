@@ -17,7 +17,7 @@ import pytest
 from helpers import CART_SCENE
 
 import sphere_mech as sm
-from sphere_mech._cli import CACHE_ENV, cache_dir, main
+from sphere_mech._cli import CACHE_ENV, CACHE_READ_ERROR, cache_dir, main
 from sphere_mech._cli.figures import figure
 from sphere_mech._program import SEGMENTS, build, fixed_steps_taken, segment_times
 from sphere_mech._report import run_scene
@@ -363,12 +363,13 @@ def test_no_animation(tmp_path, capsys):
     assert capsys.readouterr().out.splitlines()[-1].endswith("summary.json, plot.png")
 
 
+CLI = "import sys; from sphere_mech._cli import console_main; sys.exit(console_main())"
 CACHE_COUNTS = """import collections, sys
 import jax.monitoring
 counts = collections.Counter()
 jax.monitoring.register_event_listener(lambda event, **kw: counts.update([event]))
-from sphere_mech._cli import main
-status = main(sys.argv[1:])
+from sphere_mech._cli import console_main
+status = console_main(sys.argv[1:])
 print("cache", counts["/jax/compilation_cache/cache_hits"],
       counts["/jax/compilation_cache/cache_misses"])
 sys.exit(status)
@@ -424,6 +425,77 @@ def test_repeated_runs_are_served_by_the_cache_and_never_fail(tmp_path):
         np.testing.assert_array_equal(again[name], first[name])
 
 
+DAMAGED_CACHE = """import sys, warnings
+from pathlib import Path
+import jax, jax.numpy as jnp
+from sphere_mech._cli import enable_compilation_cache, repairing_cache
+folder = Path(sys.argv[1])
+enable_compilation_cache(folder)
+f = jax.jit(lambda x: jnp.sin(x) * 2.0)
+f(1.0).block_until_ready()
+(folder / "notes.txt").write_text("kept")
+for entry in folder.glob("*-cache"):
+    entry.write_bytes(b"damaged")
+jax.clear_caches()
+with repairing_cache(folder):
+    print(float(f(1.0)))
+    warnings.warn("another warning")
+print(sorted(p.name for p in folder.iterdir()))
+"""
+
+
+def test_damaged_cache_entries_are_removed_with_one_line(tmp_path):
+    """A damaged entry of the compilation cache (a disk error, an interrupted copy): JAX
+    warns, compiles the program again and never rewrites the entry, so every later run
+    warned dozens of times and recompiled (8.1 s against 5.3 s on the default scene). Now
+    the run's warnings about it become one line and the entries are removed (the next run
+    stores them again); other warnings and other files are left alone. A cache folder
+    that cannot be written turns the cache off with one line naming the variable."""
+    folder = tmp_path / "cache"
+    argv = [sys.executable, "-c", DAMAGED_CACHE, str(folder)]
+    proc = subprocess.run(argv, capture_output=True, text=True, env=_env(), timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    value, files = proc.stdout.splitlines()
+    assert float(value) == pytest.approx(2 * np.sin(1.0), rel=1e-6) and files == "['notes.txt']"
+    err = proc.stderr.splitlines()
+    assert "another warning" in proc.stderr and CACHE_READ_ERROR not in proc.stderr
+    assert err[-1] == (
+        f"sphere-mech: 1 program could not be read from the compilation cache {folder} "
+        "(damaged entries): its 1 entries were removed, and the next run compiles and "
+        "stores them again"
+    )
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    env = _env(**{CACHE_ENV: str(afile)})
+    argv = [sys.executable, "-c", CLI, "run", str(tmp_path / "missing.toml")]
+    proc = subprocess.run(argv, capture_output=True, text=True, env=env, timeout=120)
+    assert proc.stderr.splitlines()[0].startswith(
+        f"sphere-mech: compilation cache off: cannot create or write the folder {afile} ("
+    )
+    assert proc.stderr.splitlines()[0].endswith(
+        "set $SPHERE_MECH_CACHE_DIR to another folder or 'off'"
+    )
+
+
+def test_main_from_python_keeps_equinox_checks(tmp_path):
+    """`main` called from Python leaves equinox's run-time checks on for the rest of the
+    process (before: it set `EQX_ON_ERROR=nan`, and a later `acceleration` off the sphere
+    returned NaN instead of raising); the `sphere-mech` program (`console_main`) turns
+    them off in its own fresh process, so that its programs can be stored."""
+    code = (
+        "import os, sys; import sphere_mech._cli as cli; entry = getattr(cli, sys.argv[1]);"
+        "status = entry(['run', sys.argv[2], '--out', sys.argv[3]]);"
+        "import equinox._config as c; print(status, os.environ.get('EQX_ON_ERROR'), c.EQX_ON_ERROR)"
+    )
+    missing, out = str(tmp_path / "missing.toml"), str(tmp_path / "out")
+    printed = []
+    for entry in ("main", "console_main"):
+        argv = [sys.executable, "-c", code, entry, missing, out]
+        proc = subprocess.run(argv, capture_output=True, text=True, env=_env(), timeout=120)
+        printed.append(proc.stdout.split())
+    assert printed == [["2", "None", "raise"], ["2", "nan", "nan"]]
+
+
 def test_sigint_is_one_line_and_status_130(tmp_path):
     """Ctrl-C while compiling or integrating (issue 28 item 7: a traceback, sometimes a
     segfault): one line, exit status 130, no temporary folder left."""
@@ -432,7 +504,7 @@ def test_sigint_is_one_line_and_status_130(tmp_path):
     argv = [
         sys.executable,
         "-c",
-        "import sys; from sphere_mech._cli import main; sys.exit(main())",
+        CLI,
         "run",
         str(long),
         "--out",

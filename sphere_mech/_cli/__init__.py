@@ -6,6 +6,7 @@ Runs a scene file (default: a double spherical pendulum, 20 s) and writes `traje
 persistent compilation cache (`cache_dir`). See docs/getting-started.md."""
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -16,6 +17,7 @@ import sys
 import tempfile
 import threading
 import time
+import warnings
 from pathlib import Path
 
 # JAX is imported where it is used, after `main` has taken over SIGINT and SIGTERM: Ctrl-C
@@ -67,14 +69,71 @@ class CommandError(Exception):
 def check_out(out: Path) -> None:
     """Create `out` and write a file in it before integrating, else raise `CommandError`."""
     try:
-        out.mkdir(parents=True, exist_ok=True)
+        _probe(out)
         remove_stale(out)
-        with tempfile.TemporaryFile(dir=out, prefix=".sphere-mech-probe-") as f:
-            f.write(bytes(65536))  # a full disk fails here
-            f.flush()
-            os.fsync(f.fileno())
     except OSError as e:
         raise CommandError(f"--out: cannot create or write the folder {out} ({e})") from None
+
+
+def _probe(folder: Path) -> None:
+    """Create `folder` and write a file in it (raises `OSError`)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryFile(dir=folder, prefix=".sphere-mech-probe-") as f:
+        f.write(bytes(65536))  # a full disk fails here
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def usable_cache(folder: Path) -> bool:
+    """Whether the compilation cache can live in `folder`; if not, one line naming
+    `$SPHERE_MECH_CACHE_DIR` (before: JAX warned once per program, naming neither)."""
+    try:
+        _probe(folder)
+        return True
+    except OSError as e:
+        print(
+            f"{PROG}: compilation cache off: cannot create or write the folder {folder} ({e}); "
+            f"set ${CACHE_ENV} to another folder or 'off'",
+            file=sys.stderr,
+        )
+        return False
+
+
+CACHE_READ_ERROR = "Error reading persistent compilation cache entry"  # JAX's warning
+
+
+@contextlib.contextmanager
+def repairing_cache(folder: Path | None):
+    """Run with JAX's warnings about unreadable entries of the cache in `folder` caught;
+    after the run, if there were any, remove the cache's entries and say so in one line.
+    JAX compiles such a program again but never rewrites its entry: before, every later
+    run printed dozens of warnings and compiled those programs again."""
+    damaged = []
+    with warnings.catch_warnings():
+        warnings.filterwarnings("always", message=CACHE_READ_ERROR)
+        show = warnings.showwarning
+
+        def sort(message, *args, **kwargs):
+            if str(message).startswith(CACHE_READ_ERROR):
+                damaged.append(message)
+            else:
+                show(message, *args, **kwargs)
+
+        warnings.showwarning = sort
+        try:
+            yield
+        finally:
+            if damaged and folder is not None:
+                entries = [p for p in folder.glob("*-cache") if p.is_file()]
+                for path in entries + list(folder.glob("*-atime")):
+                    path.unlink(missing_ok=True)
+                n = len(set(map(str, damaged)))
+                print(
+                    f"{PROG}: {n} program{'s' * (n != 1)} could not be read from the compilation "
+                    f"cache {folder} (damaged entries): its {len(entries)} entries were removed, "
+                    "and the next run compiles and stores them again",
+                    file=sys.stderr,
+                )
 
 
 def remove_stale(out: Path) -> None:
@@ -223,8 +282,20 @@ def _on_signals():
     return restore
 
 
+def console_main(argv=None) -> int:
+    """The `sphere-mech` program: in a fresh process (equinox not yet imported) its
+    compiled programs check nothing at run time (`EQX_ON_ERROR=nan` unless set), so that
+    JAX's persistent cache can store them (a run-time check calls back to Python); then
+    `main`. `main` called from Python leaves equinox's checks as they are (before, it set
+    that variable too, and the rest of the process lost its run-time errors)."""
+    if "equinox" not in sys.modules:
+        os.environ.setdefault("EQX_ON_ERROR", "nan")
+    return main(argv)
+
+
 def main(argv=None) -> int:
-    """The command line (see the module's docstring); returns the exit status."""
+    """The command line (see the module's docstring); returns the exit status. Programs
+    compiled here keep equinox's run-time checks unless `console_main` runs it."""
     _WRITTEN.clear()
     restore = _on_signals()
     try:
@@ -251,16 +322,22 @@ def _main(argv=None) -> int:
     ):
         p_run.add_argument(flag, action="store_true", help=text)
     ns = parser.parse_args(argv)
-    if "equinox" not in sys.modules:  # a fresh process: its programs check nothing at run
-        os.environ.setdefault("EQX_ON_ERROR", "nan")  # time, so they can be stored
-    if not ns.no_cache and (folder := cache_dir()) is not None:
+    folder = None if ns.no_cache else cache_dir()
+    if folder is not None and usable_cache(folder):
         enable_compilation_cache(folder)
+    else:
+        folder = None
     if ns.t1 is not None and not math.isfinite(ns.t1):  # after t0: checked with the file
         return _fail(f"--t1 must be a finite time in s (got {ns.t1})", 2)
     try:
-        summary = run(
-            ns.scene, ns.out, t1=ns.t1, progress=not ns.no_progress, animation=not ns.no_animation
-        )
+        with repairing_cache(folder):
+            summary = run(
+                ns.scene,
+                ns.out,
+                t1=ns.t1,
+                progress=not ns.no_progress,
+                animation=not ns.no_animation,
+            )
     except CommandError as e:
         return _fail(str(e), e.status)
     except Exception as e:
