@@ -20,7 +20,7 @@ import numpy as np
 from ._checks import nonfinite, off_rotation, off_tangent, off_unit
 from ._geometry import hat
 from ._scene import forces, kinetic, potentials, rotorcraft
-from ._scene.base import MAX_MAGNITUDE, ParameterError
+from ._scene.base import MAX_MAGNITUDE, ParameterError, overflow
 from ._scene.scene import Scene
 from ._simulate import simulate
 from ._solve import OptionError, options
@@ -212,9 +212,11 @@ def _array(path, field: str, x, shapes, expected: str, bounds=None) -> np.ndarra
     NaN and infinities get simulate's words, naming the key."""
     low, high = bounds or (-MAX_MAGNITUDE, MAX_MAGNITUDE)
     if _numbers(x) and np.shape(x) in shapes:
-        bad, message = nonfinite(np.asarray(x, dtype=float), field.rsplit(".", 1)[-1])
-        if bad:
-            raise SceneFileError(path, field, f"{message} Got {_show(x)}.")
+        a, name = np.asarray(x, dtype=float), field.rsplit(".", 1)[-1]
+        if not np.all(np.isfinite(a)):
+            raise SceneFileError(path, field, f"{nonfinite(a, name)[1]} Got {_show(x)}.")
+        if message := overflow(name, a):
+            raise SceneFileError(path, field, message)
     if not (_numbers(x) and np.shape(x) in shapes and low <= np.min(x) <= np.max(x) <= high):
         raise SceneFileError(path, field, f"{expected}, got {_show(x)}")
     return np.asarray(x, dtype=float)

@@ -978,6 +978,22 @@ def test_parameters_out_of_range_are_refused_in_python_as_in_files():
     assert chain.masses.dtype == jnp.float32
 
 
+def test_values_beyond_float32_without_x64_name_the_overflow(tmp_path):
+    """With x64 off, a finite parameter or initial value beyond float32's range is refused
+    as such, in Python as in files (before: cast to inf first, then reported as "got inf"
+    or as "contains NaN or infinite values")."""
+    words = r"must be at most 3.4e\+38 in magnitude in float32 \(enable float64: .*\), got 1e\+50$"
+    replace = {"angular_velocity = [0.1,": "angular_velocity = [1e50,"}
+    path = _file(tmp_path, template=RIGID_SCENE, replace=replace)
+    with jax.enable_x64(False):
+        with pytest.raises(ValueError, match="^masses " + words):
+            sm.chain_pendulum([1e50, 1.0], [1.0, 1.0])
+        with pytest.raises(sm.SceneFileError, match="initial.angular_velocity: angular_vel"):
+            sm.load_scene(path)
+        with pytest.raises(sm.SceneFileError, match="angular_velocity " + words):
+            sm.load_scene(path)
+
+
 def test_file_attitude_not_finite_or_not_a_rotation_in_simulates_words(tmp_path):
     """`[initial] attitude`: NaN, inf or 1e200 entries are refused in simulate's words (the
     file said it expected 3 rows of 3 numbers, which they were); a misshapen one by its

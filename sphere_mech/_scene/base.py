@@ -30,8 +30,24 @@ def as_float(x, name: str, what: str = "a number or an array of numbers") -> jax
             kind = "O"
         if kind not in "iuf":
             raise ParameterError(name, f"{name}: expected {what}, got {x!r}")
+        message = overflow(name, np.asarray(x, dtype=np.float64))
+        if message:
+            raise ParameterError(name, message)
     x = jnp.asarray(x)
     return x if jnp.issubdtype(x.dtype, jnp.floating) else x.astype(jnp.result_type(float))
+
+
+def overflow(name: str, a: np.ndarray) -> str | None:
+    """What to say if finite values of `a` overflow JAX's default float (float32 unless
+    x64 is enabled), else `None` (before: `1e50` became `inf` and was reported as such)."""
+    dtype = jnp.result_type(float)
+    big = np.abs(a[np.isfinite(a)])
+    if big.size and big.max() > jnp.finfo(dtype).max:
+        return (
+            f"{name} must be at most {float(jnp.finfo(dtype).max):.3g} in magnitude in {dtype} "
+            f"(enable float64: jax.config.update('jax_enable_x64', True)), got {big.max():g}"
+        )
+    return None
 
 
 def number(name: str):
