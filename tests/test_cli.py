@@ -677,7 +677,7 @@ def test_segmented_run_matches_one_simulate_call(pendulum_result, tmp_path):
     np.testing.assert_allclose(result.q, sol.ys[0], atol=1e-7)  # measured 2e-9
     np.testing.assert_allclose(result.v, sol.ys[1], atol=1e-6)  # measured 8e-8
     # Steps shorter and longer than the save interval: before, a segment (here 0.005 s)
-    # shorter than dt0 = 0.02 took steps of its own length (100 of 0.005 s, off by 2e-4).
+    # shorter than dt0 = 0.02 took steps of its own length (100 of 0.005 s).
     for dt0, save_dt, steps, saves in ((0.005, 0.01, 100, 51), (0.02, 0.005, 25, 101)):
         text = GOOD.replace('"Projected(Tsit5)"', f'"Projected(RK4)"\ndt0 = {dt0}')
         fixed = load_scene(_bad(tmp_path, text + f"[output]\nsave_dt = {save_dt}"))

@@ -988,9 +988,8 @@ def test_values_beyond_float32_without_x64_name_the_overflow(tmp_path):
     with jax.enable_x64(False):
         with pytest.raises(ValueError, match="^masses " + words):
             sm.chain_pendulum([1e50, 1.0], [1.0, 1.0])
-        with pytest.raises(sm.SceneFileError, match="initial.angular_velocity: angular_vel"):
-            sm.load_scene(path)
-        with pytest.raises(sm.SceneFileError, match="angular_velocity " + words):
+        field = r"initial\.angular_velocity: angular_velocity "
+        with pytest.raises(sm.SceneFileError, match=field + words):
             sm.load_scene(path)
 
 
