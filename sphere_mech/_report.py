@@ -4,7 +4,6 @@ during the integration (`WithWork`) over the solver's own steps."""
 
 import dataclasses
 
-import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -164,7 +163,7 @@ def scene_result(spec, run, t1=None) -> SceneResult:
     constraint = np.asarray(jax.vmap(constraint_error)(scene.spheres(q)))
     x = np.asarray(jax.vmap(scene.drawn_points)(q))
     base = {} if scene.base is None else {BASE: chain_parts(q)[0][-1].tolist()}
-    adaptive = isinstance(spec.solver, diffrax.AbstractAdaptiveSolver)
+    adaptive = not spec.fixed_steps  # as the run decided (`build`)
     # the tolerances the run used (simulate's defaults for the state's dtype if unset)
     rtol, atol = tolerances(spec.rtol, spec.atol, constraint.dtype)
     end = float(spec.t1 if t1 is None else t1)

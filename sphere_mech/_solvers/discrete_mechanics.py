@@ -123,8 +123,7 @@ def solve_position(
         return tree_scale(h, from_tangent(T0, a))
 
     def momentum_residual(a):
-        w = displacement(a)
-        q1, step = space.exp(q0, w), space.exp_step(q0, w)
+        q1, step = _end(space, q0, displacement(a))
         d1 = jax.grad(discrete_lagrangian, argnums=3)(system, t0, h, q0, q1, args, step)
         forces = discrete_forces(system, t0, h, q0, q1, args, step)
         r = tree_add(mu0, d1)
@@ -142,6 +141,14 @@ def solve_position(
         sol = optx.root_find(residual, finder, a0 / unit, max_steps=max_steps, throw=False)
         sol = eqx.tree_at(lambda s: s.value, sol, unit * sol.value)
     return displacement, sol
+
+
+def _end(space, q0, w):
+    """`(q1, step)`: the step's end `exp(q0, w)` as `q0 + step`, `step = space.exp_step(q0,
+    w)` (one evaluation of Rodrigues' terms for both; the same `exp` on spheres and
+    Euclidean factors, to rounding on rotations)."""
+    step = space.exp_step(q0, w)
+    return tree_add(q0, step), step
 
 
 def substep(
@@ -168,9 +175,9 @@ def substep(
     displacement, sol = solve_position(
         system, t0, h, q0, mu0, scale, unit, guess, args, tol, max_steps, fast_path, reuse_jacobian
     )
-    w = displacement(sol.value)
+    q1, step = _end(space, q0, displacement(sol.value))
     # Renormalizing stops rounding errors from accumulating over millions of steps.
-    q1, step = space.normalize(space.exp(q0, w)), space.exp_step(q0, w)
+    q1 = space.normalize(q1)
     d2 = jax.grad(discrete_lagrangian, argnums=4)(system, t0, h, q0, q1, args, step)
     forces = discrete_forces(system, t0, h, q0, q1, args, step)
     if forces is not None:
